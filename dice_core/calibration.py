@@ -1,0 +1,341 @@
+"""Dark and flat-field (PRNU) calibration maps.
+
+Functions take streams of :class:`dice_core.io.Chunk` (frames in ADU, with
+their saturation masks) and return xarray Datasets with units; they never open
+files. Maps are (row, col); outside the science area every map is NaN, as the
+products contract requires.
+
+The PRNU follows the paper's five steps (section "Dark subtraction and
+flat-field correction"): dark subtraction, per-frame normalisation to the first
+frame's level, temporal mean, gradient removal, normalisation to 1.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Iterable
+
+import numpy as np
+import xarray as xr
+
+from dice_core.io import Chunk
+from dice_core.manifest import Detector
+
+__all__ = [
+    "TemporalStatistics",
+    "dark_maps",
+    "prnu_map",
+    "prnu_difference",
+    "remove_gradient",
+    "area_rms",
+]
+
+log = logging.getLogger(__name__)
+
+
+class TemporalStatistics:
+    """Per-pixel mean and variance over frames, accumulated chunk by chunk.
+
+    Uses the pairwise update of Chan, Golub & LeVeque (1979) in float64, so
+    the result does not depend on chunking beyond rounding, and memory is a few
+    maps whatever the number of frames. Masked samples (``valid`` False) are
+    left out and counted.
+    """
+
+    def __init__(self, shape):
+        self.count = np.zeros(shape, dtype=np.int64)
+        self.mean = np.zeros(shape)
+        self._m2 = np.zeros(shape)
+        self.masked = np.zeros(shape, dtype=np.int64)
+
+    def update(self, frames: np.ndarray, valid: np.ndarray | None = None):
+        """Add frames (frame, row, col); ``valid`` marks the samples to use."""
+        if valid is None:
+            n_b = np.full(frames.shape[1:], frames.shape[0], dtype=np.int64)
+            chunk_sum = frames.sum(axis=0)
+        else:
+            n_b = valid.sum(axis=0)
+            frames = np.where(valid, frames, 0.0)
+            chunk_sum = frames.sum(axis=0)
+            self.masked += frames.shape[0] - n_b
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_b = np.where(n_b > 0, chunk_sum / np.maximum(n_b, 1), 0.0)
+        dev = frames - mean_b
+        if valid is not None:
+            dev = np.where(valid, dev, 0.0)
+        m2_b = np.einsum("tij,tij->ij", dev, dev)
+        n_a = self.count
+        n = n_a + n_b
+        delta = mean_b - self.mean
+        with np.errstate(invalid="ignore", divide="ignore"):
+            frac = np.where(n > 0, n_b / np.maximum(n, 1), 0.0)
+        self.mean = self.mean + delta * frac
+        self._m2 = self._m2 + m2_b + delta**2 * n_a * frac
+        self.count = n
+
+    @property
+    def variance(self) -> np.ndarray:
+        """Unbiased per-pixel variance (NaN with fewer than 2 samples)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(self.count > 1, self._m2 / np.maximum(self.count - 1, 1), np.nan)
+
+
+def _science_only(values: np.ndarray, detector: Detector) -> np.ndarray:
+    out = np.full(detector.shape, np.nan)
+    sl = detector.science_slices
+    out[sl] = values[sl]
+    return out
+
+
+def _coords(detector: Detector):
+    return {"row": np.arange(detector.shape[0]), "col": np.arange(detector.shape[1])}
+
+
+def _progress(label, chunk: Chunk, n_frames: int | None, every: int = 10_000):
+    """Log progress about every ``every`` frames of a long pass."""
+    end = chunk.start + chunk.frames.shape[0]
+    if n_frames and end // every != chunk.start // every:
+        log.info("%s: %d / %d frames (%.0f%%)", label, end, n_frames, 100 * end / n_frames)
+
+
+def dark_maps(chunks: Iterable[Chunk], detector: Detector, *, n_frames: int | None = None) -> xr.Dataset:
+    """Temporal mean and temporal noise of a dark acquisition.
+
+    Parameters
+    ----------
+    chunks : iterable of Chunk
+        The dark frames, in ADU.
+    detector : Detector
+    n_frames : int, optional
+        Total frames, only for progress messages.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``dark`` (row, col): temporal mean, adu. ``noise`` (row, col): temporal
+        standard deviation (unbiased), adu. ``saturated_count`` (row, col):
+        saturated samples left out. Scalars ``n_frames``, ``noise_median`` (adu).
+        NaN outside the science area.
+    """
+    stats = None
+    for chunk in chunks:
+        if stats is None:
+            stats = TemporalStatistics(chunk.frames.shape[1:])
+        stats.update(chunk.frames, ~chunk.saturated)
+        _progress("dark", chunk, n_frames)
+    if stats is None:
+        raise ValueError("no dark frames")
+    n = int(stats.count.max())
+    if stats.masked.any():
+        log.warning("dark: %d saturated samples masked in %d pixels",
+                    stats.masked.sum(), np.count_nonzero(stats.masked))
+    dark = _science_only(stats.mean, detector)
+    noise = _science_only(np.sqrt(stats.variance), detector)
+    ds = xr.Dataset(
+        {
+            "dark": (("row", "col"), dark, {"units": "adu", "long_name": "temporal mean of the dark frames"}),
+            "noise": (("row", "col"), noise,
+                      {"units": "adu", "long_name": "temporal standard deviation of the dark frames"}),
+            "saturated_count": (("row", "col"), stats.masked.astype(np.int32),
+                                {"units": "1", "long_name": "saturated dark samples left out"}),
+            "n_frames": ((), n, {"units": "1", "long_name": "frames in the dark acquisition"}),
+            "noise_median": ((), float(np.nanmedian(noise)),
+                             {"units": "adu", "long_name": "median temporal noise over the science area"}),
+        },
+        coords=_coords(detector),
+    )
+    return ds
+
+
+def _poly_design(rows, cols, shape, degree):
+    """Design matrix of 2-D polynomial terms x^i y^j (i + j <= degree) in centred, scaled coordinates."""
+    y = (rows - (shape[0] - 1) / 2) / max(shape[0] / 2, 1)
+    x = (cols - (shape[1] - 1) / 2) / max(shape[1] / 2, 1)
+    terms = [x**i * y**j for total in range(degree + 1) for j in range(total + 1) for i in [total - j]]
+    return np.stack(terms, axis=-1)
+
+
+def remove_gradient(image: np.ndarray, mask: np.ndarray, *, degree: int = 1):
+    """Divide a map by its least-squares 2-D polynomial fit over ``mask``.
+
+    Parameters
+    ----------
+    image : ndarray (row, col)
+    mask : bool ndarray (row, col)
+        Pixels used in the fit (non-finite pixels are also left out).
+    degree : int, keyword-only
+        0 removes only the level, 1 a plane (the paper's gradient), 2 adds curvature.
+
+    Returns
+    -------
+    flattened, surface : ndarray
+        ``image / surface`` and the fitted surface, both (row, col).
+
+    Notes
+    -----
+    The PRNU is multiplicative, so the illumination surface is divided out
+    rather than subtracted; a flat image times a polynomial of ``degree`` is
+    returned exactly flat.
+    """
+    if degree < 0:
+        raise ValueError(f"degree must be >= 0, got {degree}")
+    use = mask & np.isfinite(image)
+    rows, cols = np.nonzero(use)
+    design = _poly_design(rows, cols, image.shape, degree)
+    coef, *_ = np.linalg.lstsq(design, image[use], rcond=None)
+    all_rows, all_cols = np.indices(image.shape)
+    surface = _poly_design(all_rows, all_cols, image.shape, degree) @ coef
+    return image / surface, surface
+
+
+def area_rms(image: np.ndarray, detector: Detector) -> float:
+    """Standard deviation of a map over the finite pixels of the science area."""
+    values = image[detector.science_slices]
+    return float(np.nanstd(values))
+
+
+def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, detector: Detector, *,
+             gradient_degree: int = 1, n_frames: int | None = None, label: str = "flat") -> xr.Dataset:
+    """PRNU map of a flat-field acquisition, with its photon-noise limit.
+
+    Parameters
+    ----------
+    chunks : iterable of Chunk
+        Raw flat frames, ADU.
+    dark : ndarray (row, col)
+        Mean dark frame, ADU (NaN outside the science area is fine).
+    dark_noise : ndarray (row, col)
+        Temporal dark noise (read noise), ADU rms.
+    detector : Detector
+        Science area and gain (electrons per ADU).
+    gradient_degree : int, keyword-only
+        Degree of the illumination surface removed in step 4 (1: plane).
+    n_frames : int, optional
+        Total frames, only for progress messages.
+    label : str, keyword-only
+        Name in log messages.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``prnu`` (row, col), mean 1 over the science area. ``photon_noise_limit``
+        (row, col): its 1-sigma error expected from photon and read noise.
+        ``temporal_error`` (row, col): the same error measured from the scatter
+        of the normalised frames. ``mean_signal`` (row, col): dark-subtracted
+        mean level, adu. ``illumination`` (row, col): the removed surface,
+        relative. ``frame_level`` (frame): mean science-area level of each
+        dark-subtracted frame, adu. Scalars ``n_frames``, ``prnu_rms``,
+        ``photon_noise_limit_rms``, ``saturated_samples``.
+
+    Notes
+    -----
+    For a pixel of mean dark-subtracted signal :math:`S` (ADU), gain :math:`g`
+    (e-/ADU) and read noise :math:`\\sigma_r` (ADU), one frame has variance
+    :math:`S/g + \\sigma_r^2` ADU², so the relative error of its mean over
+    :math:`N` frames, and of the PRNU, is
+
+    .. math:: \\sigma_{\\rm PRNU} = \\mathrm{PRNU} \\, \\sqrt{(S/g + \\sigma_r^2)/N} \\,/\\, S .
+
+    The per-frame normalisation (step 2) and the final normalisation are
+    common to all pixels and do not change this to first order.
+    """
+    sl = detector.science_slices
+    science = detector.science_mask()
+    dark_filled = np.where(np.isfinite(dark), dark, 0.0)
+    stats = raw_stats = None
+    levels = []
+    reference_level = None
+    for chunk in chunks:
+        frames = chunk.frames - dark_filled
+        valid = ~chunk.saturated
+        if stats is None:
+            stats = TemporalStatistics(frames.shape[1:])
+            raw_stats = TemporalStatistics(frames.shape[1:])
+        # Step 2: scale each frame to the first frame's mean level over the science area.
+        v = valid[:, sl[0], sl[1]]
+        f = frames[:, sl[0], sl[1]]
+        level = np.where(v, f, 0.0).sum(axis=(1, 2)) / np.maximum(v.sum(axis=(1, 2)), 1)
+        if np.any(level <= 0):
+            raise ValueError(f"{label}: frame {chunk.start + int(np.argmin(level))} has no positive signal "
+                             "after dark subtraction")
+        if reference_level is None:
+            reference_level = level[0]
+        levels.append(level)
+        stats.update(frames * (reference_level / level)[:, None, None], valid)
+        raw_stats.update(frames, valid)
+        _progress(label, chunk, n_frames)
+    if stats is None:
+        raise ValueError(f"{label}: no frames")
+
+    mean = stats.mean  # step 3
+    if stats.masked.any():
+        log.warning("%s: %d saturated samples masked in %d pixels", label,
+                    stats.masked.sum(), np.count_nonzero(stats.masked))
+    # Step 4: divide out the smooth illumination; step 5: mean 1 over the science area.
+    fit_mask = science & (stats.count > 0)
+    flattened, surface = remove_gradient(np.where(fit_mask, mean, np.nan), fit_mask, degree=gradient_degree)
+    prnu = flattened / np.nanmean(flattened[sl])
+
+    signal = raw_stats.mean
+    with np.errstate(invalid="ignore", divide="ignore"):
+        variance_expected = signal / detector.gain + dark_noise**2
+        limit = prnu * np.sqrt(variance_expected / stats.count) / signal
+        measured = prnu * np.sqrt(stats.variance / stats.count) / mean
+    frame_level = np.concatenate(levels)
+    relative_surface = surface / np.nanmean(surface[sl])
+    ds = xr.Dataset(
+        {
+            "prnu": (("row", "col"), _science_only(prnu, detector),
+                     {"units": "1", "long_name": "pixel response non-uniformity (relative sensitivity)"}),
+            "photon_noise_limit": (("row", "col"), _science_only(limit, detector),
+                                   {"units": "1", "long_name": "1-sigma PRNU error expected from photon and read noise"}),
+            "temporal_error": (("row", "col"), _science_only(measured, detector),
+                               {"units": "1", "long_name": "1-sigma PRNU error from the scatter of normalised frames"}),
+            "mean_signal": (("row", "col"), _science_only(signal, detector),
+                            {"units": "adu", "long_name": "dark-subtracted temporal mean signal"}),
+            "illumination": (("row", "col"), _science_only(relative_surface, detector),
+                             {"units": "1", "long_name": f"removed illumination surface (degree {gradient_degree})"}),
+            "frame_level": (("frame",), frame_level,
+                            {"units": "adu", "long_name": "mean science-area level of each dark-subtracted frame"}),
+            "n_frames": ((), int(frame_level.size), {"units": "1", "long_name": "frames in the flat acquisition"}),
+            "prnu_rms": ((), area_rms(prnu, detector), {"units": "1", "long_name": "PRNU rms over the science area"}),
+            "photon_noise_limit_rms": ((), float(np.sqrt(np.nanmean(limit[sl] ** 2))),
+                                       {"units": "1", "long_name": "rms photon-noise limit over the science area"}),
+            "saturated_samples": ((), int(stats.masked.sum()), {"units": "1", "long_name": "saturated samples left out"}),
+        },
+        coords={**_coords(detector), "frame": np.arange(frame_level.size)},
+    )
+    ds.attrs["gradient_degree"] = gradient_degree
+    return ds
+
+
+def prnu_difference(reference: xr.Dataset, other: xr.Dataset, detector: Detector) -> xr.Dataset:
+    """Difference of two PRNU maps with its photon-noise limit.
+
+    Parameters
+    ----------
+    reference, other : xarray.Dataset
+        Outputs of :func:`prnu_map`.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``difference`` = other - reference (row, col), ``photon_noise_limit``
+        (row, col) = the two limits added in quadrature, scalars
+        ``difference_rms`` and ``photon_noise_limit_rms`` over the science area.
+    """
+    diff = other["prnu"].values - reference["prnu"].values
+    limit = np.hypot(other["photon_noise_limit"].values, reference["photon_noise_limit"].values)
+    sl = detector.science_slices
+    return xr.Dataset(
+        {
+            "difference": (("row", "col"), diff, {"units": "1", "long_name": "PRNU difference (other - reference)"}),
+            "photon_noise_limit": (("row", "col"), limit,
+                                   {"units": "1", "long_name": "1-sigma photon-noise limit of the difference"}),
+            "difference_rms": ((), area_rms(diff, detector),
+                               {"units": "1", "long_name": "rms of the difference over the science area"}),
+            "photon_noise_limit_rms": ((), float(np.sqrt(np.nanmean(limit[sl] ** 2))),
+                                       {"units": "1", "long_name": "rms photon-noise limit of the difference"}),
+        },
+        coords=_coords(detector),
+    )

@@ -1,0 +1,235 @@
+"""Read and validate a DICE raw dataset manifest (``dataset.yaml``, format dice-dataset/1).
+
+The format is the contract of ``shared/spec/dataset-format.md``. Validation is
+in two layers: the JSON schema ``schemas/dataset.schema.yaml`` checks types and
+keys, then :func:`load_manifest` checks what a schema cannot (science area
+inside the detector, pairs naming known baselines, distinct star positions,
+files present and readable). Every failure raises :class:`dice_core.DatasetError`
+naming the manifest (or the missing file) and the problem.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import jsonschema
+import yaml
+
+from dice_core import DatasetError
+
+__all__ = [
+    "Acquisition",
+    "Detector",
+    "Manifest",
+    "StarPosition",
+    "load_manifest",
+    "parse_manifest",
+    "FORMAT",
+]
+
+FORMAT = "dice-dataset/1"
+
+
+@dataclass(frozen=True)
+class Detector:
+    """Detector description of a manifest.
+
+    Attributes
+    ----------
+    shape : (int, int)
+        (rows, cols) of every frame.
+    science_rows, science_cols : (int, int)
+        0-based half-open ranges of the science area.
+    gain : float
+        Electrons per ADU.
+    saturation : float
+        ADU; a sample at or above it is saturated.
+    read_noise : float or None
+        ADU rms, when the manifest gives it.
+    frame_rate : float or None
+        Hz, when the manifest gives it.
+    """
+
+    shape: tuple[int, int]
+    science_rows: tuple[int, int]
+    science_cols: tuple[int, int]
+    gain: float
+    saturation: float
+    read_noise: float | None = None
+    frame_rate: float | None = None
+
+    @property
+    def science_slices(self) -> tuple[slice, slice]:
+        """(row slice, col slice) of the science area, for indexing a (row, col) map."""
+        return slice(*self.science_rows), slice(*self.science_cols)
+
+    def science_mask(self):
+        """Boolean (row, col) map, True inside the science area."""
+        import numpy as np
+
+        mask = np.zeros(self.shape, dtype=bool)
+        mask[self.science_slices] = True
+        return mask
+
+
+@dataclass(frozen=True)
+class Acquisition:
+    """One acquisition: its files, concatenated in time in the order listed.
+
+    ``label`` says what it is ("dark", "flat fiber_a", "baseline H1H4",
+    "position 3") so that errors can name it.
+    """
+
+    label: str
+    files: tuple[Path, ...]
+
+
+@dataclass(frozen=True)
+class StarPosition:
+    """One detector position of the pseudo-star sequence."""
+
+    index: int
+    acquisition: Acquisition
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """A validated raw dataset. Paths are absolute (resolved from the manifest's folder)."""
+
+    path: Path
+    name: str
+    detector: Detector
+    dark: Acquisition | None = None
+    flats: dict[str, Acquisition] = field(default_factory=dict)
+    baselines: dict[str, Acquisition] = field(default_factory=dict)
+    pairs: dict[str, tuple[str, str]] = field(default_factory=dict)
+    star_approx: tuple[tuple[float, float], ...] = ()
+    positions: tuple[StarPosition, ...] = ()
+
+    @property
+    def reference_flat(self) -> str | None:
+        """Name of the reference flat (the first one listed), or None without flats."""
+        return next(iter(self.flats), None)
+
+    @property
+    def reference_pair(self) -> str | None:
+        """Name of the reference metrology pair (the first one listed), or None."""
+        return next(iter(self.pairs), None)
+
+    def all_files(self) -> list[Path]:
+        """Every FITS file the manifest names, in manifest order."""
+        acquisitions = [self.dark] if self.dark else []
+        acquisitions += list(self.flats.values()) + list(self.baselines.values())
+        acquisitions += [p.acquisition for p in self.positions]
+        return [f for acq in acquisitions for f in acq.files]
+
+
+def _schema() -> dict:
+    text = resources.files("dice_core").joinpath("schemas/dataset.schema.yaml").read_text()
+    return yaml.safe_load(text)
+
+
+def _fail(path, problem):
+    raise DatasetError(path, problem)
+
+
+def load_manifest(path, *, check_files: bool = True) -> Manifest:
+    """Read, validate and resolve a dataset manifest.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``dataset.yaml`` file.
+    check_files : bool, keyword-only
+        Also check that every FITS file it names exists and is readable.
+
+    Returns
+    -------
+    Manifest
+
+    Raises
+    ------
+    DatasetError
+        Missing or unreadable manifest, invalid YAML, a manifest that violates
+        the format, or (with ``check_files``) a missing or unreadable FITS file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        _fail(path, "manifest not found")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        _fail(path, f"manifest unreadable ({exc})")
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        _fail(path, f"manifest is not valid YAML ({exc})")
+    manifest = parse_manifest(document, path)
+    if check_files:
+        for file in manifest.all_files():
+            if not file.is_file():
+                _fail(file, f"file named in {path} not found")
+            if not os.access(file, os.R_OK):
+                _fail(file, f"file named in {path} is not readable")
+    return manifest
+
+
+def parse_manifest(document, path) -> Manifest:
+    """Validate a manifest already parsed from YAML; ``path`` locates its files and names it in errors."""
+    path = Path(path).resolve()
+    validator = jsonschema.Draft202012Validator(_schema())
+    errors = sorted(validator.iter_errors(document), key=lambda e: list(e.absolute_path))
+    if errors:
+        first = errors[0]
+        where = ".".join(str(p) for p in first.absolute_path) or "(top level)"
+        more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
+        _fail(path, f"manifest violates {FORMAT} at {where}: {first.message}{more}")
+
+    root = path.parent
+
+    def acquisition(label, entry):
+        return Acquisition(label, tuple((root / f).resolve() for f in entry["files"]))
+
+    det = document["detector"]
+    shape = tuple(det["shape"])
+    rows, cols = tuple(det["science_area"]["rows"]), tuple(det["science_area"]["cols"])
+    for axis, (lo, hi), size in (("rows", rows, shape[0]), ("cols", cols, shape[1])):
+        if not lo < hi <= size:
+            _fail(path, f"detector.science_area.{axis} {[lo, hi]} is not a non-empty range "
+                        f"inside the detector's {size} {axis}")
+    detector = Detector(shape, rows, cols, float(det["gain"]), float(det["saturation"]),
+                        det.get("read_noise"), det.get("frame_rate"))
+
+    dark = acquisition("dark", document["dark"]) if "dark" in document else None
+    flats = {name: acquisition(f"flat {name}", e) for name, e in document.get("flats", {}).items()}
+
+    metrology = document.get("metrology", {})
+    baselines = {name: acquisition(f"baseline {name}", e)
+                 for name, e in metrology.get("baselines", {}).items()}
+    pairs = {}
+    for pair, members in metrology.get("pairs", {}).items():
+        unknown = [b for b in members if b not in baselines]
+        if unknown:
+            _fail(path, f"metrology pair {pair} names unknown baseline(s) {unknown}")
+        if members[0] == members[1]:
+            _fail(path, f"metrology pair {pair} uses baseline {members[0]} twice")
+        pairs[pair] = tuple(members)
+
+    stars = document.get("stars")
+    approx, positions = (), ()
+    if stars:
+        approx = tuple(tuple(float(v) for v in rc) for rc in stars["approx"])
+        indices = [p["index"] for p in stars["positions"]]
+        if len(set(indices)) != len(indices):
+            _fail(path, "stars.positions has repeated indices")
+        positions = tuple(StarPosition(p["index"], acquisition(f"position {p['index']}", p))
+                          for p in stars["positions"])
+        for r, c in approx:
+            if not (0 <= r < shape[0] and 0 <= c < shape[1]):
+                _fail(path, f"stars.approx [{r}, {c}] lies outside the detector {list(shape)}")
+
+    return Manifest(path, document["name"], detector, dark, flats, baselines, pairs,
+                    approx, positions)

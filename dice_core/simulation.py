@@ -1,0 +1,638 @@
+"""Simulated DICE testbed: writes a raw dataset in the dice-dataset/1 format plus ``truth.nc``.
+
+The numerical model follows the paper's section "Numerical simulations":
+
+- **Detector**: one truncated hyper-Gaussian PRF per pixel
+  (:class:`dice_core.detector.PixelResponse`) with per-pixel sensitivity
+  (white PRNU plus dust pixels and bright row bands), offsets and widths; a
+  bias pattern and per-pixel read noise; photon noise through the gain.
+- **Dark**: bias plus read noise.
+- **Flats**: a broad illumination with a gradient, different for each fiber,
+  times the pixel sensitivities, with source flux fluctuations.
+- **Metrology**: moving Young fringes ``B(t) E(r) [1 + V(r)/V0 (A(t)/B(t)) sin(K.r + phi(t))]``
+  integrated against each PRF; laser intensity noise scales B and A together, a
+  much smaller noise scales A alone; the phase is swept back and forth over
+  several 2 pi in piecewise-exponential segments, with white jitter and an
+  optional random walk.
+- **Pseudo stars**: five Gaussian PSFs (centre and corners of a square) whose
+  centres at each detector position come from an exact 3-D projection of fixed
+  star directions through the detector pose (translation, tip, tilt, roll), so
+  tip-tilt produces the paper's non-homogeneous scale (appendix D).
+
+Every random quantity comes from a generator seeded by ``(seed, name)``, so a
+configuration always gives the same dataset. Frames are generated and written
+in chunks: memory does not grow with the number of frames.
+
+Units: pixel for positions, rad for angles and phases, adu for signals,
+electrons per adu for the gain.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+import yaml
+
+from dice_core.detector import PixelResponse
+from dice_core.io import write_cube, write_product
+from dice_core.manifest import FORMAT
+
+__all__ = [
+    "SimulationConfig",
+    "load_preset",
+    "dataset_layout",
+    "make_truth",
+    "pixel_response",
+    "acquisition_chunks",
+    "write_acquisition",
+    "write_manifest",
+    "simulate_dataset",
+    "project_stars",
+]
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- configuration
+
+def _build(cls, values, where):
+    """Instantiate a config dataclass from a dict, refusing unknown keys with a clear message."""
+    values = dict(values or {})
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ValueError(f"simulation config {where}: unknown key(s) {unknown}; known: {sorted(names)}")
+    for f in dataclasses.fields(cls):
+        if f.name in values and isinstance(values[f.name], list):
+            values[f.name] = tuple(values[f.name])
+    return cls(**values)
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Detector model. Lengths in pixel, signals in adu."""
+
+    shape: tuple = (80, 84)              # rows, cols
+    science_rows: tuple = (2, 79)        # half-open
+    science_cols: tuple = (10, 83)
+    gain: float = 10.0                   # electrons per adu
+    saturation: float = 65535.0          # adu
+    bias: float = 500.0                  # adu, mean bias level
+    bias_column_rms: float = 2.0         # adu, column-to-column bias structure
+    bias_row_slope: float = 3.0          # adu, bias ramp from first to last row
+    read_noise: float = 4.0              # adu rms (median over pixels)
+    read_noise_spread: float = 0.03      # relative pixel-to-pixel spread of the read noise
+    prnu_rms: float = 2e-3               # white PRNU, relative
+    dust_pixels: int = 6                 # pixels darkened by dust
+    dust_depth: float = 0.05             # deepest dust loss, relative
+    bright_bands: int = 2                # bright horizontal bands
+    bright_band_amplitude: float = 3e-3  # relative excess sensitivity in a band
+    offset_rms: float = 1e-3             # pixel, rms of dx and dy
+    prf_order: float = 4.0               # hyper-Gaussian order n
+    prf_sigma: float = 0.3               # pixel, hyper-Gaussian scale parameter
+    prf_width_spread: float = 0.01       # relative pixel-to-pixel spread of the PRF scale
+    prf_half_width: float = 0.5          # pixel, truncation half-width
+    frame_rate: float = 108.0            # Hz
+    dtype: str = "uint16"                # storage type of the cubes
+
+    def __post_init__(self):
+        rows, cols = self.shape
+        if not (0 <= self.science_rows[0] < self.science_rows[1] <= rows
+                and 0 <= self.science_cols[0] < self.science_cols[1] <= cols):
+            raise ValueError(f"simulation config detector: science area {self.science_rows}, "
+                             f"{self.science_cols} does not fit in {self.shape}")
+        if self.dtype not in ("uint16", "int32", "float32"):
+            raise ValueError(f"simulation config detector: dtype {self.dtype!r} is not uint16, int32 or float32")
+
+
+@dataclass(frozen=True)
+class DarkConfig:
+    frames: int = 200
+
+
+@dataclass(frozen=True)
+class FiberConfig:
+    """Flat-field illumination of one fiber: relative change across the detector."""
+
+    gradient: tuple = (0.0, 0.0)   # relative change from the first to the last col (x) and row (y)
+    curvature: float = 0.0         # relative change from the centre to a corner
+
+
+@dataclass(frozen=True)
+class FlatConfig:
+    frames: int = 400
+    level: float = 20000.0         # adu for a pixel of sensitivity 1 at the detector centre
+    flux_rsd: float = 5e-4         # source flux fluctuation from frame to frame, relative
+    fibers: dict = field(default_factory=lambda: {
+        "fiber_a": {"gradient": [0.015, -0.008]},
+        "fiber_b": {"gradient": [-0.010, 0.012]},
+    })
+
+
+@dataclass(frozen=True)
+class BaselineConfig:
+    period: float        # fringe period, pixel
+    angle_deg: float     # direction of the wavevector from +x towards +y, degrees
+
+
+@dataclass(frozen=True)
+class MetrologyConfig:
+    frames: int = 4000                 # per baseline
+    mean_level: float = 10000.0        # B, adu
+    amplitude: float = 6000.0          # A, adu
+    laser_rsd: float = 1e-2            # laser intensity noise (scales B and A), relative
+    amplitude_rsd: float = 1e-3        # amplitude-only noise, relative
+    phase_jitter: float = 1e-2         # rad rms, white
+    phase_random_walk: float = 0.0     # rad per sqrt(frame)
+    intensity_random_walk: float = 0.0  # relative per sqrt(frame), scales B and A
+    sweep_cycles: float = 4.0          # fringe periods swept in one direction
+    sweep_frames: int = 500            # frames of one one-way sweep
+    sweep_time_constant: float = 0.3   # of the exponential segments, in sweeps
+    envelope_sigma: float = 300.0      # pixel, Gaussian beam radius of the fringe envelope
+    envelope_centre: tuple = (25.0, -15.0)  # pixel, beam centre from the detector centre (x, y)
+    visibility_gradient: tuple = (0.03, -0.02)  # relative change of visibility across x and y
+    baselines: dict = field(default_factory=lambda: {
+        "H1H4": {"period": 2.4, "angle_deg": 2.0},
+        "V1V4": {"period": 2.4, "angle_deg": 93.0},
+        "H2H4": {"period": 4.0, "angle_deg": -3.0},
+        "V2V4": {"period": 4.0, "angle_deg": 88.5},
+    })
+    pairs: dict = field(default_factory=lambda: {"P14": ["H1H4", "V1V4"], "P24": ["H2H4", "V2V4"]})
+
+
+@dataclass(frozen=True)
+class StarsConfig:
+    positions: int = 12
+    frames: int = 16                   # per position
+    flux: float = 2.5e5                # adu per star per frame, sensitivity 1
+    flux_rsd: float = 1e-3             # source fluctuation from frame to frame
+    background: float = 10.0           # adu per pixel
+    psf_sigma: float = 1.3             # pixel
+    pattern_centre: tuple = (46.0, 40.0)  # pixel (x, y), central star at the mid position
+    pattern_side: float = 40.0         # pixel, side of the square of corner stars
+    step: tuple = (0.0, 0.17)          # pixel per position (x, y) of the stage
+    step_jitter: float = 0.01          # pixel rms, irregularity of each step
+    tip_tilt_pv: float = 2e-3          # rad, peak-to-valley of the tip and tilt random walks
+    roll_rms: float = 1e-4             # rad
+    distance: float = 25000.0          # pixel, mirror to detector (600 mm / 24 um)
+    off_axis_deg: float = 2.0          # degrees, off-axis angle of the star field
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """A whole simulated testbed. See ``config/presets/*.yaml`` for annotated presets."""
+
+    name: str = "sim-default"
+    seed: int = 20150926
+    frames_per_file: int = 5000
+    chunk_frames: int = 256
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    dark: DarkConfig = field(default_factory=DarkConfig)
+    flats: FlatConfig = field(default_factory=FlatConfig)
+    metrology: MetrologyConfig = field(default_factory=MetrologyConfig)
+    stars: StarsConfig = field(default_factory=StarsConfig)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "SimulationConfig":
+        values = dict(values or {})
+        sections = {"detector": DetectorConfig, "dark": DarkConfig, "flats": FlatConfig,
+                    "metrology": MetrologyConfig, "stars": StarsConfig}
+        built = {key: _build(sub, values.pop(key, {}), key) for key, sub in sections.items()}
+        top = _build(cls, values, "(top level)")
+        cfg = dataclasses.replace(top, **built)
+        for name, b in cfg.metrology.baselines.items():
+            _build(BaselineConfig, b, f"metrology.baselines.{name}")
+        for name, f in cfg.flats.fibers.items():
+            _build(FiberConfig, f, f"flats.fibers.{name}")
+        for pair, members in cfg.metrology.pairs.items():
+            unknown = [m for m in members if m not in cfg.metrology.baselines]
+            if unknown:
+                raise ValueError(f"simulation config metrology.pairs.{pair}: unknown baseline(s) {unknown}")
+        return cfg
+
+    def to_dict(self) -> dict:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+
+def load_preset(path) -> SimulationConfig:
+    """Read a simulation preset (YAML of :class:`SimulationConfig` keys; missing keys take defaults)."""
+    path = Path(path)
+    try:
+        values = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f"{path}: cannot read simulation preset ({exc})") from None
+    try:
+        return SimulationConfig.from_dict(values)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+# --------------------------------------------------------------------------- layout
+
+def _n_files(frames: int, per_file: int) -> int:
+    return max(1, math.ceil(frames / per_file))
+
+
+def _file_frames(frames: int, per_file: int) -> list[tuple[int, int]]:
+    return [(i * per_file, min(frames, (i + 1) * per_file)) for i in range(_n_files(frames, per_file))]
+
+
+def _acquisitions(cfg: SimulationConfig):
+    """(kind, name, frames, relative file stem) of every acquisition, in manifest order."""
+    out = [("dark", "dark", cfg.dark.frames, "dark/dark")]
+    out += [("flat", f, cfg.flats.frames, f"flat/{f}") for f in cfg.flats.fibers]
+    out += [("baseline", b, cfg.metrology.frames, f"metrology/{b}") for b in cfg.metrology.baselines]
+    return out
+
+
+def acquisition_files(cfg: SimulationConfig, kind: str, name: str) -> list[str]:
+    """Relative paths of the files of one acquisition (kind: dark, flat, baseline or position)."""
+    if kind == "position":
+        return [f"stars/pos_{int(name):03d}.fits"]
+    for k, n, frames, stem in _acquisitions(cfg):
+        if (k, n) == (kind, name):
+            return [f"{stem}_{i:03d}.fits" for i in range(_n_files(frames, cfg.frames_per_file))]
+    raise KeyError(f"no {kind} acquisition named {name!r} in this simulation")
+
+
+def dataset_layout(cfg: SimulationConfig) -> dict:
+    """The manifest the simulator writes for ``cfg`` (a dict in the dice-dataset/1 format).
+
+    Known without simulating anything, so that a workflow can plan its jobs.
+    """
+    d = cfg.detector
+    nominal = _nominal_pattern(cfg.stars)
+    first = project_stars(nominal, _nominal_poses(cfg.stars)[:1], cfg)[0]
+    return {
+        "format": FORMAT,
+        "name": cfg.name,
+        "detector": {
+            "shape": list(d.shape),
+            "science_area": {"rows": list(d.science_rows), "cols": list(d.science_cols)},
+            "gain": d.gain,
+            "saturation": d.saturation,
+            "read_noise": d.read_noise,
+            "frame_rate": d.frame_rate,
+        },
+        "dark": {"files": acquisition_files(cfg, "dark", "dark")},
+        "flats": {f: {"files": acquisition_files(cfg, "flat", f)} for f in cfg.flats.fibers},
+        "metrology": {
+            "baselines": {b: {"files": acquisition_files(cfg, "baseline", b)} for b in cfg.metrology.baselines},
+            "pairs": {p: list(m) for p, m in cfg.metrology.pairs.items()},
+        },
+        "stars": {
+            "approx": [[round(float(y), 1), round(float(x), 1)] for x, y in first],
+            "positions": [{"index": i + 1, "files": acquisition_files(cfg, "position", i + 1)}
+                          for i in range(cfg.stars.positions)],
+        },
+    }
+
+
+# --------------------------------------------------------------------------- geometry of the stars
+
+def _nominal_pattern(stars: StarsConfig) -> np.ndarray:
+    """(star, xy) nominal positions at the mid position: centre, then the four corners."""
+    cx, cy = stars.pattern_centre
+    h = stars.pattern_side / 2
+    return np.array([[cx, cy], [cx - h, cy - h], [cx + h, cy - h], [cx - h, cy + h], [cx + h, cy + h]])
+
+
+def _nominal_poses(stars: StarsConfig) -> np.ndarray:
+    """(position, 6) poses without irregularities: translation (x, y, z) pixel, tip, tilt, roll rad."""
+    p = np.arange(stars.positions) - (stars.positions - 1) / 2
+    poses = np.zeros((stars.positions, 6))
+    poses[:, 0] = p * stars.step[0]
+    poses[:, 1] = p * stars.step[1]
+    return poses
+
+
+def _rotation(tip, tilt, roll):
+    """Rotation matrices (..., 3, 3) = Rz(roll) Ry(tilt) Rx(tip)."""
+    c1, s1, c2, s2, c3, s3 = np.cos(tip), np.sin(tip), np.cos(tilt), np.sin(tilt), np.cos(roll), np.sin(roll)
+    one, zero = np.ones_like(tip), np.zeros_like(tip)
+    rx = np.stack([np.stack([one, zero, zero], -1), np.stack([zero, c1, -s1], -1), np.stack([zero, s1, c1], -1)], -2)
+    ry = np.stack([np.stack([c2, zero, s2], -1), np.stack([zero, one, zero], -1), np.stack([-s2, zero, c2], -1)], -2)
+    rz = np.stack([np.stack([c3, -s3, zero], -1), np.stack([s3, c3, zero], -1), np.stack([zero, zero, one], -1)], -2)
+    return rz @ ry @ rx
+
+
+def project_stars(pattern: np.ndarray, poses: np.ndarray, cfg: SimulationConfig) -> np.ndarray:
+    """Exact 3-D projection of fixed star directions onto a moving, tilting detector.
+
+    Parameters
+    ----------
+    pattern : ndarray (star, 2)
+        (x, y) of each star on the detector at the reference pose, pixel; fixes
+        the star directions.
+    poses : ndarray (position, 6)
+        Detector translation (x, y, z) in pixel, then tip (about x), tilt
+        (about y) and roll (about z) in rad, about the detector centre.
+    cfg : SimulationConfig
+        Distance mirror-detector and off-axis angle of the field.
+
+    Returns
+    -------
+    ndarray (position, star, 2)
+        (x, y) of each star in detector pixel coordinates.
+
+    Notes
+    -----
+    The mirror is the origin; at the reference pose the detector centre
+    ``(xc, yc)`` is at ``D = (L tan(theta_off), 0, L)`` and pixel (x, y) at
+    ``D + (x - xc, y - yc, 0)``. A star's direction is that of its reference
+    point. At pose (T, R), pixel (x, y) is at ``D + T + R (x - xc, y - yc, 0)``;
+    the star lands where its ray meets that plane, a 3x3 linear solve.
+    """
+    st = cfg.stars
+    rows, cols = cfg.detector.shape
+    xc, yc = (cols - 1) / 2, (rows - 1) / 2
+    centre = np.array([st.distance * math.tan(math.radians(st.off_axis_deg)), 0.0, st.distance])
+    directions = np.column_stack([pattern[:, 0] - xc, pattern[:, 1] - yc, np.zeros(len(pattern))]) + centre
+    rot = _rotation(poses[:, 3], poses[:, 4], poses[:, 5])                  # (P, 3, 3)
+    origin = centre + poses[:, :3]                                          # (P, 3)
+    n_pos, n_star = len(poses), len(pattern)
+    system = np.empty((n_pos, n_star, 3, 3))
+    system[..., 0] = rot[:, None, :, 0]
+    system[..., 1] = rot[:, None, :, 1]
+    system[..., 2] = -directions[None, :, :]
+    rhs = np.broadcast_to(-origin[:, None, :], (n_pos, n_star, 3))
+    solution = np.linalg.solve(system, rhs[..., None])[..., 0]
+    return np.stack([solution[..., 0] + xc, solution[..., 1] + yc], axis=-1)
+
+
+# --------------------------------------------------------------------------- truth
+
+def _rng(cfg: SimulationConfig, *names) -> np.random.Generator:
+    key = [cfg.seed] + [zlib.crc32(str(n).encode()) for n in names]
+    return np.random.default_rng(key)
+
+
+def _remove_affine(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Subtract the least-squares plane a + b x + c y over ``mask`` (offsets are defined up to an affine map)."""
+    rows, cols = np.indices(values.shape)
+    design = np.column_stack([np.ones(mask.sum()), cols[mask], rows[mask]])
+    coef, *_ = np.linalg.lstsq(design, values[mask], rcond=None)
+    return values - (coef[0] + coef[1] * cols + coef[2] * rows)
+
+
+def _sensitivity(cfg: SimulationConfig, mask: np.ndarray) -> np.ndarray:
+    d = cfg.detector
+    rng = _rng(cfg, "sensitivity")
+    rows, cols = d.shape
+    sens = 1.0 + d.prnu_rms * rng.standard_normal(d.shape)
+    for _ in range(d.bright_bands):
+        centre, width = rng.uniform(d.science_rows[0], d.science_rows[1]), rng.uniform(1.0, 2.5)
+        profile = np.exp(-0.5 * ((np.arange(rows) - centre) / width) ** 2)
+        sens *= 1.0 + d.bright_band_amplitude * profile[:, None]
+    sr, sc = np.nonzero(mask)
+    for _ in range(d.dust_pixels):
+        k = rng.integers(len(sr))
+        r, c = sr[k], sc[k]
+        depth = d.dust_depth * rng.uniform(0.3, 1.0)
+        sens[r, c] *= 1.0 - depth
+        # dust shadows spill a little onto the neighbours
+        for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+            if 0 <= r + dr < rows and 0 <= c + dc < cols:
+                sens[r + dr, c + dc] *= 1.0 - 0.2 * depth
+    return sens / sens[mask].mean()
+
+
+def _phase_history(cfg: SimulationConfig, name: str, rng) -> np.ndarray:
+    m = cfg.metrology
+    t = np.arange(m.frames)
+    segment, within = np.divmod(t, m.sweep_frames)
+    tau = m.sweep_time_constant
+    progress = (1 - np.exp(-(within / m.sweep_frames) / tau)) / (1 - np.exp(-1 / tau))
+    forward = segment % 2 == 0
+    sweep = 2 * np.pi * m.sweep_cycles * np.where(forward, progress, 1 - progress)
+    phase = rng.uniform(0, 2 * np.pi) + sweep + m.phase_jitter * rng.standard_normal(m.frames)
+    if m.phase_random_walk:
+        phase += m.phase_random_walk * np.cumsum(rng.standard_normal(m.frames))
+    return phase
+
+
+def make_truth(cfg: SimulationConfig) -> xr.Dataset:
+    """Everything the simulation knows, before any frame is drawn (the ``truth.nc`` content).
+
+    Holds the contract's variables (dx, dy, sensitivity, kx, ky, phase,
+    star_x, star_y) and the rest of the model, which the acquisitions are
+    generated from: PRF scales and widths, bias and read-noise maps, fringe
+    level and amplitude per frame, envelope and visibility, flat illuminations,
+    detector poses.
+    """
+    d, m, st = cfg.detector, cfg.metrology, cfg.stars
+    rows, cols = d.shape
+    mask = np.zeros(d.shape, bool)
+    mask[slice(*d.science_rows), slice(*d.science_cols)] = True
+
+    rng = _rng(cfg, "offsets")
+    dx = _remove_affine(d.offset_rms * rng.standard_normal(d.shape), mask)
+    dy = _remove_affine(d.offset_rms * rng.standard_normal(d.shape), mask)
+    rng = _rng(cfg, "widths")
+    sigma_x = d.prf_sigma * (1 + d.prf_width_spread * rng.standard_normal(d.shape))
+    sigma_y = d.prf_sigma * (1 + d.prf_width_spread * rng.standard_normal(d.shape))
+    prf = PixelResponse(_sensitivity(cfg, mask), dx, dy, sigma_x, sigma_y, d.prf_order, d.prf_half_width)
+
+    rng = _rng(cfg, "bias")
+    bias = (d.bias + d.bias_column_rms * rng.standard_normal(cols)[None, :]
+            + d.bias_row_slope * np.linspace(0, 1, rows)[:, None])
+    read_noise = d.read_noise * (1 + d.read_noise_spread * rng.standard_normal(d.shape))
+
+    x0, y0 = prf.centres()
+    xc, yc = (cols - 1) / 2, (rows - 1) / 2
+    ex, ey = m.envelope_centre
+    envelope = np.exp(-0.5 * ((x0 - xc - ex) ** 2 + (y0 - yc - ey) ** 2) / m.envelope_sigma**2)
+    envelope /= envelope[mask].mean()
+    visibility = 1 + m.visibility_gradient[0] * (x0 - xc) / cols + m.visibility_gradient[1] * (y0 - yc) / rows
+
+    names = list(m.baselines)
+    kvec = np.array([[2 * np.pi / b["period"] * math.cos(math.radians(b["angle_deg"])),
+                      2 * np.pi / b["period"] * math.sin(math.radians(b["angle_deg"]))]
+                     for b in m.baselines.values()]).reshape(-1, 2)
+    phase = np.empty((len(names), m.frames))
+    level = np.empty_like(phase)
+    amplitude = np.empty_like(phase)
+    for i, name in enumerate(names):
+        rng = _rng(cfg, "metrology", name)
+        phase[i] = _phase_history(cfg, name, rng)
+        laser = 1 + m.laser_rsd * rng.standard_normal(m.frames)
+        if m.intensity_random_walk:
+            laser *= 1 + m.intensity_random_walk * np.cumsum(rng.standard_normal(m.frames))
+        level[i] = m.mean_level * laser
+        amplitude[i] = m.amplitude * laser * (1 + m.amplitude_rsd * rng.standard_normal(m.frames))
+
+    fibers = list(cfg.flats.fibers)
+    illumination = np.empty((len(fibers), rows, cols))
+    for i, f in enumerate(fibers):
+        fib = _build(FiberConfig, cfg.flats.fibers[f], f"flats.fibers.{f}")
+        corner2 = (cols / 2) ** 2 + (rows / 2) ** 2
+        illumination[i] = (1 + fib.gradient[0] * (x0 - xc) / cols + fib.gradient[1] * (y0 - yc) / rows
+                           + fib.curvature * ((x0 - xc) ** 2 + (y0 - yc) ** 2) / corner2)
+
+    rng = _rng(cfg, "stage")
+    poses = _nominal_poses(st)
+    poses[:, :2] += st.step_jitter * rng.standard_normal((st.positions, 2))
+    for axis in (3, 4):
+        walk = np.cumsum(rng.standard_normal(st.positions))
+        span = np.ptp(walk)
+        poses[:, axis] = (walk - walk.mean()) * (st.tip_tilt_pv / span if span > 0 else 0.0)
+    poses[:, 5] = st.roll_rms * rng.standard_normal(st.positions)
+    stars = project_stars(_nominal_pattern(st), poses, cfg)
+
+    rc = ("row", "col")
+    ds = xr.Dataset(
+        {
+            "dx": (rc, dx, {"units": "pixel", "long_name": "true pixel offset along x"}),
+            "dy": (rc, dy, {"units": "pixel", "long_name": "true pixel offset along y"}),
+            "sensitivity": (rc, prf.sensitivity, {"units": "1", "long_name": "relative quantum efficiency (PRF integral)"}),
+            "prf_sigma_x": (rc, sigma_x, {"units": "pixel", "long_name": "hyper-Gaussian scale of the PRF along x"}),
+            "prf_sigma_y": (rc, sigma_y, {"units": "pixel", "long_name": "hyper-Gaussian scale of the PRF along y"}),
+            "width_x": (rc, prf.width_x(), {"units": "pixel", "long_name": "PRF standard deviation along x"}),
+            "width_y": (rc, prf.width_y(), {"units": "pixel", "long_name": "PRF standard deviation along y"}),
+            "bias": (rc, bias, {"units": "adu", "long_name": "bias level"}),
+            "read_noise": (rc, read_noise, {"units": "adu", "long_name": "read noise rms"}),
+            "envelope": (rc, envelope, {"units": "1", "long_name": "metrology fringe envelope (mean 1)"}),
+            "visibility": (rc, visibility, {"units": "1", "long_name": "fringe visibility relative to amplitude/level"}),
+            "kx": (("baseline",), kvec[:, 0], {"units": "rad/pixel", "long_name": "fringe wavevector along x"}),
+            "ky": (("baseline",), kvec[:, 1], {"units": "rad/pixel", "long_name": "fringe wavevector along y"}),
+            "phase": (("baseline", "frame"), phase, {"units": "rad", "long_name": "fringe phase phi(t)"}),
+            "fringe_level": (("baseline", "frame"), level, {"units": "adu", "long_name": "fringe mean level B(t)"}),
+            "fringe_amplitude": (("baseline", "frame"), amplitude, {"units": "adu", "long_name": "fringe amplitude A(t)"}),
+            "flat_illumination": (("flat", "row", "col"), illumination,
+                                  {"units": "1", "long_name": "relative flat-field illumination"}),
+            "pose": (("position", "pose_axis"), poses,
+                     {"units": "pixel or rad", "long_name": "detector translation x, y, z (pixel) and tip, tilt, roll (rad)"}),
+            "star_x": (("position", "star"), stars[..., 0], {"units": "pixel", "long_name": "true PSF centre x"}),
+            "star_y": (("position", "star"), stars[..., 1], {"units": "pixel", "long_name": "true PSF centre y"}),
+        },
+        coords={
+            "row": np.arange(rows), "col": np.arange(cols), "baseline": names, "frame": np.arange(m.frames),
+            "flat": fibers, "position": np.arange(1, st.positions + 1), "star": np.arange(5),
+            "pose_axis": ["x", "y", "z", "tip", "tilt", "roll"],
+        },
+    )
+    ds.attrs.update({"prf_order": d.prf_order, "prf_half_width": d.prf_half_width,
+                     "simulation": json.dumps(cfg.to_dict(), sort_keys=True)})
+    return ds
+
+
+def pixel_response(truth: xr.Dataset) -> PixelResponse:
+    """The detector's :class:`PixelResponse` from a truth dataset."""
+    return PixelResponse(truth["sensitivity"].values, truth["dx"].values, truth["dy"].values,
+                         truth["prf_sigma_x"].values, truth["prf_sigma_y"].values,
+                         float(truth.attrs["prf_order"]), float(truth.attrs["prf_half_width"]))
+
+
+# --------------------------------------------------------------------------- frames
+
+def _read_out(electrons_adu: np.ndarray, truth: xr.Dataset, cfg: SimulationConfig, rng) -> np.ndarray:
+    """Photon noise through the gain, then bias and read noise: signal (adu) -> raw samples (adu)."""
+    gain = cfg.detector.gain
+    photo = rng.poisson(np.maximum(electrons_adu, 0) * gain) / gain
+    return photo + truth["bias"].values + truth["read_noise"].values * rng.standard_normal(photo.shape)
+
+
+def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name, start: int, stop: int):
+    """Yield raw frames [start, stop) of one acquisition, in chunks of ``cfg.chunk_frames``.
+
+    Parameters
+    ----------
+    kind : {"dark", "flat", "baseline", "position"}
+    name : str or int
+        Fiber, baseline, or position index (1-based).
+    start, stop : int
+        Frame range within the acquisition.
+
+    Yields
+    ------
+    ndarray (frame, row, col), adu (not yet quantised).
+    """
+    rng = _rng(cfg, "frames", kind, name, start)
+    shape = cfg.detector.shape
+    prf = pixel_response(truth)
+    if kind == "flat":
+        signal_map = cfg.flats.level * prf.sensitivity * truth["flat_illumination"].sel(flat=name).values
+        flux = 1 + cfg.flats.flux_rsd * _rng(cfg, "flat flux", name).standard_normal(cfg.flats.frames)
+    elif kind == "baseline":
+        b = truth.sel(baseline=name)
+        envelope = truth["envelope"].values
+        base = prf.sensitivity * envelope
+        response = prf.fringe_response(float(b["kx"]), float(b["ky"])) * envelope * truth["visibility"].values
+        level, amplitude, phase = (b[v].values for v in ("fringe_level", "fringe_amplitude", "phase"))
+    elif kind == "position":
+        p = truth.sel(position=int(name))
+        st = cfg.stars
+        image = st.background + sum(st.flux * prf.gaussian_response(float(x), float(y), st.psf_sigma)
+                                    for x, y in zip(p["star_x"].values, p["star_y"].values))
+        flux = 1 + st.flux_rsd * _rng(cfg, "star flux", name).standard_normal(st.frames)
+    elif kind != "dark":
+        raise ValueError(f"unknown acquisition kind {kind!r}")
+
+    for first in range(start, stop, cfg.chunk_frames):
+        last = min(stop, first + cfg.chunk_frames)
+        n = last - first
+        if kind == "dark":
+            signal = np.zeros((n, *shape))
+        elif kind == "flat":
+            signal = flux[first:last, None, None] * signal_map
+        elif kind == "baseline":
+            t = slice(first, last)
+            signal = (level[t, None, None] * base
+                      + amplitude[t, None, None] * (np.sin(phase[t])[:, None, None] * response.real
+                                                    + np.cos(phase[t])[:, None, None] * response.imag))
+        else:
+            signal = flux[first:last, None, None] * image
+        yield _read_out(signal, truth, cfg, rng)
+
+
+def _frames_of(cfg: SimulationConfig, kind: str) -> int:
+    return {"dark": cfg.dark.frames, "flat": cfg.flats.frames, "baseline": cfg.metrology.frames,
+            "position": cfg.stars.frames}[kind]
+
+
+def write_acquisition(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name, outdir) -> list[Path]:
+    """Simulate one acquisition and write its FITS files under ``outdir``; returns their paths."""
+    outdir = Path(outdir)
+    frames = _frames_of(cfg, kind)
+    per_file = frames if kind == "position" else cfg.frames_per_file
+    written = []
+    header = {"EXPTIME": 1.0 / cfg.detector.frame_rate, "FRAMERAT": cfg.detector.frame_rate}
+    for rel, (start, stop) in zip(acquisition_files(cfg, kind, name), _file_frames(frames, per_file)):
+        path = outdir / rel
+        log.info("simulating %s %s frames %d..%d -> %s", kind, name, start, stop - 1, path)
+        write_cube(path, acquisition_chunks(cfg, truth, kind, name, start, stop), shape=cfg.detector.shape,
+                   n_frames=stop - start, dtype=cfg.detector.dtype, header=header)
+        written.append(path)
+    return written
+
+
+def write_manifest(cfg: SimulationConfig, outdir) -> Path:
+    """Write ``dataset.yaml`` for the simulated dataset (atomically)."""
+    path = Path(outdir) / "dataset.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(".dataset.yaml.part")
+    tmp.write_text("# Simulated DICE testbed, written by dice_core.simulation\n"
+                   + yaml.safe_dump(dataset_layout(cfg), sort_keys=False))
+    tmp.replace(path)
+    return path
+
+
+def simulate_dataset(cfg: SimulationConfig, outdir) -> Path:
+    """Simulate the whole dataset into ``outdir``: FITS cubes, ``truth.nc`` and ``dataset.yaml``."""
+    outdir = Path(outdir)
+    truth = make_truth(cfg)
+    write_product(truth, outdir / "truth.nc", title=f"truth of simulated dataset {cfg.name}",
+                  config=cfg.to_dict())
+    for kind, name, _, _ in _acquisitions(cfg):
+        write_acquisition(cfg, truth, kind, name, outdir)
+    for index in range(1, cfg.stars.positions + 1):
+        write_acquisition(cfg, truth, "position", index, outdir)
+    return write_manifest(cfg, outdir)
