@@ -27,4 +27,30 @@ class DatasetError(ValueError):
         super().__init__(f"{self.path}: {problem}")
 
 
-__all__ = ["DatasetError", "__version__"]
+__all__ = ["DatasetError", "__version__", "run_logged"]
+
+
+def run_logged(log_path, step, /, *args, **kwargs):
+    """Run ``step(*args, **kwargs)`` with this process's log records sent to ``log_path``.
+
+    For workflow steps: each writes its own log, with timestamps; an exception
+    is written to the log with its traceback, then raised again so the caller
+    (and Snakemake) sees the step fail.
+    """
+    import logging
+
+    handler = logging.FileHandler(log_path, mode="w")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(logging.INFO)
+    logging.captureWarnings(True)
+    log = logging.getLogger("dice")
+    log.info("dice_core %s: %s", __version__, getattr(step, "__name__", step))
+    try:
+        result = step(*args, **kwargs)
+    except Exception:
+        log.exception("step failed")
+        raise
+    log.info("done")
+    return result

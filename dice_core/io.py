@@ -16,6 +16,7 @@ import datetime as _dt
 import json
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, NamedTuple
@@ -23,6 +24,7 @@ from typing import Iterator, NamedTuple
 import numpy as np
 import xarray as xr
 from astropy.io import fits
+from astropy.utils.exceptions import AstropyUserWarning
 
 import dice_core
 from dice_core import DatasetError
@@ -106,7 +108,11 @@ def open_cube(path, detector: Detector | None = None) -> CubeFile:
     if not path.is_file():
         raise DatasetError(path, "file not found")
     try:
-        with fits.open(path, memmap=False, lazy_load_hdus=True) as hdul:
+        # astropy's own truncation warning is superseded by the error raised below
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", AstropyUserWarning)
+            hdul = fits.open(path, memmap=False, lazy_load_hdus=True)
+        with hdul:
             header = hdul[0].header.copy()
             header_bytes = hdul.fileinfo(0)["datLoc"]
     except (OSError, ValueError, IndexError) as exc:

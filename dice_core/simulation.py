@@ -52,7 +52,8 @@ __all__ = [
     "make_truth",
     "pixel_response",
     "acquisition_chunks",
-    "write_acquisition",
+    "file_jobs",
+    "write_file",
     "write_manifest",
     "simulate_dataset",
     "project_stars",
@@ -261,6 +262,21 @@ def acquisition_files(cfg: SimulationConfig, kind: str, name: str) -> list[str]:
         if (k, n) == (kind, name):
             return [f"{stem}_{i:03d}.fits" for i in range(_n_files(frames, cfg.frames_per_file))]
     raise KeyError(f"no {kind} acquisition named {name!r} in this simulation")
+
+
+def file_jobs(cfg: SimulationConfig) -> dict[str, tuple[str, object, int, int]]:
+    """Every file the simulator writes: relative path -> (kind, name, first frame, end frame).
+
+    Each file can be simulated on its own (by :func:`write_file`), so a
+    workflow can spread them over jobs.
+    """
+    jobs = {}
+    for kind, name, frames, _ in _acquisitions(cfg):
+        for rel, (start, stop) in zip(acquisition_files(cfg, kind, name), _file_frames(frames, cfg.frames_per_file)):
+            jobs[rel] = (kind, name, start, stop)
+    for index in range(1, cfg.stars.positions + 1):
+        jobs[acquisition_files(cfg, "position", index)[0]] = ("position", index, 0, cfg.stars.frames)
+    return jobs
 
 
 def dataset_layout(cfg: SimulationConfig) -> dict:
@@ -533,11 +549,15 @@ def pixel_response(truth: xr.Dataset) -> PixelResponse:
 
 # --------------------------------------------------------------------------- frames
 
-def _read_out(electrons_adu: np.ndarray, truth: xr.Dataset, cfg: SimulationConfig, rng) -> np.ndarray:
-    """Photon noise through the gain, then bias and read noise: signal (adu) -> raw samples (adu)."""
+def _read_out(signal: np.ndarray, truth: xr.Dataset, cfg: SimulationConfig, photon_rng, read_rng) -> np.ndarray:
+    """Photon noise through the gain, then bias and read noise: signal (adu) -> raw samples (adu).
+
+    Each noise has its own generator, drawn strictly in frame order, so the
+    frames do not depend on how they are chunked.
+    """
     gain = cfg.detector.gain
-    photo = rng.poisson(np.maximum(electrons_adu, 0) * gain) / gain
-    return photo + truth["bias"].values + truth["read_noise"].values * rng.standard_normal(photo.shape)
+    photo = photon_rng.poisson(np.maximum(signal, 0) * gain) / gain
+    return photo + truth["bias"].values + truth["read_noise"].values * read_rng.standard_normal(photo.shape)
 
 
 def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name, start: int, stop: int):
@@ -555,7 +575,7 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name
     ------
     ndarray (frame, row, col), adu (not yet quantised).
     """
-    rng = _rng(cfg, "frames", kind, name, start)
+    photon_rng, read_rng = _rng(cfg, "photons", kind, name, start), _rng(cfg, "read", kind, name, start)
     shape = cfg.detector.shape
     prf = pixel_response(truth)
     if kind == "flat":
@@ -590,28 +610,21 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name
                                                     + np.cos(phase[t])[:, None, None] * response.imag))
         else:
             signal = flux[first:last, None, None] * image
-        yield _read_out(signal, truth, cfg, rng)
+        yield _read_out(signal, truth, cfg, photon_rng, read_rng)
 
 
-def _frames_of(cfg: SimulationConfig, kind: str) -> int:
-    return {"dark": cfg.dark.frames, "flat": cfg.flats.frames, "baseline": cfg.metrology.frames,
-            "position": cfg.stars.frames}[kind]
-
-
-def write_acquisition(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name, outdir) -> list[Path]:
-    """Simulate one acquisition and write its FITS files under ``outdir``; returns their paths."""
-    outdir = Path(outdir)
-    frames = _frames_of(cfg, kind)
-    per_file = frames if kind == "position" else cfg.frames_per_file
-    written = []
+def write_file(cfg: SimulationConfig, truth: xr.Dataset, relpath: str, outdir) -> Path:
+    """Simulate one FITS file of the dataset (a path listed by :func:`file_jobs`) under ``outdir``."""
+    jobs = file_jobs(cfg)
+    if relpath not in jobs:
+        raise KeyError(f"{relpath} is not a file of simulated dataset {cfg.name}")
+    kind, name, start, stop = jobs[relpath]
+    path = Path(outdir) / relpath
+    log.info("simulating %s %s, frames %d..%d -> %s", kind, name, start, stop - 1, path)
     header = {"EXPTIME": 1.0 / cfg.detector.frame_rate, "FRAMERAT": cfg.detector.frame_rate}
-    for rel, (start, stop) in zip(acquisition_files(cfg, kind, name), _file_frames(frames, per_file)):
-        path = outdir / rel
-        log.info("simulating %s %s frames %d..%d -> %s", kind, name, start, stop - 1, path)
-        write_cube(path, acquisition_chunks(cfg, truth, kind, name, start, stop), shape=cfg.detector.shape,
-                   n_frames=stop - start, dtype=cfg.detector.dtype, header=header)
-        written.append(path)
-    return written
+    write_cube(path, acquisition_chunks(cfg, truth, kind, name, start, stop), shape=cfg.detector.shape,
+               n_frames=stop - start, dtype=cfg.detector.dtype, header=header)
+    return path
 
 
 def write_manifest(cfg: SimulationConfig, outdir) -> Path:
@@ -631,8 +644,6 @@ def simulate_dataset(cfg: SimulationConfig, outdir) -> Path:
     truth = make_truth(cfg)
     write_product(truth, outdir / "truth.nc", title=f"truth of simulated dataset {cfg.name}",
                   config=cfg.to_dict())
-    for kind, name, _, _ in _acquisitions(cfg):
-        write_acquisition(cfg, truth, kind, name, outdir)
-    for index in range(1, cfg.stars.positions + 1):
-        write_acquisition(cfg, truth, "position", index, outdir)
+    for relpath in file_jobs(cfg):
+        write_file(cfg, truth, relpath, outdir)
     return write_manifest(cfg, outdir)

@@ -1,0 +1,28 @@
+"""DICE detector-calibration workflow.
+
+    snakemake --cores 2                                    # simulate and reduce the built-in dataset
+    snakemake --cores 2 --config dataset=PATH/dataset.yaml # reduce a dataset in the raw format
+
+Stages are one rule file each under workflow/rules/; the numerics are in dice_core.
+"""
+
+from pathlib import Path
+
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: str(Path(workflow.basedir) / "config" / "config.yaml")
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/simulate.smk"
+include: "workflow/rules/calibration.smk"
+include: "workflow/rules/figures.smk"
+
+
+rule all:
+    input:
+        calibration_targets(),
+    default_target: True

@@ -1,0 +1,119 @@
+"""Dark and PRNU maps against the simulated truth, and the streaming statistics against numpy."""
+
+import numpy as np
+import pytest
+
+from dice_core.calibration import TemporalStatistics, area_rms, dark_maps, prnu_difference, prnu_map, remove_gradient
+from dice_core.io import FrameStream
+
+
+def test_temporal_statistics_match_numpy_whatever_the_chunking(rng):
+    frames = rng.normal(1000.0, 5.0, size=(101, 4, 5))
+    valid = rng.random(frames.shape) > 0.1
+    for chunk in (1, 7, 101):
+        stats = TemporalStatistics((4, 5))
+        for start in range(0, 101, chunk):
+            stats.update(frames[start:start + chunk], valid[start:start + chunk])
+        masked = np.ma.masked_array(frames, ~valid)
+        np.testing.assert_allclose(stats.mean, masked.mean(axis=0).data, rtol=1e-13)
+        np.testing.assert_allclose(stats.variance, masked.var(axis=0, ddof=1).data, rtol=1e-10)
+        np.testing.assert_array_equal(stats.masked, (~valid).sum(axis=0))
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2])
+def test_remove_gradient_recovers_a_pattern_times_a_polynomial(rng, degree):
+    rows, cols = np.indices((30, 40))
+    surface = {0: 3.0 + 0 * rows, 1: 3.0 + 0.01 * cols - 0.02 * rows,
+               2: 3.0 + 0.01 * cols - 0.02 * rows + 1e-4 * cols * rows}[degree]
+    mask = np.ones((30, 40), bool)
+    flat, fitted = remove_gradient(surface, mask, degree=degree)
+    np.testing.assert_allclose(flat, 1.0, atol=1e-12)
+    np.testing.assert_allclose(fitted, surface, rtol=1e-12)
+    with pytest.raises(ValueError, match="degree"):
+        remove_gradient(surface, mask, degree=-1)
+
+
+def truth_prnu(truth, detector, degree=1):
+    """The simulated sensitivity with the same illumination surface removed, mean 1 over the science area."""
+    flat, _ = remove_gradient(truth["sensitivity"].values, detector.science_mask(), degree=degree)
+    return flat / np.mean(flat[detector.science_slices])
+
+
+@pytest.fixture(scope="module")
+def dark(calibration_dataset):
+    manifest, _ = calibration_dataset
+    return dark_maps(FrameStream(manifest.dark, manifest.detector, chunk_frames=300), manifest.detector)
+
+
+def test_dark_noise_matches_simulated_read_noise_within_5_percent(calibration_dataset, dark):
+    manifest, truth = calibration_dataset
+    sl = manifest.detector.science_slices
+    ratio = dark["noise"].values[sl] / truth["read_noise"].values[sl]
+    # 5000 frames: each pixel's noise is estimated to 1%, so 5% per pixel is a 5-sigma bound
+    assert np.all(np.abs(ratio - 1) < 0.05), np.abs(ratio - 1).max()
+    assert np.mean(ratio) == pytest.approx(1.0, abs=0.005)
+
+
+def test_dark_mean_matches_bias(calibration_dataset, dark):
+    manifest, truth = calibration_dataset
+    sl = manifest.detector.science_slices
+    error = dark["dark"].values[sl] - truth["bias"].values[sl]
+    expected = truth["read_noise"].values[sl] / np.sqrt(int(dark["n_frames"]))
+    assert np.sqrt(np.mean(error**2)) < 1.5 * np.sqrt(np.mean(expected**2))
+
+
+def test_maps_are_nan_outside_the_science_area(calibration_dataset, dark):
+    manifest, _ = calibration_dataset
+    outside = ~manifest.detector.science_mask()
+    assert np.isnan(dark["dark"].values[outside]).all() and np.isnan(dark["noise"].values[outside]).all()
+    assert np.isfinite(dark["dark"].values[~outside]).all()
+
+
+@pytest.fixture(scope="module")
+def prnus(calibration_dataset, dark):
+    manifest, _ = calibration_dataset
+    return {flat: prnu_map(FrameStream(acq, manifest.detector, chunk_frames=128), dark["dark"].values,
+                           dark["noise"].values, manifest.detector, label=flat)
+            for flat, acq in manifest.flats.items()}
+
+
+def test_prnu_matches_sensitivity_within_1_5_photon_noise_limit(calibration_dataset, prnus):
+    manifest, truth = calibration_dataset
+    sl = manifest.detector.science_slices
+    expected = truth_prnu(truth, manifest.detector)
+    for flat, prnu in prnus.items():
+        error = prnu["prnu"].values[sl] - expected[sl]
+        limit = float(prnu["photon_noise_limit_rms"])
+        assert np.sqrt(np.mean(error**2)) < 1.5 * limit, flat
+        # the limit is real: the error is not far below it either (the test could fail both ways)
+        assert np.sqrt(np.mean(error**2)) > 0.7 * limit, flat
+        # the reported limit agrees with the scatter actually measured in the frames
+        measured = np.sqrt(np.nanmean(prnu["temporal_error"].values[sl] ** 2))
+        assert measured == pytest.approx(limit, rel=0.1)
+        assert np.nanmean(prnu["prnu"].values[sl]) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_prnu_removes_each_fibers_gradient(calibration_dataset, prnus):
+    manifest, truth = calibration_dataset
+    sl = manifest.detector.science_slices
+    for flat, prnu in prnus.items():
+        illumination = truth["flat_illumination"].sel(flat=flat).values
+        # the removed surface follows the fiber's illumination (up to the sensitivity's own plane)
+        removed = prnu["illumination"].values[sl]
+        assert np.corrcoef(removed.ravel(), illumination[sl].ravel())[0, 1] > 0.99
+
+
+def test_prnu_difference_at_photon_noise_limit(calibration_dataset, prnus):
+    manifest, _ = calibration_dataset
+    a, b = prnus["fiber_a"], prnus["fiber_b"]
+    diff = prnu_difference(a, b, manifest.detector)
+    assert float(diff["difference_rms"]) == pytest.approx(float(diff["photon_noise_limit_rms"]), rel=0.2)
+    assert float(diff["difference_rms"]) == pytest.approx(area_rms(b["prnu"].values - a["prnu"].values,
+                                                                   manifest.detector))
+
+
+def test_prnu_of_a_dark_frame_is_refused(calibration_dataset, dark):
+    manifest, _ = calibration_dataset
+    with pytest.raises(ValueError, match="no positive signal"):
+        prnu_map(FrameStream(manifest.dark, manifest.detector), dark["dark"].values, dark["noise"].values,
+                 manifest.detector)

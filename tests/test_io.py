@@ -1,0 +1,209 @@
+"""FITS streaming and netCDF products: round trips, chunking, and every kind of bad input."""
+
+import numpy as np
+import pytest
+import xarray as xr
+from astropy.io import fits
+
+from dice_core import DatasetError
+from dice_core.calibration import dark_maps
+from dice_core.io import FrameStream, open_cube, read_product, write_cube, write_product
+from dice_core.manifest import Acquisition, Detector
+
+DETECTOR = Detector(shape=(6, 7), science_rows=(0, 6), science_cols=(0, 7), gain=2.0, saturation=60000.0)
+
+
+def cube(n, rng, low=100, high=50000):
+    return rng.integers(low, high, size=(n, 6, 7)).astype(float)
+
+
+def stream(paths, **kwargs):
+    return FrameStream(Acquisition("test acquisition", tuple(paths)), DETECTOR, **kwargs)
+
+
+def collect(frame_stream):
+    chunks = list(frame_stream)
+    return np.concatenate([c.frames for c in chunks]), chunks
+
+
+@pytest.mark.parametrize("dtype", ["uint16", "int32", "float32"])
+def test_write_then_stream_round_trip(tmp_path, rng, dtype):
+    data = cube(23, rng)
+    path = tmp_path / "c.fits"
+    write_cube(path, [data[:10], data[10:]], shape=(6, 7), n_frames=23, dtype=dtype)
+    # astropy reads what we wrote, as (frame, row, col)
+    np.testing.assert_array_equal(fits.getdata(path), data)
+    frames, chunks = collect(stream([path], chunk_frames=5))
+    np.testing.assert_array_equal(frames, data)
+    assert [c.start for c in chunks] == [0, 5, 10, 15, 20]
+
+
+def test_files_concatenate_in_order_and_chunks_do_not_span_files(tmp_path, rng):
+    a, b = cube(7, rng), cube(4, rng)
+    write_cube(tmp_path / "a.fits", [a], shape=(6, 7), n_frames=7)
+    write_cube(tmp_path / "b.fits", [b], shape=(6, 7), n_frames=4)
+    fs = stream([tmp_path / "a.fits", tmp_path / "b.fits"], chunk_frames=3)
+    frames, chunks = collect(fs)
+    assert fs.n_frames == 11 and fs.shape == (11, 6, 7)
+    np.testing.assert_array_equal(frames, np.concatenate([a, b]))
+    assert [c.start for c in chunks] == [0, 3, 6, 7, 10]
+    # a stream can be iterated again
+    np.testing.assert_array_equal(collect(fs)[0], frames)
+
+
+def test_astropy_unsigned_and_2d_frame(tmp_path, rng):
+    frame = rng.integers(0, 65535, size=(6, 7)).astype(np.uint16)
+    fits.PrimaryHDU(frame).writeto(tmp_path / "one.fits")  # astropy writes BZERO 32768
+    frames, _ = collect(stream([tmp_path / "one.fits"]))
+    np.testing.assert_array_equal(frames, frame[None].astype(float))
+
+
+def test_saturated_samples_are_flagged_masked_and_counted(tmp_path, rng):
+    data = cube(20, rng, 1000, 2000)
+    data[3, 2, 2] = data[7, 2, 2] = 65535
+    path = tmp_path / "d.fits"
+    write_cube(path, [data], shape=(6, 7), n_frames=20)
+    _, chunks = collect(stream([path], chunk_frames=8))
+    assert sum(int(c.saturated.sum()) for c in chunks) == 2
+    maps = dark_maps(stream([path], chunk_frames=8), DETECTOR)
+    assert maps["saturated_count"].values[2, 2] == 2 and maps["saturated_count"].values.sum() == 2
+    # the saturated samples are left out of the mean, not averaged in
+    expected = np.delete(data[:, 2, 2], [3, 7]).mean()
+    assert maps["dark"].values[2, 2] == pytest.approx(expected, rel=1e-12)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(DatasetError, match="file not found") as info:
+        stream([tmp_path / "absent.fits"])
+    assert "absent.fits" in str(info.value)
+
+
+def test_not_a_fits_file(tmp_path):
+    path = tmp_path / "junk.fits"
+    path.write_bytes(b"this is not FITS" * 200)
+    with pytest.raises(DatasetError, match="not a readable FITS file") as info:
+        stream([path])
+    assert "junk.fits" in str(info.value)
+
+
+def test_cube_shape_differs_from_detector(tmp_path, rng):
+    path = tmp_path / "wrong.fits"
+    write_cube(path, [rng.normal(size=(2, 6, 8))], shape=(6, 8), n_frames=2, dtype="float32")
+    with pytest.raises(DatasetError, match=r"frames are 6x8 .* detector is 6x7") as info:
+        stream([path])
+    assert "wrong.fits" in str(info.value)
+
+
+@pytest.mark.parametrize("array", [np.zeros((2, 6, 7), np.uint8), np.zeros((2, 6, 7), np.float64),
+                                   np.zeros((2, 6, 7), np.int16), np.zeros((2, 6, 7), np.int64)])
+def test_unsupported_data_type(tmp_path, array):
+    path = tmp_path / "type.fits"
+    fits.PrimaryHDU(array).writeto(path)
+    with pytest.raises(DatasetError, match="unsupported data type") as info:
+        stream([path])
+    assert "type.fits" in str(info.value)
+
+
+def test_truncated_file(tmp_path, rng):
+    path = tmp_path / "cut.fits"
+    write_cube(path, [cube(10, rng)], shape=(6, 7), n_frames=10)
+    path.write_bytes(path.read_bytes()[:2880 + 200])
+    with pytest.raises(DatasetError, match="truncated"):
+        stream([path])
+
+
+def test_checksum_verifies_when_intact(tmp_path, rng):
+    path = tmp_path / "sum.fits"
+    fits.PrimaryHDU(cube(9, rng).astype(np.float32)).writeto(path, checksum=True)
+    frames, _ = collect(stream([path], chunk_frames=4))
+    assert frames.shape == (9, 6, 7)
+
+
+@pytest.mark.parametrize("where, expected", [("data", "DATASUM does not verify"),
+                                             ("header", "CHECKSUM does not verify")])
+def test_checksum_that_does_not_verify(tmp_path, rng, where, expected):
+    path = tmp_path / "sum.fits"
+    fits.PrimaryHDU(cube(9, rng).astype(np.float32)).writeto(path, checksum=True)
+    raw = bytearray(path.read_bytes())
+    if where == "data":
+        raw[2880 + 101] ^= 0x10
+    else:
+        at = raw.index(b"EXPTIME") if b"EXPTIME" in raw else raw.index(b"NAXIS3")
+        raw[at + 40:at + 41] = b"/"  # edit the comment field: header still parses
+    path.write_bytes(bytes(raw))
+    with pytest.raises(DatasetError, match=expected) as info:
+        collect(stream([path]))
+    assert "sum.fits" in str(info.value)
+
+
+def test_non_finite_samples(tmp_path, rng):
+    data = cube(12, rng).astype(np.float32)
+    data[9, 1, 4] = np.nan
+    path = tmp_path / "nan.fits"
+    write_cube(path, [data], shape=(6, 7), n_frames=12, dtype="float32")
+    with pytest.raises(DatasetError, match=r"1 non-finite sample.*frame 9, row 1, col 4") as info:
+        collect(stream([path], chunk_frames=5))
+    assert "nan.fits" in str(info.value)
+
+
+def test_too_few_frames(tmp_path, rng):
+    path = tmp_path / "short.fits"
+    write_cube(path, [cube(1, rng)], shape=(6, 7), n_frames=1)
+    with pytest.raises(DatasetError, match="test acquisition has 1 frame.*at least 2.*for a noise map") as info:
+        stream([path], min_frames=2, purpose="a noise map")
+    assert "short.fits" in str(info.value)
+
+
+def test_open_cube_reads_layout_only(tmp_path, rng):
+    path = tmp_path / "c.fits"
+    write_cube(path, [cube(3, rng)], shape=(6, 7), n_frames=3, header={"FRAMERAT": 108.0})
+    info = open_cube(path, DETECTOR)
+    assert (info.n_frames, info.shape, info.bzero) == (3, (6, 7), 32768.0)
+    assert info.header["FRAMERAT"] == 108.0
+
+
+def test_write_cube_failure_leaves_nothing_half_written(tmp_path, rng):
+    path = tmp_path / "c.fits"
+    write_cube(path, [cube(3, rng)], shape=(6, 7), n_frames=3)
+    before = path.read_bytes()
+
+    def failing():
+        yield cube(2, rng)
+        raise RuntimeError("simulated crash")
+
+    with pytest.raises(RuntimeError):
+        write_cube(path, failing(), shape=(6, 7), n_frames=3)
+    assert path.read_bytes() == before
+    assert list(tmp_path.iterdir()) == [path]
+
+
+def product():
+    return xr.Dataset({"m": (("row", "col"), np.ones((2, 3)), {"units": "adu"})})
+
+
+def test_product_carries_units_and_provenance(tmp_path):
+    path = tmp_path / "p.nc"
+    write_product(product(), path, title="test", config={"a": 1}, inputs=["x.fits"])
+    ds = read_product(path)
+    assert ds["m"].attrs["units"] == "adu"
+    for key in ("Conventions", "title", "source", "dice_core_version", "configuration", "inputs", "history"):
+        assert key in ds.attrs
+    assert '"a": 1' in ds.attrs["configuration"] and "x.fits" in ds.attrs["inputs"]
+
+
+def test_product_without_units_is_refused(tmp_path):
+    ds = product()
+    ds["m"].attrs = {}
+    with pytest.raises(ValueError, match="without units"):
+        write_product(ds, tmp_path / "p.nc", title="t")
+
+
+def test_failed_product_write_keeps_the_old_product(tmp_path):
+    path = tmp_path / "p.nc"
+    write_product(product(), path, title="first")
+    bad = product()
+    bad["m"].attrs["unwritable"] = {"nested": "dict"}  # netCDF cannot store it
+    with pytest.raises(Exception):
+        write_product(bad, path, title="second")
+    assert read_product(path).attrs["title"] == "first"
+    assert list(tmp_path.iterdir()) == [path]

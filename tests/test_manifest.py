@@ -1,0 +1,98 @@
+"""Manifest validation: a valid dataset loads; every violation names the file and the problem."""
+
+import copy
+
+import pytest
+import yaml
+
+from dice_core import DatasetError
+from dice_core.manifest import load_manifest, parse_manifest
+from dice_core.simulation import dataset_layout
+
+from conftest import small_config
+
+
+@pytest.fixture
+def layout():
+    return dataset_layout(small_config())
+
+
+def write(tmp_path, document):
+    path = tmp_path / "dataset.yaml"
+    path.write_text(yaml.safe_dump(document))
+    return path
+
+
+def test_layout_parses_with_contract_structure(layout, tmp_path):
+    manifest = parse_manifest(layout, tmp_path / "dataset.yaml")
+    assert manifest.name == "sim-test"
+    assert manifest.detector.shape == (40, 44)
+    assert manifest.detector.science_slices == (slice(2, 39), slice(3, 43))
+    assert manifest.reference_flat == "fiber_a"
+    assert manifest.reference_pair == "P14"
+    assert manifest.pairs["P24"] == ("H2H4", "V2V4")
+    assert [p.index for p in manifest.positions] == [1, 2, 3]
+    # file paths resolve against the manifest's folder
+    assert manifest.dark.files[0] == (tmp_path / "dark/dark_000.fits").resolve()
+    # the star order is fixed by approx: the central star first, given as [row, col]
+    assert manifest.star_approx[0] == pytest.approx((20.2, 23.0), abs=0.5)
+
+
+def test_only_required_sections(tmp_path, layout):
+    document = {k: layout[k] for k in ("format", "name", "detector")}
+    manifest = load_manifest(write(tmp_path, document))
+    assert manifest.dark is None and not manifest.flats and not manifest.baselines and not manifest.positions
+
+
+@pytest.mark.parametrize(
+    "edit, expected",
+    [
+        (lambda d: d.update(format="dice-dataset/2"), "at format"),
+        (lambda d: d.pop("detector"), "'detector' is a required property"),
+        (lambda d: d.update(name="has space"), "at name"),
+        (lambda d: d["detector"].update(gain=-1), "at detector.gain"),
+        (lambda d: d["detector"].update(shape=[40]), "at detector.shape"),
+        (lambda d: d["detector"]["science_area"].update(rows=[2, 41]), "science_area.rows"),
+        (lambda d: d["detector"]["science_area"].update(cols=[10, 10]), "science_area.cols"),
+        (lambda d: d["metrology"]["pairs"].update(P99=["H1H4", "X"]), "unknown baseline"),
+        (lambda d: d["metrology"]["pairs"].update(P99=["H1H4", "H1H4"]), "twice"),
+        (lambda d: d["dark"].update(files=[]), "at dark.files"),
+        (lambda d: d.update(extra=1), "Additional properties"),
+        (lambda d: d["stars"]["positions"].append(dict(d["stars"]["positions"][0])), "repeated indices"),
+        (lambda d: d["stars"].update(approx=[[100, 3]]), "outside the detector"),
+    ],
+)
+def test_violations_name_file_and_problem(layout, tmp_path, edit, expected):
+    document = copy.deepcopy(layout)
+    edit(document)
+    path = write(tmp_path, document)
+    with pytest.raises(DatasetError, match=expected) as info:
+        load_manifest(path, check_files=False)
+    assert str(path.resolve()) in str(info.value)
+
+
+def test_missing_manifest(tmp_path):
+    with pytest.raises(DatasetError, match="manifest not found") as info:
+        load_manifest(tmp_path / "nowhere.yaml")
+    assert "nowhere.yaml" in str(info.value)
+
+
+def test_unreadable_manifest(tmp_path):
+    path = tmp_path / "dataset.yaml"
+    path.write_bytes(b"\xff\xfe\x00binary")
+    with pytest.raises(DatasetError, match="unreadable"):
+        load_manifest(path)
+
+
+def test_not_yaml(tmp_path):
+    path = tmp_path / "dataset.yaml"
+    path.write_text("format: [unclosed\n")
+    with pytest.raises(DatasetError, match="not valid YAML"):
+        load_manifest(path)
+
+
+def test_missing_fits_file_is_named(layout, tmp_path):
+    path = write(tmp_path, layout)
+    with pytest.raises(DatasetError, match="not found") as info:
+        load_manifest(path)
+    assert "dark_000.fits" in str(info.value)

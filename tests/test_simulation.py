@@ -1,0 +1,187 @@
+"""The simulated testbed: format, determinism, statistics of each acquisition, and the star geometry."""
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from dice_core import simulation
+from dice_core.io import FrameStream, read_product
+from dice_core.manifest import load_manifest
+
+from conftest import small_config
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    cfg = small_config(frames_per_file=120)
+    path = simulation.simulate_dataset(cfg, tmp_path_factory.mktemp("sim") / "raw")
+    return cfg, load_manifest(path), read_product(path.parent / "truth.nc")
+
+
+def test_writes_the_raw_format_and_truth_contract(dataset):
+    cfg, manifest, truth = dataset
+    assert manifest.name == cfg.name
+    assert set(manifest.baselines) == {"H1H4", "V1V4", "H2H4", "V2V4"}
+    assert len(manifest.baselines["H1H4"].files) == 2  # 200 frames at 120 per file
+    for name, units in {"dx": "pixel", "dy": "pixel", "sensitivity": "1", "kx": "rad/pixel", "ky": "rad/pixel",
+                        "phase": "rad", "star_x": "pixel", "star_y": "pixel"}.items():
+        assert truth[name].attrs["units"] == units, name
+    assert truth["dx"].dims == ("row", "col") and truth["phase"].dims == ("baseline", "frame")
+    assert truth["star_x"].dims == ("position", "star") and truth.sizes["star"] == 5
+    for acquisition in [manifest.dark, *manifest.flats.values(), *manifest.baselines.values()]:
+        stream = FrameStream(acquisition, manifest.detector)
+        assert stream.n_frames == {"dark": 100, "flat": 100, "baseline": 200}[acquisition.label.split()[0]]
+
+
+def test_truth_follows_the_configuration(dataset):
+    cfg, manifest, truth = dataset
+    sl = manifest.detector.science_slices
+    sens = truth["sensitivity"].values[sl]
+    assert sens.mean() == pytest.approx(1.0, abs=1e-12)
+    assert 1.5e-3 < np.median(np.abs(sens - np.median(sens))) * 1.4826 < 3e-3  # robust rms, dust excluded
+    assert sens.min() < 1 - 0.01  # dust pixels
+    for d in ("dx", "dy"):
+        values = truth[d].values[sl]
+        assert np.std(values) == pytest.approx(1e-3, rel=0.1)
+        # offsets are defined up to an affine map: the truth has none
+        rows, cols = np.indices(values.shape)
+        assert abs(values.mean()) < 1e-15 and abs(np.corrcoef(values.ravel(), cols.ravel())[0, 1]) < 1e-10
+    width = truth["prf_sigma_x"].values[sl]
+    assert np.std(width) / np.mean(width) == pytest.approx(0.01, rel=0.15)
+    period = np.hypot(truth["kx"], truth["ky"]).values
+    np.testing.assert_allclose(2 * np.pi / period, [2.4, 2.4, 4.0, 4.0])
+
+
+def test_deterministic(dataset, tmp_path):
+    cfg, manifest, truth = dataset
+    path = simulation.simulate_dataset(cfg, tmp_path / "again")
+    again = load_manifest(path)
+    xr.testing.assert_identical(truth.drop_attrs(), read_product(path.parent / "truth.nc").drop_attrs())
+    for a, b in zip(manifest.all_files(), again.all_files()):
+        assert a.read_bytes() == b.read_bytes(), a.name
+
+
+def test_frames_do_not_depend_on_chunk_size(dataset):
+    import dataclasses
+
+    cfg, _, truth = dataset
+    small = dataclasses.replace(cfg, chunk_frames=7)
+    for kind, name in [("baseline", "V1V4"), ("flat", "fiber_b"), ("dark", "dark")]:
+        a = np.concatenate(list(simulation.acquisition_chunks(cfg, truth, kind, name, 0, 50)))
+        b = np.concatenate(list(simulation.acquisition_chunks(small, truth, kind, name, 0, 50)))
+        np.testing.assert_array_equal(a, b)
+
+
+def test_dark_is_bias_plus_read_noise(dataset):
+    _, manifest, truth = dataset
+    frames = np.concatenate([c.frames for c in FrameStream(manifest.dark, manifest.detector)])
+    sl = manifest.detector.science_slices
+    residual = frames[:, sl[0], sl[1]] - truth["bias"].values[sl]
+    assert abs(residual.mean()) < 0.05
+    # read noise plus the uniform quantisation of integer samples
+    expected = np.sqrt(np.mean(truth["read_noise"].values[sl] ** 2) + 1 / 12)
+    assert residual.std() == pytest.approx(expected, rel=0.01)
+
+
+def test_metrology_frames_follow_the_fringe_model(dataset):
+    cfg, manifest, truth = dataset
+    frames = np.concatenate([c.frames for c in FrameStream(manifest.baselines["H2H4"], manifest.detector)])
+    b = truth.sel(baseline="H2H4")
+    prf = simulation.pixel_response(truth)
+    envelope, visibility = truth["envelope"].values, truth["visibility"].values
+    response = prf.fringe_response(float(b.kx), float(b.ky)) * envelope * visibility
+    phase = b["phase"].values[:, None, None]
+    model = (b["fringe_level"].values[:, None, None] * prf.sensitivity * envelope
+             + b["fringe_amplitude"].values[:, None, None] * np.imag(response * np.exp(1j * phase))
+             + truth["bias"].values)
+    residual = (frames - model)[:, 2:39, 3:43]
+    # what is left is photon noise (gain 10 e-/adu) plus read noise
+    expected = np.sqrt((model - truth["bias"].values)[:, 2:39, 3:43] / cfg.detector.gain
+                       + truth["read_noise"].values[2:39, 3:43] ** 2 + 1 / 12)
+    assert np.std(residual / expected) == pytest.approx(1.0, abs=0.02)
+    assert abs(np.mean(residual / expected)) < 0.02
+    # the phase sweeps back and forth over several 2 pi
+    assert np.ptp(b["phase"].values) > 2 * 2 * np.pi
+
+
+def test_laser_noise_scales_level_and_amplitude_together(dataset):
+    _, _, truth = dataset
+    b = truth.sel(baseline="H1H4")
+    level = b["fringe_level"].values / 10000 - 1
+    amplitude = b["fringe_amplitude"].values / 6000 - 1
+    assert np.std(level) == pytest.approx(1e-2, rel=0.2)
+    assert np.corrcoef(level, amplitude)[0, 1] > 0.99
+    assert np.std(amplitude - level) == pytest.approx(1e-3, rel=0.3)
+
+
+def test_star_images_centre_on_the_truth(dataset):
+    _, manifest, truth = dataset
+    position = manifest.positions[1]
+    frames = np.concatenate([c.frames for c in FrameStream(position.acquisition, manifest.detector)])
+    image = frames.mean(axis=0) - truth["bias"].values
+    for star in range(5):
+        x, y = float(truth.star_x[1, star]), float(truth.star_y[1, star])
+        r, c = int(round(y)), int(round(x))
+        window = image[r - 4:r + 5, c - 4:c + 5] - 10.0  # background
+        rows, cols = np.indices(window.shape)
+        assert (window * cols).sum() / window.sum() + c - 4 == pytest.approx(x, abs=0.02)
+        assert (window * rows).sum() / window.sum() + r - 4 == pytest.approx(y, abs=0.02)
+
+
+def geometry_config(**stars):
+    return small_config(detector={"shape": [80, 84], "science_rows": [2, 79], "science_cols": [10, 83]},
+                        stars={"pattern_centre": [46.0, 40.0], "pattern_side": 40.0, **stars})
+
+
+def test_reference_pose_projects_the_nominal_pattern():
+    cfg = geometry_config()
+    pattern = np.array([[46.0, 40.0], [26.0, 20.0], [66.0, 20.0], [26.0, 60.0], [66.0, 60.0]])
+    projected = simulation.project_stars(pattern, np.zeros((1, 6)), cfg)[0]
+    np.testing.assert_allclose(projected, pattern, atol=1e-9)
+
+
+def test_translation_moves_all_stars_together():
+    cfg = geometry_config()
+    pattern = np.array([[46.0, 40.0], [26.0, 20.0], [66.0, 60.0]])
+    moved = simulation.project_stars(pattern, np.array([[0.3, -0.2, 0, 0, 0, 0]]), cfg)[0]
+    np.testing.assert_allclose(moved - pattern, [[-0.3, 0.2]] * 3, atol=1e-9)
+
+
+def test_tilt_gives_the_non_homogeneous_scale_of_appendix_d():
+    """A tip theta changes the top and bottom star separations by -+alpha*theta (relative), on axis."""
+    cfg = geometry_config(off_axis_deg=0.0)
+    theta, side, distance = 1e-3, 40.0, 25000.0
+    rows, cols = 80, 84
+    yc = (rows - 1) / 2
+    pattern = np.array([[41.5, yc], [41.5, yc - side / 2], [41.5, yc + side / 2]])
+    tipped = simulation.project_stars(pattern, np.array([[0, 0, 0, theta, 0, 0]]), cfg)[0]
+    s_low, s_high = tipped[0, 1] - tipped[1, 1], tipped[2, 1] - tipped[0, 1]
+    alpha = (side / 2) / distance
+    # first order: the two half-separations differ by 2*alpha*theta relative (paper's appendix D)
+    assert (s_high - s_low) / (side / 2) == pytest.approx(2 * alpha * theta, rel=0.02)
+
+
+def test_unknown_config_keys_are_refused():
+    with pytest.raises(ValueError, match="unknown key"):
+        simulation.SimulationConfig.from_dict({"detector": {"gian": 10}})
+    with pytest.raises(ValueError, match="unknown baseline"):
+        simulation.SimulationConfig.from_dict({"metrology": {"pairs": {"P": ["H1H4", "X"]}}})
+    with pytest.raises(ValueError, match="science area"):
+        simulation.SimulationConfig.from_dict({"detector": {"science_rows": [0, 200]}})
+
+
+@pytest.mark.parametrize("preset", ["default", "ci", "paper"])
+def test_presets_load_and_lay_out_a_valid_manifest(preset, tmp_path):
+    from pathlib import Path
+
+    from dice_core.manifest import parse_manifest
+
+    cfg = simulation.load_preset(Path(__file__).parents[1] / "config" / "presets" / f"{preset}.yaml")
+    manifest = parse_manifest(simulation.dataset_layout(cfg), tmp_path / "dataset.yaml")
+    assert manifest.name == f"sim-{preset}"
+    assert len(simulation.file_jobs(cfg)) == len(manifest.all_files())
+    # the stars stay inside the science area at every position, with room for a window
+    truth_poses = simulation._nominal_poses(cfg.stars)
+    stars = simulation.project_stars(simulation._nominal_pattern(cfg.stars), truth_poses, cfg)
+    assert stars[..., 1].min() > cfg.detector.science_rows[0] + 5
+    assert stars[..., 1].max() < cfg.detector.science_rows[1] - 5

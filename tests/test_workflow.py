@@ -1,0 +1,140 @@
+"""The workflow end to end on the tiny ``ci`` preset, in a copy of the repository.
+
+The copy carries its own dice_core, first on PYTHONPATH, so that a test can
+edit a module and watch which jobs Snakemake would re-run.
+"""
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from dice_core.calibration import remove_gradient
+from dice_core.io import read_product, write_cube
+from dice_core.manifest import load_manifest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def snakemake(workdir, *args, check=True):
+    env = {**os.environ, "PYTHONPATH": str(workdir)}
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", *args]
+    result = subprocess.run(cmd, cwd=workdir, env=env, capture_output=True, text=True, timeout=600)
+    if check and result.returncode != 0:
+        raise AssertionError(f"{' '.join(cmd)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
+    return result
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("workflow")
+    for item in ("Snakefile", "workflow", "config", "dice_core"):
+        source = REPO / item
+        if source.is_dir():
+            shutil.copytree(source, root / item, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(source, root / item)
+    snakemake(root, "--config", "dataset=ci")
+    return root
+
+
+@pytest.fixture(scope="module")
+def out(workdir):
+    return workdir / "results" / "sim-ci"
+
+
+def test_products_and_figures_exist(out):
+    for product in ("calibration/dark.nc", "calibration/prnu.nc", "calibration/flats/prnu_fiber_a.nc",
+                    "calibration/flats/prnu_fiber_b.nc", "calibration/prnu_difference_fiber_b.nc",
+                    "raw/dataset.yaml", "raw/truth.nc"):
+        assert (out / product).is_file(), product
+    for figure in ("dark", "dark_noise", "prnu_fiber_a", "prnu_fiber_b", "prnu_difference_fiber_b"):
+        for ext in ("png", "pdf"):
+            assert (out / "figures" / f"{figure}.{ext}").stat().st_size > 1000, figure
+    for log in ("measure_dark", "measure_prnu_fiber_a", "simulate_truth"):
+        assert "done" in (out / "logs" / f"{log}.log").read_text()
+
+
+def test_products_follow_the_contract(out):
+    manifest = load_manifest(out / "raw" / "dataset.yaml")
+    outside = ~manifest.detector.science_mask()
+    dark, prnu = read_product(out / "calibration/dark.nc"), read_product(out / "calibration/prnu.nc")
+    assert dark["dark"].attrs["units"] == "adu" and dark["noise"].attrs["units"] == "adu"
+    assert prnu["prnu"].attrs["units"] == "1"
+    for ds in (dark, prnu):
+        for var in ds.data_vars.values():
+            assert "units" in var.attrs
+        for key in ("dice_core_version", "configuration", "inputs", "history"):
+            assert ds.attrs[key]
+    for var in (dark["dark"], dark["noise"], prnu["prnu"]):
+        assert var.dims == ("row", "col")
+        assert np.isnan(var.values[outside]).all() and np.isfinite(var.values[~outside]).all()
+    assert np.mean(prnu["prnu"].values[manifest.detector.science_slices]) == pytest.approx(1.0, abs=1e-12)
+    assert prnu.attrs["flat"] == "fiber_a"
+    assert "dark_000.fits" in dark.attrs["inputs"]
+
+
+def test_prnu_product_matches_truth(out):
+    manifest = load_manifest(out / "raw" / "dataset.yaml")
+    truth = read_product(out / "raw" / "truth.nc")
+    prnu = read_product(out / "calibration/prnu.nc")
+    expected, _ = remove_gradient(truth["sensitivity"].values, manifest.detector.science_mask())
+    sl = manifest.detector.science_slices
+    error = prnu["prnu"].values[sl] - expected[sl] / expected[sl].mean()
+    assert np.sqrt(np.mean(error**2)) < 1.5 * float(prnu["photon_noise_limit_rms"])
+
+
+def test_up_to_date_then_dice_core_change_reruns_what_it_affects(workdir):
+    assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+    module = workdir / "dice_core" / "calibration.py"
+    original = module.read_text()
+    try:
+        module.write_text(original + "\n# a change to the numerics\n")
+        plan = snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+    finally:
+        module.write_text(original)
+    rules = {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
+    assert {"measure_dark", "measure_prnu", "compare_prnu"} <= rules
+    assert not any(r.startswith("simulate") for r in rules)
+    assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+
+
+def test_lint_has_nothing_to_say(workdir):
+    result = snakemake(workdir, "--lint", "--config", "dataset=ci")
+    assert "Lints for" not in result.stdout + result.stderr
+
+
+def test_missing_manifest_is_a_clear_error(workdir, tmp_path):
+    missing = tmp_path / "nowhere" / "dataset.yaml"
+    result = snakemake(workdir, "-n", "--config", f"dataset={missing}", check=False)
+    said = result.stdout + result.stderr  # Snakemake 9 reports workflow errors on stdout
+    assert result.returncode != 0
+    assert f"{missing}: manifest not found" in said
+
+
+def test_unknown_preset_is_a_clear_error(workdir):
+    result = snakemake(workdir, "-n", "--config", "dataset=nopreset", check=False)
+    assert result.returncode != 0
+    assert "neither a manifest path" in result.stdout + result.stderr
+
+
+def test_external_dataset_with_a_bad_cube_fails_naming_it(workdir, out, tmp_path):
+    """A dataset outside the working directory, in the raw format, whose dark cube has the wrong shape."""
+    data = tmp_path / "bench"
+    shutil.copytree(out / "raw", data)
+    document = yaml.safe_load((data / "dataset.yaml").read_text())
+    document["name"] = "bench-broken"
+    (data / "dataset.yaml").write_text(yaml.safe_dump(document))
+    dark = data / document["dark"]["files"][0]
+    write_cube(dark, [np.zeros((3, 40, 45))], shape=(40, 45), n_frames=3)
+    result = snakemake(workdir, "--config", f"dataset={data / 'dataset.yaml'}", check=False)
+    assert result.returncode != 0
+    log = (workdir / "results" / "bench-broken" / "logs" / "measure_dark.log").read_text()
+    assert str(dark) in log and "frames are 40x45" in log
+    assert not (workdir / "results" / "bench-broken" / "calibration" / "dark.nc").exists()
+    assert not list((workdir / "results" / "bench-broken").rglob("*.part"))

@@ -1,0 +1,72 @@
+# Dark and flat-field stages: dark maps, one PRNU map per flat, the reference
+# PRNU, and each other flat's difference from it.
+
+
+rule measure_dark:
+    input:
+        manifest=MANIFEST_FILE,
+        cubes=acquisition_files(MANIFEST.dark) if MANIFEST.dark else [],
+    output:
+        dark=f"{OUT}/calibration/dark.nc",
+    params:
+        code=code_version("io", "manifest", "calibration"),
+    log:
+        f"{OUT}/logs/measure_dark.log",
+    benchmark:
+        f"{OUT}/benchmarks/measure_dark.tsv"
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/measure_dark.py"
+
+
+rule measure_prnu:
+    input:
+        manifest=MANIFEST_FILE,
+        dark=rules.measure_dark.output.dark,
+        cubes=flat_files,
+    output:
+        prnu=f"{OUT}/calibration/flats/prnu_{{flat}}.nc",
+    params:
+        code=code_version("io", "manifest", "calibration"),
+    log:
+        f"{OUT}/logs/measure_prnu_{{flat}}.log",
+    benchmark:
+        f"{OUT}/benchmarks/measure_prnu_{{flat}}.tsv"
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/measure_prnu.py"
+
+
+rule select_reference_prnu:
+    input:
+        prnu=f"{OUT}/calibration/flats/prnu_{MANIFEST.reference_flat}.nc",
+    output:
+        prnu=f"{OUT}/calibration/prnu.nc",
+    params:
+        reference=MANIFEST.reference_flat,
+        code=code_version("io"),
+    log:
+        f"{OUT}/logs/select_reference_prnu.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/select_reference_prnu.py"
+
+
+rule compare_prnu:
+    input:
+        reference=rules.select_reference_prnu.output.prnu,
+        other=f"{OUT}/calibration/flats/prnu_{{flat}}.nc",
+        manifest=MANIFEST_FILE,
+    output:
+        difference=f"{OUT}/calibration/prnu_difference_{{flat}}.nc",
+    params:
+        code=code_version("io", "manifest", "calibration"),
+    log:
+        f"{OUT}/logs/compare_prnu_{{flat}}.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/compare_prnu.py"

@@ -1,0 +1,114 @@
+# Plumbing of the workflow: config validation, the dataset to reduce, input
+# functions and the code versions that make a dice_core change re-run what it
+# affects. No numerics here: they live in dice_core.
+
+import hashlib
+import os
+import re
+import sys
+from importlib import util
+from pathlib import Path
+
+from snakemake.exceptions import WorkflowError
+from snakemake.utils import validate
+
+from dice_core import DatasetError, simulation
+from dice_core.manifest import load_manifest, parse_manifest
+
+
+validate(config, schema="../schemas/config.schema.yaml")
+
+PRESETS = Path(workflow.basedir) / "config" / "presets"
+
+
+def local_path(path):
+    """A path relative to the working directory when it lies below it.
+
+    Inputs must be spelt as the rules that make them spell their outputs, and
+    those are relative; files outside the working directory stay absolute.
+    """
+    path = Path(path).resolve()
+    cwd = Path.cwd().resolve()
+    return str(path.relative_to(cwd)) if path.is_relative_to(cwd) else str(path)
+
+
+def load_dataset(value):
+    """(manifest, simulation config or None) for config['dataset']: a preset name or a manifest path."""
+    if value.endswith((".yaml", ".yml")) or os.sep in value:
+        try:
+            return load_manifest(value), None
+        except DatasetError as exc:
+            raise WorkflowError(f"config dataset={value}: {exc}") from None
+    preset = PRESETS / f"{value}.yaml"
+    if not preset.is_file():
+        known = sorted(p.stem for p in PRESETS.glob("*.yaml"))
+        raise WorkflowError(f"config dataset={value!r} is neither a manifest path (*.yaml) "
+                            f"nor a simulation preset {known}")
+    try:
+        sim = simulation.load_preset(preset)
+    except ValueError as exc:
+        raise WorkflowError(str(exc)) from None
+    manifest_path = Path(config["results"]) / sim.name / "raw" / "dataset.yaml"
+    return parse_manifest(simulation.dataset_layout(sim), manifest_path), sim
+
+
+MANIFEST, SIMULATION = load_dataset(str(config["dataset"]))
+OUT = f"{config['results']}/{MANIFEST.name}"
+RAW = f"{OUT}/raw"
+MANIFEST_FILE = local_path(MANIFEST.path)
+
+
+wildcard_constraints:
+    flat="|".join(map(re.escape, MANIFEST.flats)) or "(?!)",
+
+
+def skipped(what, why):
+    print(f"dice: skipping {what}: {why}", file=sys.stderr)
+
+
+def code_version(*modules):
+    """Hash of the dice_core modules a step runs (plus the package itself), passed as a param.
+
+    Snakemake re-runs a job when its params change, so editing a module
+    re-runs the jobs that use it, and only those.
+    """
+    digest = hashlib.sha256()
+    package = Path(util.find_spec("dice_core").origin).parent
+    for name in ("__init__", *modules):
+        digest.update((package / f"{name}.py").read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def acquisition_files(acquisition):
+    return [local_path(f) for f in acquisition.files]
+
+
+def flat_files(wildcards):
+    if wildcards.flat not in MANIFEST.flats:
+        raise WorkflowError(f"no flat named {wildcards.flat!r} in {MANIFEST.path}")
+    return acquisition_files(MANIFEST.flats[wildcards.flat])
+
+
+def figure_pair(stem):
+    return {"png": f"{OUT}/figures/{stem}.png", "pdf": f"{OUT}/figures/{stem}.pdf"}
+
+
+def calibration_targets():
+    """Products and figures of the dark and PRNU stages that this dataset allows."""
+    targets = []
+    if MANIFEST.dark is None:
+        skipped("dark and PRNU", f"{MANIFEST.path} has no dark section")
+        return targets
+    targets += [f"{OUT}/calibration/dark.nc", *figure_pair("dark").values(), *figure_pair("dark_noise").values()]
+    if not MANIFEST.flats:
+        skipped("PRNU", f"{MANIFEST.path} has no flats section")
+        return targets
+    targets.append(f"{OUT}/calibration/prnu.nc")
+    for flat in MANIFEST.flats:
+        targets += figure_pair(f"prnu_{flat}").values()
+    others = list(MANIFEST.flats)[1:]
+    for flat in others:
+        targets += [f"{OUT}/calibration/prnu_difference_{flat}.nc", *figure_pair(f"prnu_difference_{flat}").values()]
+    if not others:
+        skipped("PRNU difference", "the dataset has a single flat")
+    return targets

@@ -1,0 +1,55 @@
+# Figures: each reads cached products only, so editing a plot never re-runs a fit.
+
+
+rule plot_dark:
+    input:
+        dark=rules.measure_dark.output.dark,
+        manifest=MANIFEST_FILE,
+    output:
+        dark_png=report(f"{OUT}/figures/dark.png", category="Dark", caption="../report/dark.rst"),
+        dark_pdf=f"{OUT}/figures/dark.pdf",
+        noise_png=report(f"{OUT}/figures/dark_noise.png", category="Dark", caption="../report/dark_noise.rst"),
+        noise_pdf=f"{OUT}/figures/dark_noise.pdf",
+    params:
+        code=code_version("plotting", "manifest", "io"),
+    log:
+        f"{OUT}/logs/plot_dark.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/plot_dark.py"
+
+
+rule plot_prnu:
+    input:
+        prnu=rules.measure_prnu.output.prnu,
+        manifest=MANIFEST_FILE,
+    output:
+        png=report(f"{OUT}/figures/prnu_{{flat}}.png", category="PRNU", caption="../report/prnu.rst"),
+        pdf=f"{OUT}/figures/prnu_{{flat}}.pdf",
+    params:
+        code=code_version("plotting", "manifest", "io"),
+    log:
+        f"{OUT}/logs/plot_prnu_{{flat}}.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/plot_prnu.py"
+
+
+rule plot_prnu_difference:
+    input:
+        difference=rules.compare_prnu.output.difference,
+        manifest=MANIFEST_FILE,
+    output:
+        png=report(f"{OUT}/figures/prnu_difference_{{flat}}.png", category="PRNU",
+                   caption="../report/prnu_difference.rst"),
+        pdf=f"{OUT}/figures/prnu_difference_{{flat}}.pdf",
+    params:
+        code=code_version("plotting", "manifest", "io"),
+    log:
+        f"{OUT}/logs/plot_prnu_difference_{{flat}}.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/plot_prnu_difference.py"
