@@ -16,6 +16,7 @@ from importlib import resources
 from pathlib import Path
 
 import jsonschema
+import numpy as np
 import yaml
 
 from dice_core import DatasetError
@@ -68,8 +69,6 @@ class Detector:
 
     def science_mask(self):
         """Boolean (row, col) map, True inside the science area."""
-        import numpy as np
-
         mask = np.zeros(self.shape, dtype=bool)
         mask[self.science_slices] = True
         return mask

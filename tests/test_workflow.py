@@ -30,15 +30,19 @@ def snakemake(workdir, *args, check=True):
     return result
 
 
-@pytest.fixture(scope="module")
-def workdir(tmp_path_factory):
-    root = tmp_path_factory.mktemp("workflow")
+def copy_repository(root):
     for item in ("Snakefile", "workflow", "config", "dice_core"):
         source = REPO / item
         if source.is_dir():
             shutil.copytree(source, root / item, ignore=shutil.ignore_patterns("__pycache__"))
         else:
             shutil.copy(source, root / item)
+    return root
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    root = copy_repository(tmp_path_factory.mktemp("workflow"))
     snakemake(root, "--config", "dataset=ci")
     return root
 
@@ -138,3 +142,23 @@ def test_external_dataset_with_a_bad_cube_fails_naming_it(workdir, out, tmp_path
     assert str(dark) in log and "frames are 40x45" in log
     assert not (workdir / "results" / "bench-broken" / "calibration" / "dark.nc").exists()
     assert not list((workdir / "results" / "bench-broken").rglob("*.part"))
+
+
+@pytest.mark.slow
+def test_default_preset_against_truth(tmp_path):
+    """The README's main job (about 30 s): dark noise and PRNU of the 80x84 testbed against truth."""
+    root = copy_repository(tmp_path)
+    snakemake(root)
+    out = root / "results" / "sim-default"
+    manifest = load_manifest(out / "raw" / "dataset.yaml")
+    truth = read_product(out / "raw" / "truth.nc")
+    sl = manifest.detector.science_slices
+    dark = read_product(out / "calibration/dark.nc")
+    ratio = dark["noise"].values[sl] / truth["read_noise"].values[sl]
+    assert np.mean(ratio) == pytest.approx(1.0, abs=0.01)  # 400 frames: 3.5% per pixel, 0.04% on the mean
+    prnu = read_product(out / "calibration/prnu.nc")
+    expected, _ = remove_gradient(truth["sensitivity"].values, manifest.detector.science_mask())
+    error = prnu["prnu"].values[sl] - expected[sl] / expected[sl].mean()
+    assert np.sqrt(np.mean(error**2)) < 1.5 * float(prnu["photon_noise_limit_rms"])
+    diff = read_product(out / "calibration/prnu_difference_fiber_b.nc")
+    assert float(diff["difference_rms"]) < 1.5 * float(diff["photon_noise_limit_rms"])
