@@ -152,8 +152,8 @@ def test_tilt_gives_the_non_homogeneous_scale_of_appendix_d():
     cfg = geometry_config(off_axis_deg=0.0)
     theta, side, distance = 1e-3, 40.0, 25000.0
     rows, cols = 80, 84
-    yc = (rows - 1) / 2
-    pattern = np.array([[41.5, yc], [41.5, yc - side / 2], [41.5, yc + side / 2]])
+    xc, yc = (cols - 1) / 2, (rows - 1) / 2  # on the detector's centre column
+    pattern = np.array([[xc, yc], [xc, yc - side / 2], [xc, yc + side / 2]])
     tipped = simulation.project_stars(pattern, np.array([[0, 0, 0, theta, 0, 0]]), cfg)[0]
     s_low, s_high = tipped[0, 1] - tipped[1, 1], tipped[2, 1] - tipped[0, 1]
     alpha = (side / 2) / distance
