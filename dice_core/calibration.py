@@ -242,7 +242,7 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, 
     sl = detector.science_slices
     science = detector.science_mask()
     dark_filled = np.where(np.isfinite(dark), dark, 0.0)
-    stats = raw_stats = None
+    stats = raw_sum = None
     levels = []
     reference_level = None
     for chunk in chunks:
@@ -250,7 +250,7 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, 
         valid = ~chunk.saturated
         if stats is None:
             stats = TemporalStatistics(frames.shape[1:])
-            raw_stats = TemporalStatistics(frames.shape[1:])
+            raw_sum = np.zeros(frames.shape[1:])
         # Step 2: scale each frame to the first frame's mean level over the science area.
         v = valid[:, sl[0], sl[1]]
         f = frames[:, sl[0], sl[1]]
@@ -262,7 +262,7 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, 
             reference_level = level[0]
         levels.append(level)
         stats.update(frames * (reference_level / level)[:, None, None], valid)
-        raw_stats.update(frames, valid)
+        raw_sum += np.where(valid, frames, 0.0).sum(axis=0)
         _progress(label, chunk, n_frames)
     if stats is None:
         raise ValueError(f"{label}: no frames")
@@ -276,8 +276,8 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, 
     flattened, surface = remove_gradient(np.where(fit_mask, mean, np.nan), fit_mask, degree=gradient_degree)
     prnu = flattened / np.nanmean(flattened[sl])
 
-    signal = raw_stats.mean
     with np.errstate(invalid="ignore", divide="ignore"):
+        signal = raw_sum / stats.count  # mean before normalisation: the photon count
         variance_expected = signal / detector.gain + dark_noise**2
         limit = prnu * np.sqrt(variance_expected / stats.count) / signal
         measured = prnu * np.sqrt(stats.variance / stats.count) / mean
