@@ -102,7 +102,8 @@ class DetectorConfig:
     prf_width_spread: float = 0.01       # relative pixel-to-pixel spread of the PRF scale
     prf_half_width: float = 0.5          # pixel, truncation half-width
     frame_rate: float = 108.0            # Hz
-    dtype: str = "uint16"                # storage type of the cubes
+    dtype: str = "uint16"                # storage type of the cubes (float32 avoids quantisation)
+    photon_noise: bool = True            # False gives noiseless frames (with read_noise 0, float32)
 
     def __post_init__(self):
         rows, cols = self.shape
@@ -558,7 +559,10 @@ def _read_out(signal: np.ndarray, truth: xr.Dataset, cfg: SimulationConfig, phot
     frames do not depend on how they are chunked.
     """
     gain = cfg.detector.gain
-    photo = photon_rng.poisson(np.maximum(signal, 0) * gain) / gain
+    if cfg.detector.photon_noise:
+        photo = photon_rng.poisson(np.maximum(signal, 0) * gain) / gain
+    else:
+        photo = signal
     return photo + truth["bias"].values + truth["read_noise"].values * read_rng.standard_normal(photo.shape)
 
 

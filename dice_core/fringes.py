@@ -1,0 +1,471 @@
+"""Global fringe solution of one metrology baseline: pixel phases, projected offsets, K(t).
+
+Model (paper, section "Metrology"; appendix B)::
+
+    I(p, t) = B(t) iota(p) + A(t) alpha(p) sin(K.r_p + phi(t) + K.delta_p)
+
+for pixel p at nominal position r_p = (col, row). Written with
+theta_p = K.r_p + K.delta_p it is a product of per-frame and per-pixel factors,
+
+    I(p, t) = F(t) . G(p),   F = (B, A cos phi, A sin phi),   G = (iota, alpha sin theta, alpha cos theta),
+
+a rank-3 factorisation. The solution alternates two linear least-squares fits
+with small shared design matrices: frame factors with the pixel factors fixed
+(the paper's spatial fit, linearised), then pixel factors with the frame
+factors fixed (the paper's temporal sine fit of appendix B). Each pass reads
+the cube once, in chunks: a chunk's frame factors first, then that chunk's
+contribution to the per-pixel normal equations.
+
+Identifiability. Alternating fits determine F and G only up to an invertible
+3x3 mixing M (F -> F M, G -> G M^-T): a mixing that adds part of iota to the
+fringe terms, or of the fringe terms to iota, fits the data equally well, and
+where iota, the envelope or the visibility vary over the detector it turns
+into a ripple of the pixel phases at K and 2K that no plane removal takes out.
+:func:`fix_gauge` pins M with physical constraints:
+
+1. pixel side: iota divided by the flat field is smooth (a low-order
+   polynomial), while alpha sin theta and alpha cos theta oscillate at K;
+   the iota direction is the generalised eigenvector of least non-smooth
+   power;
+2. frame side: (A cos phi, A sin phi) / B traces a centred circle, since the
+   amplitude-to-level ratio does not depend on the phase; fitting that cone
+   fixes the part of the fringe terms mixed into B and the ellipticity of the
+   fringe plane;
+3. what is left, a rotation (a constant phase) and scales, is the physical
+   gauge, fixed by the normalisations (mean iota and alpha 1, offsets with
+   zero mean and gradient).
+
+Units: pixel for positions and offsets, rad for phases, rad/pixel for K,
+adu for B and A.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Iterable
+
+import numpy as np
+import scipy.linalg
+
+from dice_core.io import Chunk
+
+__all__ = [
+    "FringeError",
+    "FringeSolution",
+    "initial_wavevector",
+    "fit_baseline",
+    "fix_gauge",
+    "projected_offsets",
+]
+
+log = logging.getLogger(__name__)
+
+
+class FringeError(ValueError):
+    """Metrology data that cannot give pixel offsets (no contrast, phase sweep too short...)."""
+
+
+def initial_wavevector(frame: np.ndarray, mask: np.ndarray, *, pad: int = 8) -> np.ndarray:
+    """Fringe wavevector (kx, ky) in rad/pixel from the Fourier transform of one frame.
+
+    The frame's mean is removed over ``mask``, the masked area is zero-padded
+    ``pad`` times, and the peak of the power spectrum (one half-plane) is
+    refined by a parabola through its neighbours. Precise to about 1e-4
+    rad/pixel on an 80x84 frame, enough for the linearised fits that follow.
+    """
+    rows, cols = np.nonzero(mask)
+    r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    sub = np.where(mask[r0:r1, c0:c1], frame[r0:r1, c0:c1], np.nan)
+    sub = np.nan_to_num(sub - np.nanmean(sub))
+    ny, nx = pad * sub.shape[0], pad * sub.shape[1]
+    power = np.abs(np.fft.fft2(sub, s=(ny, nx))) ** 2
+    fy, fx = np.fft.fftfreq(ny), np.fft.fftfreq(nx)
+    # half-plane fx > 0 (or fx == 0, fy > 0), away from the zero frequency
+    keep = (fx[None, :] > 0) | ((fx[None, :] == 0) & (fy[:, None] > 0))
+    keep &= np.hypot(fx[None, :], fy[:, None]) > 1.5 / min(sub.shape)
+    iy, ix = np.unravel_index(np.argmax(np.where(keep, power, -1)), power.shape)
+
+    def vertex(m, c, p):
+        denom = m - 2 * c + p
+        return 0.0 if denom == 0 else 0.5 * (m - p) / denom
+
+    dy = vertex(power[iy - 1, ix], power[iy, ix], power[(iy + 1) % ny, ix])
+    dx = vertex(power[iy, ix - 1], power[iy, ix], power[iy, (ix + 1) % nx])
+    return 2 * np.pi * np.array([fx[ix] + dx / nx, fy[iy] + dy / ny])
+
+
+def _smooth_basis(x, y, weight, degree):
+    xs = (x - x.mean()) / max(np.ptp(x), 1)
+    ys = (y - y.mean()) / max(np.ptp(y), 1)
+    terms = [xs**i * ys**j for total in range(degree + 1) for j in range(total + 1) for i in [total - j]]
+    return np.column_stack(terms) * weight[:, None]
+
+
+def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 6):
+    """Physical frame and pixel factors from any rank-3 factorisation of the fringe data.
+
+    Parameters
+    ----------
+    frame_factors : ndarray (frame, 3)
+    pixel_factors : ndarray (pixel, 3)
+        Any factorisation ``I ~ frame_factors @ pixel_factors.T``.
+    flat : ndarray (pixel,)
+        Relative sensitivity of each pixel (ones if unknown): iota / flat is smooth.
+    x, y : ndarray (pixel,)
+        Pixel positions, pixel.
+    smooth_degree : int
+        Degree of the polynomial that iota / flat is assumed to follow.
+
+    Returns
+    -------
+    transform : ndarray (3, 3)
+        M such that ``frame_factors @ M`` = (B, A cos phi, A sin phi) (up to a
+        common rotation of the phase and scales) and
+        ``pixel_factors @ inv(M).T`` = (iota, alpha sin theta, alpha cos theta).
+
+    Raises
+    ------
+    FringeError
+        When the frame factors do not trace a cone (no fringe contrast).
+    """
+    F, G = np.asarray(frame_factors, float), np.asarray(pixel_factors, float)
+    # 1. pixel side: the combination of pixel factors that is smooth times the flat is iota
+    S = _smooth_basis(x, y, np.ones_like(x) if flat is None else flat, smooth_degree)
+    q, _ = np.linalg.qr(S)
+    rough = G - q @ (q.T @ G)
+    values, vectors = scipy.linalg.eigh(rough.T @ rough, G.T @ G)
+    if values[1] < 100 * max(values[0], 1e-300):
+        raise FringeError("cannot separate the fringe from the mean level: the pixel factors have no "
+                          "second oscillating component (no fringe contrast?)")
+    N = vectors  # columns: iota direction first (least rough), then two fringe directions
+    Fn = F @ np.linalg.inv(N).T  # frame factors pairing with G @ N
+    f1, xf = Fn[:, 0], Fn[:, 1:]
+    # 2. frame side: x' S x = (f1 - c.x)^2, i.e. x'(S - cc')x + 2 f1 c.x = f1^2, linear in (S - cc', c)
+    scale = 1.0 / f1**2
+    design = np.column_stack([xf[:, 0] ** 2, 2 * xf[:, 0] * xf[:, 1], xf[:, 1] ** 2,
+                              2 * f1 * xf[:, 0], 2 * f1 * xf[:, 1]]) * np.sqrt(scale)[:, None]
+    solution, *_ = np.linalg.lstsq(design, np.sqrt(scale) * f1**2, rcond=None)
+    c = solution[3:]
+    quad = np.array([[solution[0], solution[1]], [solution[1], solution[2]]]) + np.outer(c, c)
+    try:
+        upper = np.linalg.cholesky(quad).T  # quad = U' U
+    except np.linalg.LinAlgError:
+        raise FringeError("the frame factors do not trace a circle: no usable fringe contrast") from None
+    R = np.zeros((3, 3))
+    R[0, 0] = 1.0
+    R[1:, 0] = -c
+    R[1:, 1:] = upper.T  # (B, u) = (f1 - c.x, U x)
+    M = np.linalg.inv(N).T @ R
+    # 3. The cone |u| = B is kept by Lorentz boosts, which mix B with u and so iota with the
+    # fringe factors. Fix them on the pixel side with a PRNU-free property: the ratios
+    # rho = (alpha sin theta, alpha cos theta) / iota = V h (sin theta, cos theta) cancel the
+    # PRNU and the envelope, and |rho|^2 is smooth; a boost b adds 2 (1 - v^2) b.rho to it,
+    # a first harmonic in theta that the regression below measures and removes.
+    if flat is not None:
+        return M
+    smooth = _smooth_basis(x, y, np.ones_like(x), smooth_degree)
+    for _ in range(8):
+        Gp = G @ np.linalg.inv(M).T
+        rho = Gp[:, 1:] / Gp[:, :1]
+        rho2 = np.sum(rho**2, axis=1)
+        v = np.sqrt(np.median(rho2))
+        theta = np.arctan2(rho[:, 0], rho[:, 1])
+        design = np.column_stack([smooth, v * np.sin(theta), v * np.cos(theta)])
+        coef, *_ = np.linalg.lstsq(design, rho2, rcond=None)
+        boost = -coef[-2:] / (2 * (1 - v**2))
+        M = M @ _lorentz_boost(boost)
+        if np.hypot(*boost) < 1e-14:
+            break
+    return M
+
+
+def _lorentz_boost(b):
+    """Boost L(b) acting on frame vectors (B, u1, u2) as F @ L; keeps B^2 - |u|^2."""
+    b = np.asarray(b, float)
+    speed = np.hypot(*b)
+    if speed == 0:
+        return np.eye(3)
+    if speed >= 1:
+        raise FringeError("gauge boost out of range: the fringe model does not fit the data")
+    gamma = 1 / np.sqrt(1 - speed**2)
+    n = b / speed
+    L = np.empty((3, 3))
+    L[0, 0] = gamma
+    L[0, 1:] = L[1:, 0] = -gamma * b
+    L[1:, 1:] = np.eye(2) + (gamma - 1) * np.outer(n, n)
+    return L
+
+
+def projected_offsets(theta, x, y, k_guess):
+    """Wavevector and offsets from pixel phases theta = K.r + K.delta + constant.
+
+    The plane K.r + constant is fitted (by least squares, after unwrapping
+    against ``k_guess``) and removed; the residual divided by |K| is the offset
+    projected on K, with zero mean and zero gradient over the pixels given, as
+    the dataset format defines it.
+
+    Returns
+    -------
+    k : ndarray (2,)
+        (kx, ky), rad/pixel, the sign that makes theta increase along K.
+    offsets : ndarray (pixel,)
+        Projected offsets, pixel.
+    """
+    design = np.column_stack([np.ones_like(x), x, y])
+    best = None
+    for sign in (1.0, -1.0):  # theta may run along -K_guess
+        k = sign * np.asarray(k_guess, float)
+        for _ in range(3):
+            psi = np.angle(np.exp(1j * (theta - k[0] * x - k[1] * y)))
+            psi = np.angle(np.exp(1j * (psi - np.angle(np.mean(np.exp(1j * psi))))))
+            coef, *_ = np.linalg.lstsq(design, psi, rcond=None)
+            k = k + coef[1:]
+        psi = np.angle(np.exp(1j * (theta - k[0] * x - k[1] * y)))
+        psi = np.angle(np.exp(1j * (psi - np.angle(np.mean(np.exp(1j * psi))))))
+        coef, *_ = np.linalg.lstsq(design, psi, rcond=None)
+        residual = psi - design @ coef
+        if best is None or np.std(residual) < np.std(best[1]):
+            best = (k + coef[1:], residual)
+    k, residual = best
+    return k, residual / np.hypot(*k)
+
+
+@dataclass
+class FringeSolution:
+    """Result of :func:`fit_baseline`; pixel arrays are over the fitted pixels (see ``rows``, ``cols``).
+
+    Attributes
+    ----------
+    rows, cols : ndarray (pixel,)
+        Positions of the fitted pixels.
+    offsets : ndarray (pixel,)
+        Offset projected on K, pixel (zero mean and gradient).
+    iota, alpha : ndarray (pixel,)
+        Relative intensity and relative amplitude (mean 1).
+    photon_floor : ndarray (pixel,)
+        1-sigma error of ``offsets`` from photon and read noise, pixel.
+    k : ndarray (2,)
+        Mean wavevector, rad/pixel.
+    k_frame : ndarray (frame, 2)
+        Per-frame wavevector from the first pass, rad/pixel.
+    level, amplitude, phase : ndarray (frame,)
+        B(t) (adu, for iota 1), A(t) (adu, for alpha 1), phi(t) (rad).
+    history : list of dict
+        Per pass from the second: max and rms change of the offsets (pixel).
+    masked : ndarray (pixel,) of bool
+        Pixels left without an offset (saturated samples, no contrast).
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    offsets: np.ndarray
+    iota: np.ndarray
+    alpha: np.ndarray
+    photon_floor: np.ndarray
+    k: np.ndarray
+    k_frame: np.ndarray
+    level: np.ndarray
+    amplitude: np.ndarray
+    phase: np.ndarray
+    history: list = field(default_factory=list)
+    masked: np.ndarray = None
+
+
+def _pass(chunks: Iterable[Chunk], dark, idx, G, *, extra=None, moments=False):
+    """One streaming pass: frame factors per chunk, then per-pixel normal equations.
+
+    ``extra`` (pixel, m) adds regressors to the frame fit only (the K(t) terms).
+    Returns frame factors (frame, 3 [+m]), F'I (3, pixel), F'F (3, 3), the
+    third moments sum_t F_tk F_t F_t' (3, 3, 3) when asked, and the pixels
+    holding a saturated sample.
+    """
+    design = G if extra is None else np.column_stack([G, extra])
+    projector = design @ np.linalg.inv(design.T @ design)
+    frames_out, FtI, FtF = [], np.zeros((3, idx.size)), np.zeros((3, 3))
+    third = np.zeros((3, 3, 3)) if moments else None
+    saturated = np.zeros(idx.size, bool)
+    dark_px = dark.ravel()[idx]
+    for chunk in chunks:
+        n = chunk.frames.shape[0]
+        X = chunk.frames.reshape(n, -1)[:, idx] - dark_px
+        saturated |= chunk.saturated.reshape(n, -1)[:, idx].any(axis=0)
+        coef = X @ projector
+        F = coef[:, :3]
+        FtI += F.T @ X
+        FtF += F.T @ F
+        if moments:
+            third += np.einsum("tk,ti,tj->kij", F, F, F)
+        frames_out.append(coef)
+    return np.concatenate(frames_out), FtI, FtF, third, saturated
+
+
+def _floor(G_phys, FtF, third, gain, read_noise, k_norm):
+    """Per-pixel 1-sigma offset error from photon and read noise for the unweighted temporal fit.
+
+    Sample variance (adu^2) of pixel p at frame t: F_t.G_p / g + sigma_r^2; so
+    cov(G_p) = (F'F)^-1 [sum_k G_pk/g M_k + sigma_r^2 F'F] (F'F)^-1 with
+    M_k = sum_t F_tk F_t F_t'. Then theta = atan2(g2, g3) and
+    delta = theta / |K| propagate it linearly.
+    """
+    inv = np.linalg.inv(FtF)
+    meat = np.einsum("pk,kij->pij", G_phys / gain, third) + (read_noise**2)[:, None, None] * FtF
+    cov = inv @ meat @ inv
+    a, b = G_phys[:, 1], G_phys[:, 2]  # alpha sin theta, alpha cos theta
+    d_a, d_b = b / (a**2 + b**2), -a / (a**2 + b**2)  # d theta / d a, d theta / d b
+    var = d_a**2 * cov[:, 1, 1] + d_b**2 * cov[:, 2, 2] + 2 * d_a * d_b * cov[:, 1, 2]
+    return np.sqrt(var) / k_norm
+
+
+def _phase_coverage(phase, bins=16):
+    """Fraction of 2 pi visited by the wrapped phase, in ``bins`` equal sectors."""
+    sectors = np.floor(np.mod(phase, 2 * np.pi) / (2 * np.pi) * bins).astype(int)
+    return np.unique(np.clip(sectors, 0, bins - 1)).size / bins
+
+
+def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, tolerance=1e-7, max_passes=10,
+                 min_contrast=0.02, min_relative_contrast=0.5, smooth_degree=6,
+                 label="baseline") -> FringeSolution:
+    """Global fringe solution of one metrology acquisition.
+
+    Pass 1 fits every frame with perfect pixels (iota = alpha = 1, no
+    offsets) and the wavevector free per frame, linearised about the FFT
+    estimate of frame 0: it gives K(t) and a first set of frame factors. Each
+    later pass reads the cube once with the pixel factors of the previous one.
+    After each pass the gauge is fixed (:func:`fix_gauge`), the pixel phases
+    give the mean K and the projected offsets, and the passes stop when no
+    offset moves by more than ``tolerance``.
+
+    Parameters
+    ----------
+    stream : re-iterable of Chunk
+        Raw frames (e.g. :class:`dice_core.io.FrameStream`); read once per pass.
+    dark : ndarray (row, col)
+        Mean dark, adu.
+    detector : Detector
+        Science area (the pixels fitted) and gain (e-/adu).
+    flat : ndarray (row, col), optional
+        PRNU map; used only to tell the intensity map from the fringe (iota /
+        flat is smooth), never to correct the data. Without it the gauge falls
+        back on the smoothness of the pixel contrast, which the pixel-to-pixel
+        spread of PRF widths makes slightly noisier.
+    read_noise : ndarray (row, col), optional
+        Read noise, adu rms, for the photon-noise floor (0 if not given).
+    tolerance : float
+        Convergence: largest change of any offset between passes, pixel.
+    max_passes : int
+    min_contrast : float
+        Fringe contrast (alpha A / iota B) below which the fit is refused (for
+        the median pixel) or a pixel is masked.
+    min_relative_contrast : float
+        A pixel whose contrast is below this fraction of the median is masked:
+        its phase does not come from the fringe (PRNU and dust scale iota and
+        alpha alike and leave the contrast unchanged).
+    smooth_degree : int
+        Degree of the polynomial that iota / flat follows.
+    label : str
+        Name in log messages and errors.
+
+    Returns
+    -------
+    FringeSolution
+
+    Raises
+    ------
+    FringeError
+        Phase sweep not covering 2 pi, no fringe contrast.
+    """
+    mask = detector.science_mask()
+    dark0 = np.nan_to_num(dark)
+    first = next(iter(stream))
+    k0 = initial_wavevector(first.frames[0] - dark0, mask)
+    log.info("%s: wavevector from the FFT of frame 0: (%.5f, %.5f) rad/pixel", label, *k0)
+    rows, cols = np.nonzero(mask)
+    idx = rows * detector.shape[1] + cols
+    x, y = cols.astype(float), rows.astype(float)
+    xc, yc = x - x.mean(), y - y.mean()
+
+    # Pass 1: perfect pixels; K free per frame, linearised about k0:
+    # sin(theta + phi + dK.r) ~ sin(theta + phi) + (dK.r)(u1 alpha cos theta - u2 alpha sin theta).
+    theta0 = k0[0] * xc + k0[1] * yc
+    G = np.column_stack([np.ones(idx.size), np.sin(theta0), np.cos(theta0)])
+    extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
+    coef, FtI, FtF, third, saturated = _pass(stream, dark0, idx, G, extra=extra, moments=True)
+    u1, u2 = coef[:, 1], coef[:, 2]
+    amp2 = u1**2 + u2**2
+    if np.median(np.sqrt(amp2) / np.abs(coef[:, 0])) < min_contrast:
+        raise FringeError(f"{label}: no fringe contrast (amplitude/level "
+                          f"{np.median(np.sqrt(amp2) / np.abs(coef[:, 0])):.1e} < {min_contrast})")
+    coverage = _phase_coverage(np.arctan2(u2, u1))
+    if coverage < 1:
+        raise FringeError(f"{label}: the phase sweep covers only {coverage * 360:.0f} of 360 degrees; "
+                          "every pixel must see at least a full fringe period")
+    k_frame = np.column_stack([k0[0] + (coef[:, 3] * u1 - coef[:, 4] * u2) / amp2,
+                               k0[1] + (coef[:, 5] * u1 - coef[:, 6] * u2) / amp2])
+    log.info("%s: pass 1, K(t) mean (%.6f, %.6f), rms (%.2e, %.2e) rad/pixel", label,
+             *k_frame.mean(axis=0), *k_frame.std(axis=0))
+
+    # Pixels leave the fit when found unusable, so that they bias neither the frame fits nor
+    # the plane of K: first those with saturated samples, then those without fringe contrast.
+    active = ~saturated
+    if saturated.any():
+        log.warning("%s: %d pixel(s) with saturated samples left out of the fit", label, saturated.sum())
+    FtI = FtI[:, active]
+    faint = np.zeros(idx.size, bool)
+    history, offsets, state = [], np.full(idx.size, np.nan), None
+    for n_pass in range(1, max_passes + 1):
+        fit_idx = idx[active]
+        if n_pass > 1:
+            coef, FtI, FtF, third, _ = _pass(stream, dark0, fit_idx, np.linalg.solve(FtF, FtI).T, moments=True)
+        F = coef[:, :3]
+        G_new = np.linalg.solve(FtF, FtI).T
+        fx, fy = x[active], y[active]
+        flat_px = None if flat is None else np.nan_to_num(flat.ravel()[fit_idx], nan=1.0)
+        M = fix_gauge(F, G_new, flat=flat_px, x=fx, y=fy, smooth_degree=smooth_degree)
+        G_phys = G_new @ np.linalg.inv(M).T
+        contrast = np.hypot(G_phys[:, 1], G_phys[:, 2]) / G_phys[:, 0] * np.median(np.hypot(*(F @ M)[:, 1:].T)) \
+            / np.median((F @ M)[:, 0])
+        if np.median(contrast) < min_contrast:
+            raise FringeError(f"{label}: no fringe contrast (median {np.median(contrast):.1e} < {min_contrast})")
+        low = contrast < max(min_contrast, min_relative_contrast * np.median(contrast))
+        if low.any():
+            log.warning("%s: pass %d, %d pixel(s) without fringe contrast left out", label, n_pass, low.sum())
+            where = np.flatnonzero(active)[low]
+            faint[where] = True
+            active[where] = False
+            G_new, G_phys, FtI = G_new[~low], G_phys[~low], FtI[:, ~low]
+            fx, fy = fx[~low], fy[~low]
+        k, fitted = projected_offsets(np.arctan2(G_phys[:, 1], G_phys[:, 2]), fx, fy, k_frame.mean(axis=0))
+        new_offsets = np.full(idx.size, np.nan)
+        new_offsets[active] = fitted
+        if n_pass > 1:
+            change = (new_offsets - offsets)[active]
+            history.append({"pass": n_pass, "max_change": float(np.max(np.abs(change))),
+                            "rms_change": float(np.sqrt(np.mean(change**2)))})
+            log.info("%s: pass %d, offsets changed by %.2e pixel max, %.2e rms", label, n_pass,
+                     history[-1]["max_change"], history[-1]["rms_change"])
+        offsets = new_offsets
+        state = (F @ M, G_phys, M.T @ FtF @ M, np.einsum("ak,bi,cj,abc->kij", M, M, M, third), k)
+        if history and history[-1]["max_change"] < tolerance and not low.any():
+            break
+    else:
+        log.warning("%s: not converged to %.1e pixel after %d passes", label, tolerance, max_passes)
+
+    F_phys, G_phys, FtF_phys, third_phys, k = state
+    noise_px = np.zeros(active.sum()) if read_noise is None else np.nan_to_num(read_noise.ravel()[idx[active]])
+    iota = G_phys[:, 0]
+    alpha = np.hypot(G_phys[:, 1], G_phys[:, 2])
+    level = F_phys[:, 0] * iota.mean()
+    amplitude = np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean()
+    phase = np.arctan2(F_phys[:, 2], F_phys[:, 1])
+    floor = _floor(G_phys, FtF_phys, third_phys, detector.gain, noise_px, np.hypot(*k))
+    if faint.any():
+        log.warning("%s: %d pixel(s) without fringe contrast masked", label, faint.sum())
+
+    def full(values):
+        out = np.full(idx.size, np.nan)
+        out[active] = values
+        return out
+
+    return FringeSolution(rows, cols, offsets, full(iota / iota.mean()), full(alpha / alpha.mean()),
+                          full(floor), k, k_frame, level, amplitude, phase, history, ~active)

@@ -1,0 +1,55 @@
+"""Deprojection (appendix A) against known offsets and the paper's closed form."""
+
+import numpy as np
+import pytest
+
+from dice_core.deprojection import deproject, pair_difference
+
+
+def paper_closed_form(a1, k1, a2, k2):
+    """Appendix A, literally: lines through P_i = a_i k_i with directions c_i = (k_yi, -k_xi)."""
+    (kx1, ky1), (kx2, ky2) = (np.asarray(k) / np.hypot(*k) for k in (k1, k2))
+    cx1, cy1, cx2, cy2 = ky1, -kx1, ky2, -kx2
+    dx1, dy1, dx2, dy2 = kx1 * a1, ky1 * a1, kx2 * a2, ky2 * a2
+    x = (cx2 * cx1 * dy2 + cy1 * cx2 * dx1 - cy2 * cx1 * dx2 - cx2 * cx1 * dy1) / (cx2 * cy1 - cx1 * cy2)
+    # the paper prints y as x with the indexes switched, which is x again (see the test below);
+    # eliminating x from the same two line equations gives:
+    y = (cy1 * cy2 * (dx1 - dx2) - cx1 * cy2 * dy1 + cx2 * cy1 * dy2) / (cx2 * cy1 - cx1 * cy2)
+    printed_y = (cx1 * cx2 * dy1 + cy2 * cx1 * dx2 - cy1 * cx2 * dx1 - cx1 * cx2 * dy2) / (cx1 * cy2 - cx2 * cy1)
+    return x, y, printed_y
+
+
+@pytest.mark.parametrize("k1, k2", [((2.6, 0.09), (-0.14, 2.61)), ((1.57, -0.08), (0.05, 1.57)),
+                                    ((2.0, 0.0), (1.0, 1.5))])
+def test_recovers_offsets_and_agrees_with_the_paper(rng, k1, k2):
+    dx, dy = 1e-3 * rng.standard_normal((2, 30, 40))
+    n1, n2 = (np.asarray(k) / np.hypot(*k) for k in (k1, k2))
+    p1, p2 = n1[0] * dx + n1[1] * dy, n2[0] * dx + n2[1] * dy
+    ex, ey = deproject(p1, k1, p2, k2)
+    np.testing.assert_allclose(ex, dx, atol=1e-15)
+    np.testing.assert_allclose(ey, dy, atol=1e-15)
+    px, py, printed_y = paper_closed_form(p1, k1, p2, k2)
+    np.testing.assert_allclose(px, dx, atol=1e-14)
+    np.testing.assert_allclose(py, dy, atol=1e-14)
+    # erratum: appendix A's printed y formula evaluates to x
+    np.testing.assert_allclose(printed_y, px, atol=1e-14)
+
+
+def test_summing_projections_is_wrong_for_non_orthogonal_baselines(rng):
+    dx, dy = 1e-3 * rng.standard_normal((2, 10, 10))
+    k1, k2 = (1.0, 0.0), (np.cos(1.2), np.sin(1.2))
+    p1, p2 = dx, np.cos(1.2) * dx + np.sin(1.2) * dy
+    summed_x = p1 * k1[0] + p2 * k2[0]
+    assert np.max(np.abs(summed_x - dx)) > 1e-4
+    np.testing.assert_allclose(deproject(p1, k1, p2, k2)[0], dx, atol=1e-15)
+
+
+def test_colinear_wavevectors_are_refused():
+    with pytest.raises(ValueError, match="colinear"):
+        deproject(np.zeros(3), (2.6, 0.1), np.zeros(3), (-2.6, -0.12))
+
+
+def test_pair_difference_ignores_masked_pixels():
+    a = np.array([[0.0, 1.0], [np.nan, 2.0]])
+    ddx, ddy, sx, sy = pair_difference(a, a, a + 1, a)
+    assert sx == 0.0 and sy == 0.0 and np.isnan(ddx[1, 0])

@@ -1,0 +1,220 @@
+"""Global fringe solution against the simulated truth: accuracy, identifiability, K(t), bad input."""
+
+import numpy as np
+import pytest
+
+from dice_core import DatasetError, fringes, simulation
+from dice_core.io import Chunk, FrameStream, read_product, write_cube
+from dice_core.manifest import Acquisition, load_manifest
+
+DETECTOR = {"shape": [80, 84], "science_rows": [2, 79], "science_cols": [10, 83]}
+NOISELESS = {"photon_noise": False, "read_noise": 0.0, "dtype": "float32"}
+STEADY = {"laser_rsd": 0.0, "amplitude_rsd": 0.0, "phase_jitter": 0.0}
+
+
+def simulate(tmp_path, *, detector=None, metrology=None):
+    cfg = simulation.SimulationConfig.from_dict({
+        "name": "fringe-test", "frames_per_file": 100000,
+        "detector": {**DETECTOR, **(detector or {})}, "dark": {"frames": 2}, "flats": {"frames": 2},
+        "metrology": {"frames": 2000, **(metrology or {})}, "stars": {"positions": 1, "frames": 1},
+    })
+    path = simulation.simulate_dataset(cfg, tmp_path)
+    return load_manifest(path), read_product(tmp_path / "truth.nc")
+
+
+def true_projection(truth, solution):
+    """Truth offsets projected on the solution's K, with their affine part removed like the product's."""
+    n = solution.k / np.hypot(*solution.k)
+    r, c = solution.rows, solution.cols
+    p = n[0] * truth["dx"].values[r, c] + n[1] * truth["dy"].values[r, c]
+    design = np.column_stack([np.ones_like(p), c, r])
+    return p - design @ np.linalg.lstsq(design, p, rcond=None)[0]
+
+
+def fit(manifest, truth, baseline, *, flat=True, noisy=True, stream=None):
+    stream = stream or FrameStream(manifest.baselines[baseline], manifest.detector)
+    return fringes.fit_baseline(stream, truth["bias"].values, manifest.detector,
+                                flat=truth["sensitivity"].values if flat else None,
+                                read_noise=truth["read_noise"].values if noisy else None, label=baseline)
+
+
+def rms(values):
+    return float(np.sqrt(np.nanmean(np.square(values))))
+
+
+def test_initial_wavevector_from_fft():
+    rows, cols = np.indices((80, 84))
+    k = np.array([2.55, -0.31])
+    frame = 100 + 50 * np.sin(k[0] * cols + k[1] * rows + 0.4)
+    estimate = fringes.initial_wavevector(frame, np.ones((80, 84), bool))
+    sign = np.sign(estimate @ k)
+    assert np.hypot(*(sign * estimate - k)) < 2e-3
+
+
+@pytest.fixture(scope="module")
+def noiseless(tmp_path_factory):
+    return simulate(tmp_path_factory.mktemp("noiseless"), detector=NOISELESS, metrology=STEADY)
+
+
+@pytest.mark.parametrize("baseline", ["H1H4", "V1V4", "H2H4", "V2V4"])
+def test_noiseless_offsets_better_than_1e_6_pixel(noiseless, baseline):
+    manifest, truth = noiseless
+    solution = fit(manifest, truth, baseline, noisy=False)
+    assert rms(solution.offsets - true_projection(truth, solution)) < 1e-6
+    true_k = np.array([float(truth.kx.sel(baseline=baseline)), float(truth.ky.sel(baseline=baseline))])
+    assert np.hypot(*(np.sign(solution.k @ true_k) * solution.k - true_k)) < 1e-8
+    assert solution.history and solution.history[-1]["max_change"] < 1e-7
+
+
+@pytest.fixture(scope="module")
+def noisy(tmp_path_factory):
+    """The default preset's metrology (4000 frames; photon, read, laser, amplitude and phase noise;
+    uncalibrated PRNU of 2e-3 with dust and bands; envelope; visibility gradient)."""
+    return simulate(tmp_path_factory.mktemp("noisy"), metrology={"frames": 4000})
+
+
+@pytest.mark.parametrize("baseline", ["H1H4", "V2V4"])
+def test_noisy_offsets_at_the_photon_floor(noisy, baseline):
+    manifest, truth = noisy
+    assert float(truth["sensitivity"].std()) > 1.5e-3  # the PRNU is in the data, uncalibrated
+    solution = fit(manifest, truth, baseline)
+    ratio = rms(solution.offsets - true_projection(truth, solution)) / rms(solution.photon_floor)
+    assert 0.8 < ratio < 1.2, ratio
+
+
+@pytest.mark.parametrize("baseline", ["H1H4", "V2V4"])
+def test_without_a_flat_the_pixel_contrast_fixes_the_gauge(noisy, baseline):
+    manifest, truth = noisy
+    solution = fit(manifest, truth, baseline, flat=False)
+    ratio = rms(solution.offsets - true_projection(truth, solution)) / rms(solution.photon_floor)
+    assert ratio < 1.5, ratio
+
+
+def test_photon_floor_matches_the_scatter_between_noise_realisations(tmp_path):
+    """The floor predicts the rms difference of two independent noise draws of the same detector."""
+    solutions = []
+    for seed in (1, 2):
+        cfg = simulation.SimulationConfig.from_dict({
+            "name": "floor", "seed": 5, "frames_per_file": 100000, "detector": DETECTOR,
+            "dark": {"frames": 2}, "flats": {"frames": 2}, "metrology": {"frames": 3000, **STEADY},
+            "stars": {"positions": 1, "frames": 1}})
+        truth = simulation.make_truth(cfg)
+        # same detector and sweep, a different photon-noise stream
+        chunks = [Chunk(0, f, np.zeros(f.shape, bool))
+                  for f in simulation.acquisition_chunks(cfg, truth, "baseline", f"H1H4", 0, 3000)] \
+            if seed == 1 else None
+        if seed == 2:
+            cfg2 = simulation.SimulationConfig.from_dict({**cfg.to_dict(), "chunk_frames": 250})
+            import dataclasses
+            cfg2 = dataclasses.replace(cfg2, seed=6)
+            chunks = [Chunk(0, f, np.zeros(f.shape, bool))
+                      for f in simulation.acquisition_chunks(cfg2, truth, "baseline", "H1H4", 0, 3000)]
+        manifest = load_manifest(simulation.write_manifest(cfg, tmp_path / f"m{seed}"), check_files=False)
+        solutions.append(fringes.fit_baseline(chunks, truth["bias"].values, manifest.detector,
+                                              flat=truth["sensitivity"].values,
+                                              read_noise=truth["read_noise"].values))
+    a, b = solutions
+    assert rms(a.offsets - b.offsets) / np.sqrt(2) == pytest.approx(rms(a.photon_floor), rel=0.05)
+
+
+def naive_offsets(manifest, truth, baseline):
+    """Alternating fits from perfect pixels without fixing the gauge (what the mixing freedom allows)."""
+    stream = FrameStream(manifest.baselines[baseline], manifest.detector)
+    rows, cols = np.nonzero(manifest.detector.science_mask())
+    idx = rows * manifest.detector.shape[1] + cols
+    kx, ky = float(truth.kx.sel(baseline=baseline)), float(truth.ky.sel(baseline=baseline))
+    theta = kx * cols + ky * rows
+    G = np.column_stack([np.ones(idx.size), np.sin(theta), np.cos(theta)])
+    for _ in range(3):
+        _, FtI, FtF, _, _ = fringes._pass(stream, truth["bias"].values, idx, G)
+        G = np.linalg.solve(FtF, FtI).T
+    k, offsets = fringes.projected_offsets(np.arctan2(G[:, 1], G[:, 2]), cols.astype(float), rows.astype(float),
+                                           np.array([kx, ky]))
+    return k, offsets
+
+
+def test_gauge_fixing_removes_the_envelope_and_visibility_leak(tmp_path):
+    """A strong envelope and visibility gradient, PRNU 2e-3, no noise: the naive alternating fit
+    leaks them into the phases as a ripple at K; the gauge-fixed solution does not."""
+    manifest, truth = simulate(tmp_path, detector=NOISELESS, metrology={
+        **STEADY, "envelope_sigma": 60.0, "envelope_centre": [30.0, -20.0], "visibility_gradient": [0.3, -0.25]})
+    solution = fit(manifest, truth, "H1H4", noisy=False)
+    ours = rms(solution.offsets - true_projection(truth, solution))
+    k, naive = naive_offsets(manifest, truth, "H1H4")
+    naive_error = naive - true_projection(truth, solution)
+    assert ours < 1e-6
+    assert rms(naive_error) > 100 * ours and rms(naive_error) > 1e-5
+    # the naive error is a ripple at the fringe frequency: most of it projects on cos/sin of the phase
+    rows, cols = solution.rows, solution.cols
+    phase = k[0] * cols + k[1] * rows
+    design = np.column_stack([np.cos(phase), np.sin(phase), np.cos(2 * phase), np.sin(2 * phase),
+                              np.ones_like(phase), cols, rows]) 
+    fitted = design @ np.linalg.lstsq(design, naive_error, rcond=None)[0]
+    assert rms(fitted) > 0.5 * rms(naive_error)
+
+
+def test_wavevector_per_frame_and_frame_parameters(noisy):
+    manifest, truth = noisy
+    solution = fit(manifest, truth, "H2H4")
+    b = truth.sel(baseline="H2H4")
+    true_k = np.array([float(b.kx), float(b.ky)])
+    sign = np.sign(solution.k @ true_k)
+    # K is constant in the simulation: each frame's estimate scatters around it
+    assert np.hypot(*(sign * solution.k_frame.mean(axis=0) - true_k)) < 1e-5
+    assert solution.k_frame.std(axis=0).max() < 1e-3
+    # phase and level follow the truth (phase up to a sign and a constant)
+    dphi = np.angle(np.exp(1j * (sign * solution.phase - b["phase"].values)))
+    assert np.std(np.angle(np.exp(1j * (dphi - np.angle(np.mean(np.exp(1j * dphi))))))) < 2e-3
+    assert np.corrcoef(solution.level, b["fringe_level"].values)[0, 1] > 0.999
+    assert np.corrcoef(solution.amplitude, b["fringe_amplitude"].values)[0, 1] > 0.99
+
+
+def test_phase_sweep_shorter_than_a_period_is_refused(tmp_path):
+    manifest, truth = simulate(tmp_path, metrology={"sweep_cycles": 0.3, "sweep_frames": 4000, "frames": 1000})
+    with pytest.raises(fringes.FringeError, match="phase sweep covers only"):
+        fit(manifest, truth, "H1H4")
+
+
+def test_fringes_without_contrast_are_refused(tmp_path):
+    manifest, truth = simulate(tmp_path, metrology={"amplitude": 0.0, "frames": 500})
+    with pytest.raises(fringes.FringeError, match="no fringe contrast"):
+        fit(manifest, truth, "H1H4")
+
+
+class Tampered:
+    """A re-iterable stream with one pixel saturated and one without fringe."""
+
+    def __init__(self, stream, saturated_pixel, flat_pixel):
+        self.stream, self.saturated_pixel, self.flat_pixel = stream, saturated_pixel, flat_pixel
+
+    def __iter__(self):
+        for chunk in self.stream:
+            frames, saturated = chunk.frames.copy(), chunk.saturated.copy()
+            r, c = self.saturated_pixel
+            frames[::3, r, c] = 65535.0
+            saturated[::3, r, c] = True
+            r, c = self.flat_pixel
+            frames[:, r, c] = frames[:, r, c].mean()
+            yield Chunk(chunk.start, frames, saturated)
+
+
+def test_saturated_and_fringeless_pixels_are_masked_and_counted(noisy):
+    manifest, truth = noisy
+    stream = Tampered(FrameStream(manifest.baselines["H1H4"], manifest.detector), (30, 40), (50, 60))
+    solution = fit(manifest, truth, "H1H4", stream=stream)
+    where = {(r, c): i for i, (r, c) in enumerate(zip(solution.rows, solution.cols))}
+    for pixel in ((30, 40), (50, 60)):
+        assert solution.masked[where[pixel]] and np.isnan(solution.offsets[where[pixel]])
+    assert solution.masked.sum() == 2
+    ratio = rms(solution.offsets - true_projection(truth, solution)) / rms(solution.photon_floor)
+    assert ratio < 1.2
+
+
+def test_non_finite_samples_stop_the_fit(tmp_path, noisy):
+    manifest, truth = noisy
+    frames = np.concatenate([c.frames for c in FrameStream(manifest.baselines["H1H4"], manifest.detector)][:2])
+    frames[300, 20, 30] = np.nan
+    path = tmp_path / "nan.fits"
+    write_cube(path, [frames], shape=frames.shape[1:], n_frames=frames.shape[0], dtype="float32")
+    with pytest.raises(DatasetError, match="non-finite"):
+        fit(manifest, truth, "H1H4", stream=FrameStream(Acquisition("baseline H1H4", (path,)), manifest.detector))
