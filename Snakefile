@@ -19,10 +19,12 @@ configfile: str(Path(workflow.basedir) / "config" / "config.yaml")
 include: "workflow/rules/common.smk"
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/calibration.smk"
+include: "workflow/rules/metrology.smk"
 include: "workflow/rules/figures.smk"
 
 
 rule all:
     input:
         calibration_targets(),
+        metrology_targets(),
     default_target: True

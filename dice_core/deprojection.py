@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["deproject", "pair_difference", "MIN_SINE"]
+__all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "MIN_SINE"]
 
 #: Smallest |sin| of the angle between the two wavevectors accepted; below it the
 #: intersection is ill-conditioned (errors grow as 1 / sin).
@@ -76,3 +76,35 @@ def pair_difference(dx_a, dy_a, dx_b, dy_b):
     """
     ddx, ddy = np.asarray(dx_b) - np.asarray(dx_a), np.asarray(dy_b) - np.asarray(dy_a)
     return ddx, ddy, float(np.nanstd(ddx)), float(np.nanstd(ddy))
+
+
+def deproject_floor(s1, k1, s2, k2):
+    """1-sigma errors of dx and dy from independent errors s1, s2 (pixel) of the two projections."""
+    n1 = np.asarray(k1, float) / np.hypot(*k1)
+    n2 = np.asarray(k2, float) / np.hypot(*k2)
+    sine = n1[0] * n2[1] - n1[1] * n2[0]
+    sdx = np.sqrt((n2[1] * s1) ** 2 + (n1[1] * s2) ** 2) / abs(sine)
+    sdy = np.sqrt((n2[0] * s1) ** 2 + (n1[0] * s2) ** 2) / abs(sine)
+    return sdx, sdy
+
+
+def offsets_dataset(first, second):
+    """The ``calibration/offsets_<pair>.nc`` product from two ``metrology/<baseline>.nc`` datasets."""
+    import xarray as xr
+
+    k1 = (float(first["kx"]), float(first["ky"]))
+    k2 = (float(second["kx"]), float(second["ky"]))
+    dx, dy = deproject(first["projected_offset"].values, k1, second["projected_offset"].values, k2)
+    fdx, fdy = deproject_floor(first["photon_noise_floor"].values, k1, second["photon_noise_floor"].values, k2)
+    rc = ("row", "col")
+    return xr.Dataset(
+        {
+            "dx": (rc, dx, {"units": "pixel", "long_name": "pixel offset along x (columns)"}),
+            "dy": (rc, dy, {"units": "pixel", "long_name": "pixel offset along y (rows)"}),
+            "dx_photon_noise_floor": (rc, fdx, {"units": "pixel", "long_name": "1-sigma photon-noise error of dx"}),
+            "dy_photon_noise_floor": (rc, fdy, {"units": "pixel", "long_name": "1-sigma photon-noise error of dy"}),
+            "dx_rms": ((), float(np.nanstd(dx)), {"units": "pixel", "long_name": "rms of dx"}),
+            "dy_rms": ((), float(np.nanstd(dy)), {"units": "pixel", "long_name": "rms of dy"}),
+        },
+        coords={"row": first["row"].values, "col": first["col"].values},
+    )

@@ -57,6 +57,7 @@ __all__ = [
     "fit_baseline",
     "fix_gauge",
     "projected_offsets",
+    "solution_dataset",
 ]
 
 log = logging.getLogger(__name__)
@@ -469,3 +470,53 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
 
     return FringeSolution(rows, cols, offsets, full(iota / iota.mean()), full(alpha / alpha.mean()),
                           full(floor), k, k_frame, level, amplitude, phase, history, ~active)
+
+
+def solution_dataset(solution: FringeSolution, detector) -> "xr.Dataset":
+    """The ``metrology/<baseline>.nc`` product of a solution: maps (row, col), NaN outside the fit.
+
+    Contract variables: projected_offset (pixel), iota and alpha (1), kx and ky
+    (the mean wavevector, rad/pixel), phase (frame, rad). Also the photon-noise
+    floor of the offsets, K(t), B(t), A(t), the mask and the convergence history.
+    """
+    import xarray as xr
+
+    def as_map(values, fill=np.nan):
+        out = np.full(detector.shape, fill, dtype=np.result_type(values, type(fill)))
+        out[solution.rows, solution.cols] = values
+        return out
+
+    rc = ("row", "col")
+    floor = solution.photon_floor
+    history = solution.history or [{"pass": 1, "max_change": np.nan, "rms_change": np.nan}]
+    return xr.Dataset(
+        {
+            "projected_offset": (rc, as_map(solution.offsets),
+                                 {"units": "pixel", "long_name": "pixel offset projected on the wavevector"}),
+            "iota": (rc, as_map(solution.iota), {"units": "1", "long_name": "relative pixel intensity"}),
+            "alpha": (rc, as_map(solution.alpha), {"units": "1", "long_name": "relative pixel fringe amplitude"}),
+            "photon_noise_floor": (rc, as_map(floor),
+                                   {"units": "pixel", "long_name": "1-sigma offset error from photon and read noise"}),
+            "masked": (rc, as_map(solution.masked.astype(np.int8), np.int8(0)),
+                       {"units": "1", "long_name": "1 where the pixel has no offset (saturated or no contrast)"}),
+            "kx": ((), float(solution.k[0]), {"units": "rad/pixel", "long_name": "mean wavevector along x"}),
+            "ky": ((), float(solution.k[1]), {"units": "rad/pixel", "long_name": "mean wavevector along y"}),
+            "phase": (("frame",), solution.phase, {"units": "rad", "long_name": "fringe phase phi(t)"}),
+            "level": (("frame",), solution.level, {"units": "adu", "long_name": "mean level B(t) for iota = 1"}),
+            "amplitude": (("frame",), solution.amplitude,
+                          {"units": "adu", "long_name": "fringe amplitude A(t) for alpha = 1"}),
+            "kx_frame": (("frame",), solution.k_frame[:, 0],
+                         {"units": "rad/pixel", "long_name": "wavevector along x fitted per frame (pass 1)"}),
+            "ky_frame": (("frame",), solution.k_frame[:, 1],
+                         {"units": "rad/pixel", "long_name": "wavevector along y fitted per frame (pass 1)"}),
+            "max_change": (("iteration",), [h["max_change"] for h in history],
+                           {"units": "pixel", "long_name": "largest offset change from the previous pass"}),
+            "rms_change": (("iteration",), [h["rms_change"] for h in history],
+                           {"units": "pixel", "long_name": "rms offset change from the previous pass"}),
+            "photon_noise_floor_rms": ((), float(np.sqrt(np.nanmean(floor**2))),
+                                       {"units": "pixel", "long_name": "rms photon-noise floor of the offsets"}),
+            "n_masked": ((), int(solution.masked.sum()), {"units": "1", "long_name": "pixels without an offset"}),
+        },
+        coords={"row": np.arange(detector.shape[0]), "col": np.arange(detector.shape[1]),
+                "frame": np.arange(solution.phase.size), "iteration": [h["pass"] for h in history]},
+    )

@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 
 from dice_core.manifest import Detector  # noqa: E402
 
-__all__ = ["map_figure", "save"]
+__all__ = ["map_figure", "maps_figure", "metrology_figure", "save"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -67,6 +67,73 @@ def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str,
     ax.set_title(title if note is None else f"{title}\n{note}", fontsize=10)
     bar = fig.colorbar(im, ax=ax, shrink=0.9)
     bar.set_label(units)
+    return fig
+
+
+def _show_map(ax, fig, image, detector, *, title, units, scale, symmetric, clip_percentile=0.5):
+    rows, cols = detector.science_rows, detector.science_cols
+    shown = image[slice(*rows), slice(*cols)] * scale
+    finite = shown[np.isfinite(shown)]
+    lo, hi = np.percentile(finite, [clip_percentile, 100 - clip_percentile]) if finite.size else (0.0, 1.0)
+    if symmetric:
+        hi = max(abs(lo), abs(hi))
+        lo = -hi
+    extent = (cols[0] - 0.5, cols[1] - 0.5, rows[0] - 0.5, rows[1] - 0.5)
+    im = ax.imshow(shown, origin="lower", extent=extent, vmin=lo, vmax=hi, interpolation="nearest",
+                   cmap="RdBu_r" if symmetric else "viridis")
+    ax.set_xlabel("column x [pixel]")
+    ax.set_ylabel("row y [pixel]")
+    ax.set_title(title, fontsize=9)
+    fig.colorbar(im, ax=ax, shrink=0.85).set_label(units)
+
+
+def maps_figure(images, detector, *, titles, units, scale=1.0, suptitle=None):
+    """Maps side by side (e.g. dx and dy), each with its colour bar; symmetric diverging colours."""
+    fig, axes = plt.subplots(1, len(images), figsize=(5.6 * len(images), 4.8), constrained_layout=True)
+    for ax, image, title in zip(np.atleast_1d(axes), images, titles):
+        _show_map(ax, fig, image, detector, title=title, units=units, scale=scale, symmetric=True)
+    if suptitle:
+        fig.suptitle(suptitle, fontsize=11)
+    return fig
+
+
+def metrology_figure(ds, detector, *, title):
+    """Summary of one baseline's fringe solution (a ``metrology/<baseline>.nc`` dataset).
+
+    Panels: projected offsets (1e-3 pixel); per-frame wavevector minus its
+    mean (rad/pixel); B(t) and A(t) (adu); convergence (offset change per pass).
+    """
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8.5), constrained_layout=True)
+    offsets = ds["projected_offset"].values
+    _show_map(axes[0, 0], fig, offsets, detector, scale=1e3, symmetric=True, units="offset [1e-3 pixel]",
+              title=f"projected offsets: rms {np.nanstd(offsets):.2e} pixel, photon floor "
+                    f"{float(ds['photon_noise_floor_rms']):.1e} pixel")
+    frame = ds["frame"].values
+    ax = axes[0, 1]
+    for name, colour in (("kx_frame", "C0"), ("ky_frame", "C1")):
+        values = ds[name].values
+        ax.plot(frame, values - values.mean(), lw=0.4, color=colour,
+                label=f"{name[:2]} - {values.mean():.6f} (rms {values.std():.1e})")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("K(t) - mean [rad/pixel]")
+    ax.set_title("wavevector fitted per frame (pass 1)", fontsize=9)
+    ax.legend(fontsize=8)
+    ax = axes[1, 0]
+    ax.plot(frame, ds["level"].values, lw=0.4, label="B(t), mean level")
+    ax.plot(frame, ds["amplitude"].values, lw=0.4, label="A(t), amplitude")
+    ax.set_xlabel("frame")
+    ax.set_ylabel("adu")
+    ax.set_title("fringe level and amplitude", fontsize=9)
+    ax.legend(fontsize=8)
+    ax = axes[1, 1]
+    iteration = ds["iteration"].values
+    ax.semilogy(iteration, ds["max_change"].values, "o-", label="largest change")
+    ax.semilogy(iteration, ds["rms_change"].values, "s-", label="rms change")
+    ax.set_xlabel("pass")
+    ax.set_ylabel("offset change from previous pass [pixel]")
+    ax.set_title("convergence", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.suptitle(title, fontsize=11)
     return fig
 
 

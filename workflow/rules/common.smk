@@ -60,6 +60,8 @@ MANIFEST_FILE = local_path(MANIFEST.path)
 
 wildcard_constraints:
     flat="|".join(map(re.escape, MANIFEST.flats)) or "(?!)",
+    baseline="|".join(map(re.escape, MANIFEST.baselines)) or "(?!)",
+    pair="|".join(map(re.escape, MANIFEST.pairs)) or "(?!)",
 
 
 def skipped(what, why):
@@ -111,4 +113,40 @@ def calibration_targets():
         targets += [f"{OUT}/calibration/prnu_difference_{flat}.nc", *figure_pair(f"prnu_difference_{flat}").values()]
     if not others:
         skipped("PRNU difference", "the dataset has a single flat")
+    return targets
+
+
+def baseline_files(wildcards):
+    return acquisition_files(MANIFEST.baselines[wildcards.baseline])
+
+
+def prnu_for_metrology(wildcards):
+    """The reference PRNU, which tells the fringe solution the intensity map from the fringe."""
+    if config["metrology"]["use_flat"] and MANIFEST.flats:
+        return [f"{OUT}/calibration/prnu.nc"]
+    return []
+
+
+def pair_baselines(wildcards):
+    return list(MANIFEST.pairs[wildcards.pair])
+
+
+def metrology_targets():
+    """Products and figures of the metrology stage that this dataset allows."""
+    if not MANIFEST.baselines:
+        skipped("metrology", f"{MANIFEST.path} has no metrology section")
+        return []
+    if MANIFEST.dark is None:
+        skipped("metrology", f"{MANIFEST.path} has no dark to subtract")
+        return []
+    targets = []
+    for baseline in MANIFEST.baselines:
+        targets += [f"{OUT}/metrology/{baseline}.nc", *figure_pair(f"metrology_{baseline}").values()]
+    for pair in MANIFEST.pairs:
+        targets += [f"{OUT}/calibration/offsets_{pair}.nc", *figure_pair(f"offsets_{pair}").values()]
+    for pair in list(MANIFEST.pairs)[1:]:
+        targets += [f"{OUT}/calibration/offsets_difference_{pair}.nc",
+                    *figure_pair(f"offsets_difference_{pair}").values()]
+    if not MANIFEST.pairs:
+        skipped("deprojection", "the dataset names no pair of baselines")
     return targets

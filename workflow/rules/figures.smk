@@ -53,3 +53,56 @@ rule plot_prnu_difference:
         "../envs/dice.yaml"
     script:
         "../scripts/plot_prnu_difference.py"
+
+
+rule plot_metrology:
+    input:
+        metrology=rules.fit_fringes.output.metrology,
+        manifest=MANIFEST_FILE,
+    output:
+        png=report(f"{OUT}/figures/metrology_{{baseline}}.png", category="Metrology",
+                   caption="../report/metrology.rst"),
+        pdf=f"{OUT}/figures/metrology_{{baseline}}.pdf",
+    params:
+        code=code_version("plotting", "manifest", "io"),
+    log:
+        f"{OUT}/logs/plot_metrology_{{baseline}}.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/plot_metrology.py"
+
+
+rule plot_offsets:
+    input:
+        offsets=rules.deproject_offsets.output.offsets,
+        manifest=MANIFEST_FILE,
+    output:
+        png=report(f"{OUT}/figures/offsets_{{pair}}.png", category="Metrology", caption="../report/offsets.rst"),
+        pdf=f"{OUT}/figures/offsets_{{pair}}.pdf",
+    params:
+        code=code_version("plotting", "manifest", "io"),
+    log:
+        f"{OUT}/logs/plot_offsets_{{pair}}.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/plot_offsets.py"
+
+
+rule plot_offsets_difference:
+    input:
+        difference=rules.compare_pairs.output.difference,
+        manifest=MANIFEST_FILE,
+    output:
+        png=report(f"{OUT}/figures/offsets_difference_{{pair}}.png", category="Metrology",
+                   caption="../report/offsets_difference.rst"),
+        pdf=f"{OUT}/figures/offsets_difference_{{pair}}.pdf",
+    params:
+        code=code_version("plotting", "manifest", "io"),
+    log:
+        f"{OUT}/logs/plot_offsets_difference_{{pair}}.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/plot_offsets_difference.py"

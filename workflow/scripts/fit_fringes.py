@@ -1,0 +1,36 @@
+"""Snakemake step: global fringe solution of one metrology baseline."""
+
+import logging
+
+import dice_core
+from dice_core import fringes, io
+from dice_core.manifest import load_manifest
+
+
+def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config):
+    log = logging.getLogger("dice")
+    manifest = load_manifest(manifest_path)
+    dark = io.read_product(dark_path)
+    flat = io.read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
+    stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
+                            min_frames=16, purpose="a fringe solution")
+    log.info("baseline %s: %d frames in %d file(s); flat %s", baseline, stream.n_frames, len(stream.cubes),
+             "used for the gauge" if flat is not None else "not used")
+    options = config["metrology"]
+    solution = fringes.fit_baseline(stream, dark["dark"].values, manifest.detector, flat=flat,
+                                    read_noise=dark["noise"].values, tolerance=options["tolerance"],
+                                    max_passes=options["max_passes"], smooth_degree=options["smooth_degree"],
+                                    label=f"baseline {baseline}")
+    product = fringes.solution_dataset(solution, manifest.detector)
+    log.info("baseline %s: K = (%.6f, %.6f) rad/pixel, offsets rms %.3e pixel, photon floor %.3e pixel, "
+             "%d pixel(s) masked", baseline, *solution.k, float(product["projected_offset"].std()),
+             float(product["photon_noise_floor_rms"]), int(product["n_masked"]))
+    product.attrs["baseline"] = baseline
+    io.write_product(product, output, title=f"fringe solution of baseline {baseline} of {manifest.name}",
+                     config=config, inputs=[manifest.path, dark_path, *prnu_paths,
+                                            *manifest.baselines[baseline].files])
+
+
+dice_core.run_logged(snakemake.log[0], fit_fringes, snakemake.input.manifest, snakemake.input.dark,
+                     list(snakemake.input.prnu), snakemake.wildcards.baseline, snakemake.output.metrology,
+                     snakemake.config)
