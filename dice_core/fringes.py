@@ -273,32 +273,61 @@ class FringeSolution:
     masked: np.ndarray = None
 
 
-def _pass(chunks: Iterable[Chunk], dark, idx, G, *, extra=None, moments=False):
+def _pass(chunks: Iterable[Chunk], dark, idx, G, *, extra=None, moments=False, reference=None,
+          centred=False):
     """One streaming pass: frame factors per chunk, then per-pixel normal equations.
+
+    Works on whole frames, so that a chunk is never copied: pixels outside
+    ``idx`` get zero rows in the projector, and the dark is folded into the
+    algebra, F = (X - d) P = X P - d P and F'(X - d) = F'X - (F'1) d', instead
+    of being subtracted from every sample. Products of a chunk are formed in
+    the chunk's type (float32 holds the integer samples exactly) and summed
+    over chunks in float64. With a ``reference`` frame r (row, col; e.g. a
+    mean frame), each chunk is first centred on it, X - r, into a work buffer
+    of the pass (the caller's frames are never modified), unless ``centred``
+    says the chunks already hold X - r (see :meth:`FrameStream.centred`): the
+    large mean level then no longer cancels inside the float32 products,
+    whose rounding would otherwise show at 1e-7 pixel; r - d folds into the
+    algebra like the dark.
 
     ``extra`` (pixel, m) adds regressors to the frame fit only (the K(t) terms).
     Returns frame factors (frame, 3 [+m]), F'I (3, pixel), F'F (3, 3), the
-    third moments sum_t F_tk F_t F_t' (3, 3, 3) when asked, and the pixels
-    holding a saturated sample.
+    third moments sum_t F_tk F_t F_t' (3, 3, 3) when asked, and the pixels of
+    ``idx`` holding a saturated sample.
     """
     design = G if extra is None else np.column_stack([G, extra])
-    projector = design @ np.linalg.inv(design.T @ design)
-    frames_out, FtI, FtF = [], np.zeros((3, idx.size)), np.zeros((3, 3))
+    n_pixels = dark.size
+    projector = np.zeros((n_pixels, design.shape[1]))
+    projector[idx] = design @ np.linalg.inv(design.T @ design)
+    centre = np.zeros(n_pixels) if reference is None else reference.ravel().astype(np.float64)
+    level = centre - dark.ravel()  # X - d = (X - r) + (r - d)
+    offset = -(level @ projector)
+    projector_c = reference_c = work = None
+    frames_out, FtX, FtF, Fsum = [], np.zeros((3, n_pixels)), np.zeros((3, 3)), np.zeros(3)
     third = np.zeros((3, 3, 3)) if moments else None
-    saturated = np.zeros(idx.size, bool)
-    dark_px = dark.ravel()[idx]
+    saturated = np.zeros(n_pixels, bool)
     for chunk in chunks:
         n = chunk.frames.shape[0]
-        X = chunk.frames.reshape(n, -1)[:, idx] - dark_px
-        saturated |= chunk.saturated.reshape(n, -1)[:, idx].any(axis=0)
-        coef = X @ projector
+        X = chunk.frames.reshape(n, -1)
+        if projector_c is None or projector_c.dtype != X.dtype:
+            projector_c = projector.astype(X.dtype)
+            reference_c = centre.astype(X.dtype)
+        if reference is not None and not centred:
+            if work is None or work.shape[0] < n or work.dtype != X.dtype:
+                work = np.empty((max(n, 1), n_pixels), dtype=X.dtype)
+            X = np.subtract(X, reference_c, out=work[:n])
+        coef = (X @ projector_c).astype(np.float64) - offset
         F = coef[:, :3]
-        FtI += F.T @ X
+        FtX += (F.T.astype(X.dtype) @ X).astype(np.float64)
+        Fsum += F.sum(axis=0)
         FtF += F.T @ F
         if moments:
             third += np.einsum("tk,ti,tj->kij", F, F, F)
+        if chunk.saturated is not None:
+            saturated |= chunk.saturated.reshape(n, -1).any(axis=0)
         frames_out.append(coef)
-    return np.concatenate(frames_out), FtI, FtF, third, saturated
+    FtI = FtX[:, idx] + np.outer(Fsum, level[idx])
+    return np.concatenate(frames_out), FtI, FtF, third, saturated[idx]
 
 
 def _floor(G_phys, FtF, third, gain, read_noise, k_norm):
@@ -379,6 +408,12 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     mask = detector.science_mask()
     dark0 = np.nan_to_num(dark)
     first = next(iter(stream))
+    reference = first.frames.mean(axis=0)  # centres the float32 products (see _pass)
+    if hasattr(stream, "centred"):
+        # the reader subtracts it while converting, at no extra pass; _pass then only folds it in
+        stream, subtracted = stream.centred(reference), reference
+    else:
+        subtracted = None
     k0 = initial_wavevector(first.frames[0] - dark0, mask)
     log.info("%s: wavevector from the FFT of frame 0: (%.5f, %.5f) rad/pixel", label, *k0)
     rows, cols = np.nonzero(mask)
@@ -391,7 +426,8 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     theta0 = k0[0] * xc + k0[1] * yc
     G = np.column_stack([np.ones(idx.size), np.sin(theta0), np.cos(theta0)])
     extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
-    coef, FtI, FtF, third, saturated = _pass(stream, dark0, idx, G, extra=extra, moments=True)
+    coef, FtI, FtF, third, saturated = _pass(stream, dark0, idx, G, extra=extra, moments=True,
+                                             reference=reference, centred=subtracted is not None)
     u1, u2 = coef[:, 1], coef[:, 2]
     amp2 = u1**2 + u2**2
     if np.median(np.sqrt(amp2) / np.abs(coef[:, 0])) < min_contrast:
@@ -417,7 +453,8 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     for n_pass in range(1, max_passes + 1):
         fit_idx = idx[active]
         if n_pass > 1:
-            coef, FtI, FtF, third, _ = _pass(stream, dark0, fit_idx, np.linalg.solve(FtF, FtI).T, moments=True)
+            coef, FtI, FtF, third, _ = _pass(stream, dark0, fit_idx, np.linalg.solve(FtF, FtI).T, moments=True,
+                                             reference=reference, centred=subtracted is not None)
         F = coef[:, :3]
         G_new = np.linalg.solve(FtF, FtI).T
         fx, fy = x[active], y[active]

@@ -12,6 +12,7 @@ ADU; NAXIS1 is cols, NAXIS2 rows, NAXIS3 frames.
 
 from __future__ import annotations
 
+import copy
 import datetime as _dt
 import json
 import os
@@ -84,7 +85,7 @@ class Chunk(NamedTuple):
     """Consecutive frames of an acquisition.
 
     ``start`` is the index of the first frame in the whole acquisition,
-    ``frames`` the samples (frame, row, col) in ADU as float64, and
+    ``frames`` the samples (frame, row, col) in ADU (float64 unless asked otherwise), and
     ``saturated`` a boolean array of the same shape, True where the sample is at
     or above the detector's saturation level.
     """
@@ -218,6 +219,13 @@ class FrameStream:
         Fewer frames than this raise :class:`DatasetError` on construction.
     purpose : str, keyword-only
         What the frames are for, quoted in the too-few-frames error.
+    dtype : numpy dtype, keyword-only
+        Type of the samples yielded: float64, or float32, which halves the
+        memory traffic and still holds 16-bit integer samples exactly.
+    subtract : ndarray (row, col), keyword-only
+        A reference frame (ADU) subtracted from every frame in the same pass as
+        the conversion: chunks then hold ``samples - subtract``. Saturation is
+        still judged on the raw samples.
 
     Raises
     ------
@@ -228,12 +236,15 @@ class FrameStream:
     """
 
     def __init__(self, acquisition: Acquisition, detector: Detector, *,
-                 chunk_frames: int = DEFAULT_CHUNK_FRAMES, min_frames: int = 1, purpose: str = ""):
+                 chunk_frames: int = DEFAULT_CHUNK_FRAMES, min_frames: int = 1, purpose: str = "",
+                 dtype=np.float64, subtract=None):
         if chunk_frames < 1:
             raise ValueError(f"chunk_frames must be >= 1, got {chunk_frames}")
         self.acquisition = acquisition
         self.detector = detector
         self.chunk_frames = int(chunk_frames)
+        self.dtype = np.dtype(dtype)
+        self.subtract = None if subtract is None else np.asarray(subtract, dtype=np.float64)
         self.cubes = [open_cube(f, detector) for f in acquisition.files]
         self.n_frames = sum(c.n_frames for c in self.cubes)
         if self.n_frames < min_frames:
@@ -241,6 +252,12 @@ class FrameStream:
             why = f" for {purpose}" if purpose else ""
             raise DatasetError(names, f"{acquisition.label} has {self.n_frames} frame(s); "
                                       f"at least {min_frames} are needed{why}")
+
+    def centred(self, reference) -> "FrameStream":
+        """The same acquisition streamed as ``samples - reference`` (see ``subtract``)."""
+        twin = copy.copy(self)
+        twin.subtract = np.asarray(reference, dtype=np.float64)
+        return twin
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -261,10 +278,15 @@ class FrameStream:
                         raise DatasetError(cube.path, f"file ended inside frame {first + len(raw) // cube.frame_bytes}")
                     if checksum is not None:
                         checksum.update(raw)
-                    frames = np.frombuffer(raw, dtype=cube.disk_dtype).reshape(n, *cube.shape)
-                    frames = frames.astype(np.float64)
-                    if cube.bzero:
-                        frames += cube.bzero
+                    stored = np.frombuffer(raw, dtype=cube.disk_dtype).reshape(n, *cube.shape)
+                    if cube.disk_dtype.kind == "f":
+                        saturated = stored >= saturation
+                    else:  # judge the stored integers: cheaper than converted samples
+                        saturated = stored >= saturation - cube.bzero
+                    frames = stored.astype(self.dtype)
+                    shift = cube.bzero if self.subtract is None else cube.bzero - self.subtract
+                    if np.any(shift):
+                        frames += np.asarray(shift, dtype=self.dtype)
                     if cube.disk_dtype.kind == "f":
                         bad = ~np.isfinite(frames)
                         if bad.any():
@@ -272,7 +294,7 @@ class FrameStream:
                             raise DatasetError(cube.path, f"{int(bad.sum())} non-finite sample(s) in frames "
                                                           f"{first}..{first + n - 1}, first at frame {first + t}, "
                                                           f"row {r}, col {c}")
-                    yield Chunk(start, frames, frames >= saturation)
+                    yield Chunk(start, frames, saturated)
                     start += n
             if checksum is not None:
                 _check_checksums(cube, checksum.value())

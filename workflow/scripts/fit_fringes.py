@@ -13,7 +13,7 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config):
     dark = io.read_product(dark_path)
     flat = io.read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
-                            min_frames=16, purpose="a fringe solution")
+                            min_frames=16, purpose="a fringe solution", dtype="float32")
     log.info("baseline %s: %d frames in %d file(s); flat %s", baseline, stream.n_frames, len(stream.cubes),
              "used for the gauge" if flat is not None else "not used")
     options = config["metrology"]
