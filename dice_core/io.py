@@ -16,7 +16,9 @@ import copy
 import datetime as _dt
 import json
 import os
+import queue
 import tempfile
+import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -226,6 +228,11 @@ class FrameStream:
         A reference frame (ADU) subtracted from every frame in the same pass as
         the conversion: chunks then hold ``samples - subtract``. Saturation is
         still judged on the raw samples.
+    prefetch : bool, keyword-only
+        Read and convert the next chunk in a background thread while the
+        consumer works on the current one (file reads and numpy conversions
+        release the GIL, so on two cores they overlap with the consumer's
+        arithmetic). Holds at most two chunks ahead.
 
     Raises
     ------
@@ -237,7 +244,7 @@ class FrameStream:
 
     def __init__(self, acquisition: Acquisition, detector: Detector, *,
                  chunk_frames: int = DEFAULT_CHUNK_FRAMES, min_frames: int = 1, purpose: str = "",
-                 dtype=np.float64, subtract=None):
+                 dtype=np.float64, subtract=None, prefetch: bool = False):
         if chunk_frames < 1:
             raise ValueError(f"chunk_frames must be >= 1, got {chunk_frames}")
         self.acquisition = acquisition
@@ -245,6 +252,7 @@ class FrameStream:
         self.chunk_frames = int(chunk_frames)
         self.dtype = np.dtype(dtype)
         self.subtract = None if subtract is None else np.asarray(subtract, dtype=np.float64)
+        self.prefetch = bool(prefetch)
         self.cubes = [open_cube(f, detector) for f in acquisition.files]
         self.n_frames = sum(c.n_frames for c in self.cubes)
         if self.n_frames < min_frames:
@@ -265,6 +273,49 @@ class FrameStream:
         return (self.n_frames, *self.detector.shape)
 
     def __iter__(self) -> Iterator[Chunk]:
+        return self._read_ahead() if self.prefetch else self._chunks()
+
+    def _read_ahead(self) -> Iterator[Chunk]:
+        """:meth:`_chunks` run in a background thread, two chunks ahead; errors re-raised here."""
+        chunks: queue.Queue = queue.Queue(maxsize=2)
+        stop = threading.Event()
+        done = object()
+
+        def produce():
+            try:
+                for chunk in self._chunks():
+                    while not stop.is_set():
+                        try:
+                            chunks.put(chunk, timeout=0.1)
+                            break
+                        except queue.Full:
+                            continue
+                    if stop.is_set():
+                        return
+                chunks.put(done)
+            except BaseException as exc:  # handed to the consumer
+                chunks.put(exc)
+
+        worker = threading.Thread(target=produce, name="FrameStream read-ahead", daemon=True)
+        worker.start()
+        try:
+            while True:
+                item = chunks.get()
+                if item is done:
+                    return
+                if isinstance(item, BaseException):
+                    raise item
+                yield item
+        finally:
+            stop.set()
+            while worker.is_alive():  # let a blocked put see the stop
+                try:
+                    chunks.get_nowait()
+                except queue.Empty:
+                    pass
+                worker.join(timeout=0.05)
+
+    def _chunks(self) -> Iterator[Chunk]:
         start = 0
         saturation = self.detector.saturation
         for cube in self.cubes:

@@ -207,3 +207,35 @@ def test_failed_product_write_keeps_the_old_product(tmp_path):
         write_product(bad, path, title="second")
     assert read_product(path).attrs["title"] == "first"
     assert list(tmp_path.iterdir()) == [path]
+
+
+def test_read_ahead_and_reference_give_the_same_samples(tmp_path, rng):
+    data = cube(40, rng)
+    write_cube(tmp_path / "a.fits", [data[:25]], shape=(6, 7), n_frames=25)
+    write_cube(tmp_path / "b.fits", [data[25:]], shape=(6, 7), n_frames=15)
+    paths = [tmp_path / "a.fits", tmp_path / "b.fits"]
+    plain, _ = collect(stream(paths, chunk_frames=6))
+    ahead, chunks = collect(stream(paths, chunk_frames=6, prefetch=True))
+    np.testing.assert_array_equal(ahead, plain)
+    assert [c.start for c in chunks] == [0, 6, 12, 18, 24, 25, 31, 37]
+    reference = data[0]
+    centred, _ = collect(stream(paths, chunk_frames=6, dtype=np.float32).centred(reference))
+    np.testing.assert_allclose(centred, data - reference, atol=1e-3)
+
+
+def test_read_ahead_hands_errors_over_and_stops_when_abandoned(tmp_path, rng):
+    data = cube(30, rng).astype(np.float32)
+    data[20, 0, 0] = np.inf
+    path = tmp_path / "inf.fits"
+    write_cube(path, [data], shape=(6, 7), n_frames=30, dtype="float32")
+    with pytest.raises(DatasetError, match="non-finite"):
+        collect(stream([path], chunk_frames=4, prefetch=True))
+    import threading
+
+    before = threading.active_count()
+    for chunk in stream([path], chunk_frames=2, prefetch=True):
+        break  # the consumer leaves after one chunk: the reader thread must end
+    import gc
+
+    gc.collect()
+    assert threading.active_count() == before

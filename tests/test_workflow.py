@@ -57,7 +57,11 @@ def test_products_and_figures_exist(out):
                     "calibration/flats/prnu_fiber_b.nc", "calibration/prnu_difference_fiber_b.nc",
                     "raw/dataset.yaml", "raw/truth.nc"):
         assert (out / product).is_file(), product
-    for figure in ("dark", "dark_noise", "prnu_fiber_a", "prnu_fiber_b", "prnu_difference_fiber_b"):
+    for product in ("metrology/H1H4.nc", "metrology/V2V4.nc", "calibration/offsets_P14.nc",
+                    "calibration/offsets_P24.nc", "calibration/offsets_difference_P24.nc"):
+        assert (out / product).is_file(), product
+    for figure in ("dark", "dark_noise", "prnu_fiber_a", "prnu_fiber_b", "prnu_difference_fiber_b",
+                   "metrology_H1H4", "offsets_P14", "offsets_difference_P24"):
         for ext in ("png", "pdf"):
             assert (out / "figures" / f"{figure}.{ext}").stat().st_size > 1000, figure
     for log in ("measure_dark", "measure_prnu_fiber_a", "simulate_truth"):
@@ -91,6 +95,29 @@ def test_prnu_product_matches_truth(out):
     sl = manifest.detector.science_slices
     error = prnu["prnu"].values[sl] - expected[sl] / expected[sl].mean()
     assert np.sqrt(np.mean(error**2)) < 1.5 * float(prnu["photon_noise_limit_rms"])
+
+
+def test_metrology_products_follow_the_contract_and_the_truth(out):
+    manifest = load_manifest(out / "raw" / "dataset.yaml")
+    truth = read_product(out / "raw" / "truth.nc")
+    outside = ~manifest.detector.science_mask()
+    metrology = read_product(out / "metrology/H1H4.nc")
+    for name, units in {"projected_offset": "pixel", "iota": "1", "alpha": "1", "kx": "rad/pixel",
+                        "ky": "rad/pixel", "phase": "rad"}.items():
+        assert metrology[name].attrs["units"] == units, name
+    assert metrology["kx"].dims == () and metrology["phase"].dims == ("frame",)
+    assert metrology.sizes["frame"] == 300
+    assert np.isnan(metrology["projected_offset"].values[outside]).all()
+    offsets = read_product(out / "calibration/offsets_P14.nc")
+    sl = manifest.detector.science_slices
+    for axis in ("dx", "dy"):
+        assert offsets[axis].attrs["units"] == "pixel" and offsets[axis].dims == ("row", "col")
+        error = offsets[axis].values[sl] - truth[axis].values[sl]
+        floor = offsets[f"{axis}_photon_noise_floor"].values[sl]
+        # the truth has no affine part, the product none by construction: compare directly
+        assert np.sqrt(np.mean(error**2)) < 1.2 * np.sqrt(np.mean(floor**2)), axis
+    difference = read_product(out / "calibration/offsets_difference_P24.nc")
+    assert float(difference["ddx_std"]) < 1.3 * float(difference["ddx_photon_noise_floor"])
 
 
 def test_up_to_date_then_dice_core_change_reruns_what_it_affects(workdir):

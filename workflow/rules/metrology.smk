@@ -3,6 +3,7 @@
 
 
 rule fit_fringes:
+    threads: 2
     input:
         manifest=MANIFEST_FILE,
         dark=rules.measure_dark.output.dark,

@@ -1,10 +1,17 @@
 """Snakemake step: global fringe solution of one metrology baseline."""
 
-import logging
+import os
 
-import dice_core
-from dice_core import fringes, io
-from dice_core.manifest import load_manifest
+# Before numpy loads: one BLAS thread, so that the reader's read-ahead thread has the
+# other core (measured 1.4x faster on 2 cores; BENCHMARKS.md).
+for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(variable, "1")
+
+import logging  # noqa: E402
+
+import dice_core  # noqa: E402
+from dice_core import fringes, io  # noqa: E402
+from dice_core.manifest import load_manifest  # noqa: E402
 
 
 def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config):
@@ -13,7 +20,8 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config):
     dark = io.read_product(dark_path)
     flat = io.read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
-                            min_frames=16, purpose="a fringe solution", dtype="float32")
+                            min_frames=16, purpose="a fringe solution", dtype="float32",
+                            prefetch=True)
     log.info("baseline %s: %d frames in %d file(s); flat %s", baseline, stream.n_frames, len(stream.cubes),
              "used for the gauge" if flat is not None else "not used")
     options = config["metrology"]
