@@ -20,6 +20,7 @@ equations; ``tests/test_deprojection.py`` checks both against known offsets.
 from __future__ import annotations
 
 import numpy as np
+import xarray as xr
 
 __all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "MIN_SINE"]
 
@@ -90,8 +91,6 @@ def deproject_floor(s1, k1, s2, k2):
 
 def offsets_dataset(first, second):
     """The ``calibration/offsets_<pair>.nc`` product from two ``metrology/<baseline>.nc`` datasets."""
-    import xarray as xr
-
     k1 = (float(first["kx"]), float(first["ky"]))
     k2 = (float(second["kx"]), float(second["ky"]))
     dx, dy = deproject(first["projected_offset"].values, k1, second["projected_offset"].values, k2)

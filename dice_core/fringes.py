@@ -47,6 +47,7 @@ from typing import Iterable
 
 import numpy as np
 import scipy.linalg
+import xarray as xr
 
 from dice_core.io import Chunk
 
@@ -234,12 +235,12 @@ def projected_offsets(theta, x, y, k_guess):
 
 @dataclass
 class FringeSolution:
-    """Result of :func:`fit_baseline`; pixel arrays are over the fitted pixels (see ``rows``, ``cols``).
+    """Result of :func:`fit_baseline`; pixel arrays run over the science area (see ``rows``, ``cols``).
 
     Attributes
     ----------
     rows, cols : ndarray (pixel,)
-        Positions of the fitted pixels.
+        Positions of the science-area pixels; masked pixels hold NaN.
     offsets : ndarray (pixel,)
         Offset projected on K, pixel (zero mean and gradient).
     iota, alpha : ndarray (pixel,)
@@ -409,11 +410,9 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     dark0 = np.nan_to_num(dark)
     first = next(iter(stream))
     reference = first.frames.mean(axis=0)  # centres the float32 products (see _pass)
-    if hasattr(stream, "centred"):
-        # the reader subtracts it while converting, at no extra pass; _pass then only folds it in
-        stream, subtracted = stream.centred(reference), reference
-    else:
-        subtracted = None
+    centred = hasattr(stream, "centred")
+    if centred:  # the reader subtracts it while converting, at no extra pass; _pass only folds it in
+        stream = stream.centred(reference)
     k0 = initial_wavevector(first.frames[0] - dark0, mask)
     log.info("%s: wavevector from the FFT of frame 0: (%.5f, %.5f) rad/pixel", label, *k0)
     rows, cols = np.nonzero(mask)
@@ -427,7 +426,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     G = np.column_stack([np.ones(idx.size), np.sin(theta0), np.cos(theta0)])
     extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
     coef, FtI, FtF, third, saturated = _pass(stream, dark0, idx, G, extra=extra, moments=True,
-                                             reference=reference, centred=subtracted is not None)
+                                             reference=reference, centred=centred)
     u1, u2 = coef[:, 1], coef[:, 2]
     amp2 = u1**2 + u2**2
     if np.median(np.sqrt(amp2) / np.abs(coef[:, 0])) < min_contrast:
@@ -454,15 +453,16 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         fit_idx = idx[active]
         if n_pass > 1:
             coef, FtI, FtF, third, _ = _pass(stream, dark0, fit_idx, np.linalg.solve(FtF, FtI).T, moments=True,
-                                             reference=reference, centred=subtracted is not None)
+                                             reference=reference, centred=centred)
         F = coef[:, :3]
         G_new = np.linalg.solve(FtF, FtI).T
         fx, fy = x[active], y[active]
         flat_px = None if flat is None else np.nan_to_num(flat.ravel()[fit_idx], nan=1.0)
         M = fix_gauge(F, G_new, flat=flat_px, x=fx, y=fy, smooth_degree=smooth_degree)
-        G_phys = G_new @ np.linalg.inv(M).T
-        contrast = np.hypot(G_phys[:, 1], G_phys[:, 2]) / G_phys[:, 0] * np.median(np.hypot(*(F @ M)[:, 1:].T)) \
-            / np.median((F @ M)[:, 0])
+        F_phys, G_phys = F @ M, G_new @ np.linalg.inv(M).T
+        # alpha A / (iota B), with the frame factors at their median level and amplitude
+        contrast = (np.hypot(G_phys[:, 1], G_phys[:, 2]) / G_phys[:, 0]
+                    * np.median(np.hypot(F_phys[:, 1], F_phys[:, 2])) / np.median(F_phys[:, 0]))
         if np.median(contrast) < min_contrast:
             raise FringeError(f"{label}: no fringe contrast (median {np.median(contrast):.1e} < {min_contrast})")
         low = contrast < max(min_contrast, min_relative_contrast * np.median(contrast))
@@ -483,7 +483,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
             log.info("%s: pass %d, offsets changed by %.2e pixel max, %.2e rms", label, n_pass,
                      history[-1]["max_change"], history[-1]["rms_change"])
         offsets = new_offsets
-        state = (F @ M, G_phys, M.T @ FtF @ M, np.einsum("ak,bi,cj,abc->kij", M, M, M, third), k)
+        state = (F_phys, G_phys, M.T @ FtF @ M, np.einsum("ak,bi,cj,abc->kij", M, M, M, third), k)
         if history and history[-1]["max_change"] < tolerance and not low.any():
             break
     else:
@@ -509,15 +509,13 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
                           full(floor), k, k_frame, level, amplitude, phase, history, ~active)
 
 
-def solution_dataset(solution: FringeSolution, detector) -> "xr.Dataset":
+def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:
     """The ``metrology/<baseline>.nc`` product of a solution: maps (row, col), NaN outside the fit.
 
     Contract variables: projected_offset (pixel), iota and alpha (1), kx and ky
     (the mean wavevector, rad/pixel), phase (frame, rad). Also the photon-noise
     floor of the offsets, K(t), B(t), A(t), the mask and the convergence history.
     """
-    import xarray as xr
-
     def as_map(values, fill=np.nan):
         out = np.full(detector.shape, fill, dtype=np.result_type(values, type(fill)))
         out[solution.rows, solution.cols] = values
