@@ -189,3 +189,11 @@ def test_default_preset_against_truth(tmp_path):
     assert np.sqrt(np.mean(error**2)) < 1.5 * float(prnu["photon_noise_limit_rms"])
     diff = read_product(out / "calibration/prnu_difference_fiber_b.nc")
     assert float(diff["difference_rms"]) < 1.5 * float(diff["photon_noise_limit_rms"])
+    # metrology on the default preset (PRNU 2e-3 left in the fringe data): within 1.2x the floor
+    for baseline in manifest.baselines:
+        metrology = read_product(out / "metrology" / f"{baseline}.nc")
+        k = np.array([float(metrology["kx"]), float(metrology["ky"])])
+        n = k / np.hypot(*k)
+        projected = n[0] * truth["dx"].values + n[1] * truth["dy"].values
+        error = metrology["projected_offset"].values[sl] - projected[sl]
+        assert np.sqrt(np.mean(error**2)) < 1.2 * float(metrology["photon_noise_floor_rms"]), baseline
