@@ -3,8 +3,10 @@ besides the manifest reader.
 
 Reading streams an acquisition (one or more FITS files concatenated in time) in
 chunks of frames, so memory does not grow with the number of frames. Samples
-are read with explicit seeks and reads rather than a memory map, so that pages
-of a large cube do not accumulate in the process's resident memory.
+are converted straight from a read-only memory map of the file (no copy of the
+raw bytes), and each chunk's pages are released (madvise DONTNEED) once
+converted, so that pages of a large cube do not accumulate in the process's
+resident memory.
 
 Conventions: a cube is ``(frame, row, col)``; samples are returned as float64
 ADU; NAXIS1 is cols, NAXIS2 rows, NAXIS3 frames.
@@ -15,6 +17,7 @@ from __future__ import annotations
 import copy
 import datetime as _dt
 import json
+import mmap
 import os
 import queue
 import tempfile
@@ -159,10 +162,12 @@ class _OnesComplementSum:
         self.total = 0
         self._pending = b""
 
-    def update(self, data: bytes):
-        data = self._pending + data
+    def update(self, data):
+        """Add bytes (any buffer; read without copying unless a partial word is pending)."""
+        if self._pending:
+            data = self._pending + bytes(data)
         usable = len(data) - len(data) % 4
-        self._pending = data[usable:]
+        self._pending = bytes(data[usable:])
         if usable:
             words = np.frombuffer(data, dtype=">u4", count=usable // 4)
             self.total = self._fold(self.total + int(words.sum(dtype=np.uint64)))
@@ -318,35 +323,45 @@ class FrameStream:
     def _chunks(self) -> Iterator[Chunk]:
         start = 0
         saturation = self.detector.saturation
+        page = mmap.PAGESIZE
         for cube in self.cubes:
             checksum = _OnesComplementSum() if ("DATASUM" in cube.header or "CHECKSUM" in cube.header) else None
-            with open(cube.path, "rb") as f:
-                f.seek(cube.header_bytes)
-                for first in range(0, cube.n_frames, self.chunk_frames):
-                    n = min(self.chunk_frames, cube.n_frames - first)
-                    raw = f.read(n * cube.frame_bytes)
-                    if len(raw) != n * cube.frame_bytes:
-                        raise DatasetError(cube.path, f"file ended inside frame {first + len(raw) // cube.frame_bytes}")
-                    if checksum is not None:
-                        checksum.update(raw)
-                    stored = np.frombuffer(raw, dtype=cube.disk_dtype).reshape(n, *cube.shape)
-                    if cube.disk_dtype.kind == "f":
-                        saturated = stored >= saturation
-                    else:  # judge the stored integers: cheaper than converted samples
-                        saturated = stored >= saturation - cube.bzero
-                    frames = stored.astype(self.dtype)
-                    shift = cube.bzero if self.subtract is None else cube.bzero - self.subtract
-                    if np.any(shift):
-                        frames += np.asarray(shift, dtype=self.dtype)
-                    if cube.disk_dtype.kind == "f":
-                        bad = ~np.isfinite(frames)
-                        if bad.any():
-                            t, r, c = np.argwhere(bad)[0]
-                            raise DatasetError(cube.path, f"{int(bad.sum())} non-finite sample(s) in frames "
-                                                          f"{first}..{first + n - 1}, first at frame {first + t}, "
-                                                          f"row {r}, col {c}")
-                    yield Chunk(start, frames, saturated)
-                    start += n
+            with open(cube.path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
+                view = memoryview(mapped)
+                try:
+                    for first in range(0, cube.n_frames, self.chunk_frames):
+                        n = min(self.chunk_frames, cube.n_frames - first)
+                        begin = cube.header_bytes + first * cube.frame_bytes
+                        end = begin + n * cube.frame_bytes
+                        if end > len(mapped):
+                            raise DatasetError(cube.path, f"file ended inside frame "
+                                                          f"{first + (len(mapped) - begin) // cube.frame_bytes}")
+                        raw = view[begin:end]
+                        if checksum is not None:
+                            checksum.update(raw)
+                        stored = np.frombuffer(raw, dtype=cube.disk_dtype).reshape(n, *cube.shape)
+                        if cube.disk_dtype.kind == "f":
+                            saturated = stored >= saturation
+                        else:  # judge the stored integers: cheaper than converted samples
+                            saturated = stored >= saturation - cube.bzero
+                        frames = stored.astype(self.dtype)
+                        del stored, raw  # no view into the map may outlive it
+                        # the converted chunk is ours: give the mapped pages back
+                        mapped.madvise(mmap.MADV_DONTNEED, begin - begin % page, end - (begin - begin % page))
+                        shift = cube.bzero if self.subtract is None else cube.bzero - self.subtract
+                        if np.any(shift):
+                            frames += np.asarray(shift, dtype=self.dtype)
+                        if cube.disk_dtype.kind == "f":
+                            bad = ~np.isfinite(frames)
+                            if bad.any():
+                                t, r, c = np.argwhere(bad)[0]
+                                raise DatasetError(cube.path, f"{int(bad.sum())} non-finite sample(s) in frames "
+                                                              f"{first}..{first + n - 1}, first at frame {first + t}, "
+                                                              f"row {r}, col {c}")
+                        yield Chunk(start, frames, saturated)
+                        start += n
+                finally:
+                    view.release()
             if checksum is not None:
                 _check_checksums(cube, checksum.value())
 
