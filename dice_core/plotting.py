@@ -13,6 +13,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
 from dice_core.manifest import Detector  # noqa: E402
@@ -47,30 +48,14 @@ def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str,
     -------
     matplotlib.figure.Figure
     """
-    rows, cols = detector.science_rows, detector.science_cols
-    shown = image[slice(*rows), slice(*cols)] * scale
-    finite = shown[np.isfinite(shown)]
-    if finite.size:
-        lo, hi = np.percentile(finite, [clip_percentile, 100 - clip_percentile])
-    else:
-        lo, hi = 0.0, 1.0
-    if symmetric:
-        hi = max(abs(lo), abs(hi))
-        lo = -hi
     fig, ax = plt.subplots(figsize=(6.0, 5.2), constrained_layout=True)
-    # extent in pixel-centre coordinates: x = col, y = row, origin at the bottom like the paper's maps
-    extent = (cols[0] - 0.5, cols[1] - 0.5, rows[0] - 0.5, rows[1] - 0.5)
-    im = ax.imshow(shown, origin="lower", extent=extent, vmin=lo, vmax=hi, interpolation="nearest",
-                   cmap=cmap or ("RdBu_r" if symmetric else "viridis"))
-    ax.set_xlabel("column x [pixel]")
-    ax.set_ylabel("row y [pixel]")
-    ax.set_title(title if note is None else f"{title}\n{note}", fontsize=10)
-    bar = fig.colorbar(im, ax=ax, shrink=0.9)
-    bar.set_label(units)
+    _show_map(ax, fig, image, detector, title=title if note is None else f"{title}\n{note}", units=units,
+              scale=scale, symmetric=symmetric, clip_percentile=clip_percentile, cmap=cmap)
     return fig
 
 
-def _show_map(ax, fig, image, detector, *, title, units, scale, symmetric, clip_percentile=0.5):
+def _show_map(ax, fig, image, detector, *, title, units, scale, symmetric, clip_percentile=0.5, cmap=None):
+    """Draw a (row, col) map of the science area on ``ax``, with a colour bar in ``units``."""
     rows, cols = detector.science_rows, detector.science_cols
     shown = image[slice(*rows), slice(*cols)] * scale
     finite = shown[np.isfinite(shown)]
@@ -79,8 +64,9 @@ def _show_map(ax, fig, image, detector, *, title, units, scale, symmetric, clip_
         hi = max(abs(lo), abs(hi))
         lo = -hi
     extent = (cols[0] - 0.5, cols[1] - 0.5, rows[0] - 0.5, rows[1] - 0.5)
+    # extent in pixel-centre coordinates: x = col, y = row, origin at the bottom like the paper's maps
     im = ax.imshow(shown, origin="lower", extent=extent, vmin=lo, vmax=hi, interpolation="nearest",
-                   cmap="RdBu_r" if symmetric else "viridis")
+                   cmap=cmap or ("RdBu_r" if symmetric else "viridis"))
     ax.set_xlabel("column x [pixel]")
     ax.set_ylabel("row y [pixel]")
     ax.set_title(title, fontsize=9)
@@ -113,7 +99,7 @@ def metrology_figure(ds, detector, *, title):
     for name, colour in (("kx_frame", "C0"), ("ky_frame", "C1")):
         values = ds[name].values
         ax.plot(frame, values - values.mean(), lw=0.4, color=colour,
-                label=f"{name[:2]} - {values.mean():.6f} (rms {values.std():.1e})")
+                label=f"{name[:2]}: mean {values.mean():.6f}, rms {values.std():.1e}")
     ax.set_xlabel("frame")
     ax.set_ylabel("K(t) - mean [rad/pixel]")
     ax.set_title("wavevector fitted per frame (pass 1)", fontsize=9)
@@ -130,8 +116,10 @@ def metrology_figure(ds, detector, *, title):
     ax.semilogy(iteration, ds["max_change"].values, "o-", label="largest change")
     ax.semilogy(iteration, ds["rms_change"].values, "s-", label="rms change")
     ax.set_xlabel("pass")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    ax.set_xlim(1.5, iteration.max() + 0.5)
     ax.set_ylabel("offset change from previous pass [pixel]")
-    ax.set_title("convergence", fontsize=9)
+    ax.set_title(f"convergence: {iteration.max()} passes", fontsize=9)
     ax.legend(fontsize=8)
     fig.suptitle(title, fontsize=11)
     return fig
