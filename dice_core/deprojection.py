@@ -29,7 +29,7 @@ __all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset",
 MIN_SINE = 0.2
 
 
-def deproject(p1, k1, p2, k2, *, min_sine: float = MIN_SINE):
+def deproject(p1, k1, p2, k2, *, min_sine: float = MIN_SINE, label: str = "pair"):
     """x and y offsets from two projected offset maps.
 
     Parameters
@@ -40,6 +40,8 @@ def deproject(p1, k1, p2, k2, *, min_sine: float = MIN_SINE):
         The wavevectors (kx, ky), rad/pixel (only their directions matter).
     min_sine : float
         Refuse wavevectors closer than asin(min_sine) to colinear.
+    label : str
+        Names the pair in errors.
 
     Returns
     -------
@@ -56,7 +58,7 @@ def deproject(p1, k1, p2, k2, *, min_sine: float = MIN_SINE):
     sine = n1[0] * n2[1] - n1[1] * n2[0]
     if abs(sine) < min_sine:
         angle = np.degrees(np.arccos(np.clip(abs(n1 @ n2), 0, 1)))
-        raise ValueError(f"wavevectors {tuple(k1)} and {tuple(k2)} are {angle:.1f} degrees from colinear; "
+        raise ValueError(f"{label}: wavevectors {tuple(k1)} and {tuple(k2)} are {angle:.1f} degrees from colinear; "
                          f"a pair needs at least {np.degrees(np.arcsin(min_sine)):.0f} degrees")
     p1, p2 = np.asarray(p1, float), np.asarray(p2, float)
     # inverse of [[n1x, n1y], [n2x, n2y]]
@@ -89,11 +91,14 @@ def deproject_floor(s1, k1, s2, k2):
     return sdx, sdy
 
 
-def offsets_dataset(first, second):
-    """The ``calibration/offsets_<pair>.nc`` product from two ``metrology/<baseline>.nc`` datasets."""
+def offsets_dataset(first, second, *, label: str = "pair"):
+    """The ``calibration/offsets_<pair>.nc`` product from two ``metrology/<baseline>.nc`` datasets.
+
+    ``label`` names the pair in errors (colinear wavevectors).
+    """
     k1 = (float(first["kx"]), float(first["ky"]))
     k2 = (float(second["kx"]), float(second["ky"]))
-    dx, dy = deproject(first["projected_offset"].values, k1, second["projected_offset"].values, k2)
+    dx, dy = deproject(first["projected_offset"].values, k1, second["projected_offset"].values, k2, label=label)
     fdx, fdy = deproject_floor(first["photon_noise_floor"].values, k1, second["photon_noise_floor"].values, k2)
     rc = ("row", "col")
     return xr.Dataset(

@@ -8,7 +8,7 @@ from dice_core import deprojection, io
 
 def deproject_offsets(first_path, second_path, pair, baselines, output, config):
     first, second = io.read_product(first_path), io.read_product(second_path)
-    offsets = deprojection.offsets_dataset(first, second)
+    offsets = deprojection.offsets_dataset(first, second, label=f"pair {pair} ({' and '.join(baselines)})")
     offsets.attrs.update({"pair": pair, "baselines": " ".join(baselines)})
     logging.getLogger("dice").info("pair %s (%s): dx rms %.3e, dy rms %.3e pixel", pair, " ".join(baselines),
                                    float(offsets["dx_rms"]), float(offsets["dy_rms"]))
