@@ -111,7 +111,7 @@ def lm_per_frame(stream, detector, dark, n_frames):
     rows, cols = np.nonzero(mask)
     frames = []
     for chunk in stream:
-        frames.append(chunk.frames + chunk.frames.dtype.type(0))
+        frames.append(chunk.frames)  # each chunk is a fresh array
         if sum(len(f) for f in frames) >= n_frames:
             break
     frames = np.concatenate(frames)[:n_frames].astype(np.float64) - dark

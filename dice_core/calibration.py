@@ -27,6 +27,7 @@ __all__ = [
     "prnu_map",
     "prnu_difference",
     "remove_gradient",
+    "polynomial_design",
     "area_rms",
 ]
 
@@ -147,12 +148,16 @@ def dark_maps(chunks: Iterable[Chunk], detector: Detector, *, n_frames: int | No
     return ds
 
 
-def _poly_design(rows, cols, shape, degree):
-    """Design matrix of 2-D polynomial terms x^i y^j (i + j <= degree) in centred, scaled coordinates."""
-    y = (rows - (shape[0] - 1) / 2) / max(shape[0] / 2, 1)
-    x = (cols - (shape[1] - 1) / 2) / max(shape[1] / 2, 1)
-    terms = [x**i * y**j for total in range(degree + 1) for j in range(total + 1) for i in [total - j]]
-    return np.stack(terms, axis=-1)
+def polynomial_design(x, y, degree: int) -> np.ndarray:
+    """Design matrix (point, term) of the 2-D polynomial terms x^i y^j, i + j <= degree.
+
+    Coordinates are centred and scaled to about [-1, 1] first, which keeps
+    high degrees well conditioned; fits are the same in any such basis.
+    """
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    xs = (x - (x.max() + x.min()) / 2) / max(np.ptp(x) / 2, 1)
+    ys = (y - (y.max() + y.min()) / 2) / max(np.ptp(y) / 2, 1)
+    return np.column_stack([xs**i * ys**(total - i) for total in range(degree + 1) for i in range(total, -1, -1)])
 
 
 def remove_gradient(image: np.ndarray, mask: np.ndarray, *, degree: int = 1):
@@ -180,11 +185,10 @@ def remove_gradient(image: np.ndarray, mask: np.ndarray, *, degree: int = 1):
     if degree < 0:
         raise ValueError(f"degree must be >= 0, got {degree}")
     use = mask & np.isfinite(image)
-    rows, cols = np.nonzero(use)
-    design = _poly_design(rows, cols, image.shape, degree)
-    coef, *_ = np.linalg.lstsq(design, image[use], rcond=None)
-    all_rows, all_cols = np.indices(image.shape)
-    surface = _poly_design(all_rows, all_cols, image.shape, degree) @ coef
+    rows, cols = np.indices(image.shape)
+    design = polynomial_design(cols.ravel(), rows.ravel(), degree)  # scaled on the whole map
+    coef, *_ = np.linalg.lstsq(design[use.ravel()], image[use], rcond=None)
+    surface = (design @ coef).reshape(image.shape)
     return image / surface, surface
 
 

@@ -49,6 +49,7 @@ import numpy as np
 import scipy.linalg
 import xarray as xr
 
+from dice_core.calibration import polynomial_design
 from dice_core.io import Chunk
 
 __all__ = [
@@ -98,10 +99,7 @@ def initial_wavevector(frame: np.ndarray, mask: np.ndarray, *, pad: int = 8) -> 
 
 
 def _smooth_basis(x, y, weight, degree):
-    xs = (x - x.mean()) / max(np.ptp(x), 1)
-    ys = (y - y.mean()) / max(np.ptp(y), 1)
-    terms = [xs**i * ys**j for total in range(degree + 1) for j in range(total + 1) for i in [total - j]]
-    return np.column_stack(terms) * weight[:, None]
+    return polynomial_design(x, y, degree) * weight[:, None]
 
 
 def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 6):
@@ -324,8 +322,7 @@ def _pass(chunks: Iterable[Chunk], dark, idx, G, *, extra=None, moments=False, r
         FtF += F.T @ F
         if moments:
             third += np.einsum("tk,ti,tj->kij", F, F, F)
-        if chunk.saturated is not None:
-            saturated |= chunk.saturated.reshape(n, -1).any(axis=0)
+        saturated |= chunk.saturated.reshape(n, -1).any(axis=0)
         frames_out.append(coef)
     FtI = FtX[:, idx] + np.outer(Fsum, level[idx])
     return np.concatenate(frames_out), FtI, FtF, third, saturated[idx]

@@ -326,6 +326,8 @@ class FrameStream:
         page = mmap.PAGESIZE
         for cube in self.cubes:
             checksum = _OnesComplementSum() if ("DATASUM" in cube.header or "CHECKSUM" in cube.header) else None
+            shift = cube.bzero if self.subtract is None else cube.bzero - self.subtract
+            shift = np.asarray(shift, dtype=self.dtype) if np.any(shift) else None
             with open(cube.path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
                 view = memoryview(mapped)
                 try:
@@ -348,9 +350,8 @@ class FrameStream:
                         del stored, raw  # no view into the map may outlive it
                         # the converted chunk is ours: give the mapped pages back
                         mapped.madvise(mmap.MADV_DONTNEED, begin - begin % page, end - (begin - begin % page))
-                        shift = cube.bzero if self.subtract is None else cube.bzero - self.subtract
-                        if np.any(shift):
-                            frames += np.asarray(shift, dtype=self.dtype)
+                        if shift is not None:
+                            frames += shift
                         if cube.disk_dtype.kind == "f":
                             bad = ~np.isfinite(frames)
                             if bad.any():

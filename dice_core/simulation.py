@@ -41,6 +41,7 @@ import numpy as np
 import xarray as xr
 import yaml
 
+from dice_core.calibration import polynomial_design
 from dice_core.detector import PixelResponse
 from dice_core.io import write_cube, write_product
 from dice_core.manifest import FORMAT
@@ -395,9 +396,9 @@ def _rng(cfg: SimulationConfig, *names) -> np.random.Generator:
 def _remove_affine(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Subtract the least-squares plane a + b x + c y over ``mask`` (offsets are defined up to an affine map)."""
     rows, cols = np.indices(values.shape)
-    design = np.column_stack([np.ones(mask.sum()), cols[mask], rows[mask]])
-    coef, *_ = np.linalg.lstsq(design, values[mask], rcond=None)
-    return values - (coef[0] + coef[1] * cols + coef[2] * rows)
+    design = polynomial_design(cols.ravel(), rows.ravel(), 1)
+    coef, *_ = np.linalg.lstsq(design[mask.ravel()], values[mask], rcond=None)
+    return values - (design @ coef).reshape(values.shape)
 
 
 def _sensitivity(cfg: SimulationConfig, mask: np.ndarray) -> np.ndarray:
