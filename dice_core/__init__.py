@@ -9,6 +9,7 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.deprojection` -- x and y offsets from a pair of baselines;
 - :mod:`dice_core.detector` -- the pixel-response model (truncated hyper-Gaussian PRFs);
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;
+- :mod:`dice_core.polynomials` -- 2-D polynomial surfaces shared by the fits;
 - :mod:`dice_core.plotting` -- the paper's figures.
 """
 

@@ -19,6 +19,7 @@ import numpy as np
 import xarray as xr
 
 from dice_core.io import Chunk
+from dice_core.polynomials import polynomial_design
 from dice_core.manifest import Detector
 
 __all__ = [
@@ -27,7 +28,6 @@ __all__ = [
     "prnu_map",
     "prnu_difference",
     "remove_gradient",
-    "polynomial_design",
     "area_rms",
 ]
 
@@ -146,18 +146,6 @@ def dark_maps(chunks: Iterable[Chunk], detector: Detector, *, n_frames: int | No
         coords=_coords(detector),
     )
     return ds
-
-
-def polynomial_design(x, y, degree: int) -> np.ndarray:
-    """Design matrix (point, term) of the 2-D polynomial terms x^i y^j, i + j <= degree.
-
-    Coordinates are centred and scaled to about [-1, 1] first, which keeps
-    high degrees well conditioned; fits are the same in any such basis.
-    """
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    xs = (x - (x.max() + x.min()) / 2) / max(np.ptp(x) / 2, 1)
-    ys = (y - (y.max() + y.min()) / 2) / max(np.ptp(y) / 2, 1)
-    return np.column_stack([xs**i * ys**(total - i) for total in range(degree + 1) for i in range(total, -1, -1)])
 
 
 def remove_gradient(image: np.ndarray, mask: np.ndarray, *, degree: int = 1):

@@ -49,8 +49,8 @@ import numpy as np
 import scipy.linalg
 import xarray as xr
 
-from dice_core.calibration import polynomial_design
 from dice_core.io import Chunk
+from dice_core.polynomials import polynomial_design
 
 __all__ = [
     "FringeError",

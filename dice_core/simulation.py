@@ -41,9 +41,9 @@ import numpy as np
 import xarray as xr
 import yaml
 
-from dice_core.calibration import polynomial_design
 from dice_core.detector import PixelResponse
 from dice_core.io import write_cube, write_product
+from dice_core.polynomials import polynomial_design
 from dice_core.manifest import FORMAT
 
 __all__ = [

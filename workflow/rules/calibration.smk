@@ -9,7 +9,7 @@ rule measure_dark:
     output:
         dark=f"{OUT}/calibration/dark.nc",
     params:
-        code=code_version("io", "manifest", "calibration"),
+        code=code_version("io", "manifest", "calibration", "polynomials"),
     log:
         f"{OUT}/logs/measure_dark.log",
     benchmark:
@@ -28,7 +28,7 @@ rule measure_prnu:
     output:
         prnu=f"{OUT}/calibration/flats/prnu_{{flat}}.nc",
     params:
-        code=code_version("io", "manifest", "calibration"),
+        code=code_version("io", "manifest", "calibration", "polynomials"),
     log:
         f"{OUT}/logs/measure_prnu_{{flat}}.log",
     benchmark:
@@ -63,7 +63,7 @@ rule compare_prnu:
     output:
         difference=f"{OUT}/calibration/prnu_difference_{{flat}}.nc",
     params:
-        code=code_version("io", "manifest", "calibration"),
+        code=code_version("io", "manifest", "calibration", "polynomials"),
     log:
         f"{OUT}/logs/compare_prnu_{{flat}}.log",
     conda:

@@ -12,7 +12,7 @@ rule fit_fringes:
     output:
         metrology=f"{OUT}/metrology/{{baseline}}.nc",
     params:
-        code=code_version("io", "manifest", "fringes", "calibration"),
+        code=code_version("io", "manifest", "fringes", "polynomials"),
     log:
         f"{OUT}/logs/fit_fringes_{{baseline}}.log",
     benchmark:
