@@ -4,7 +4,8 @@ Simulates one 80x84 metrology baseline of N frames (default 200,000; cached in
 --workdir), then measures, in one run on the same cube:
 
 - ``plain pass``: one plain numpy pass over the cube (read in the same chunks,
-  converted to float64, summed over frames), the reference for one iteration;
+  converted to float32 as the fit reads them, summed over frames), the reference
+  for one iteration;
 - ``fit``: the whole reduction of the baseline (:func:`dice_core.fringes.fit_baseline`),
   in a fresh process that also reports its peak resident memory;
 - ``LM per frame``: the paper's per-frame Levenberg-Marquardt spatial fit
@@ -60,7 +61,7 @@ def prepare(frames, workdir):
     print(f"simulated {frames} frames in {time.perf_counter() - start:.0f} s", file=sys.stderr)
 
 
-def load(frames, workdir):
+def load(frames, workdir, chunk_frames="auto"):
     from dice_core import simulation
     from dice_core.io import FrameStream, read_product
     from dice_core.manifest import parse_manifest
@@ -68,18 +69,19 @@ def load(frames, workdir):
     cfg = config(frames)
     manifest = parse_manifest(simulation.dataset_layout(cfg), workdir / "dataset.yaml")
     truth = read_product(workdir / "truth.nc")
-    return manifest, truth, FrameStream(manifest.baselines[BASELINE], manifest.detector, dtype="float32")
+    return manifest, truth, FrameStream(manifest.baselines[BASELINE], manifest.detector, dtype="float32",
+                                        chunk_frames=chunk_frames)
 
 
-def fit_child(frames, workdir, prefetch):
+def fit_child(frames, workdir, chunk_frames, workers):
     """The whole reduction, in this process; prints time, passes, accuracy and peak memory as JSON."""
     from dice_core import fringes
 
-    manifest, truth, stream = load(frames, workdir)
-    stream.prefetch = prefetch
+    manifest, truth, stream = load(frames, workdir, chunk_frames)
     start = time.perf_counter()
     solution = fringes.fit_baseline(stream, truth["bias"].values, manifest.detector,
-                                    flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
+                                    flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
+                                    workers=workers)
     elapsed = time.perf_counter() - start
     n = solution.k / np.hypot(*solution.k)
     r, c = solution.rows, solution.cols
@@ -89,7 +91,8 @@ def fit_child(frames, workdir, prefetch):
     error = float(np.sqrt(np.nanmean((solution.offsets - p) ** 2)))
     floor = float(np.sqrt(np.nanmean(solution.photon_floor**2)))
     print(json.dumps({"seconds": elapsed, "passes": len(solution.history) + 1, "error": error, "floor": floor,
-                      "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                      "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                      "worker_peak_mib": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024}))
 
 
 def plain_pass(stream):
@@ -134,11 +137,13 @@ def main():
     parser.add_argument("--workdir", type=Path, default=Path("benchmarks/out/fringe"))
     parser.add_argument("--lm-frames", type=int, default=200)
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--prefetch", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--chunk-frames", default="auto", help=argparse.SUPPRESS)
+    parser.add_argument("--workers", type=int, default=1, help=argparse.SUPPRESS)
     args = parser.parse_args()
     workdir = args.workdir / f"n{args.frames}"
     if args.child:
-        return fit_child(args.frames, workdir, args.prefetch)
+        chunk_frames = args.chunk_frames if args.chunk_frames == "auto" else int(args.chunk_frames)
+        return fit_child(args.frames, workdir, chunk_frames, args.workers)
     workdir.mkdir(parents=True, exist_ok=True)
     prepare(args.frames, workdir)
     manifest, truth, stream = load(args.frames, workdir)
@@ -148,18 +153,25 @@ def main():
     print("| frames | fit setting | plain numpy pass (s) | whole fit (s) | passes | per pass / plain pass | "
           "LM per frame (ms) | LM extrapolated (s) | LM / whole fit | peak RSS (MiB) | error / floor |")
     print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    settings = [("BLAS default threads", {}, []),
-                ("1 BLAS thread + read-ahead", {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}, ["--prefetch"])]
-    for name, env, flags in settings:
-        plain = plain_pass(stream)  # measured next to each fit: the machine is noisy
+    one_thread = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    auto = f"auto chunks ({stream.chunk_frames} frames)"
+    settings = [(f"2 worker processes, 1 BLAS thread, {auto} (the workflow's)", one_thread, "auto", 2),
+                (f"1 process, 1 BLAS thread, {auto}", one_thread, "auto", 1),
+                ("1 process, 1 BLAS thread, 256-frame chunks", one_thread, "256", 1),
+                (f"1 process, BLAS default threads, {auto}", {}, "auto", 1)]
+    for name, env, chunk_frames, workers in settings:
+        # the plain pass reads the same chunks, next to each fit: the machine is noisy
+        plain = plain_pass(load(args.frames, workdir, chunk_frames if chunk_frames == "auto" else int(chunk_frames))[2])
         out = subprocess.run([sys.executable, __file__, "--child", "--frames", str(args.frames), "--workdir",
-                              str(args.workdir), *flags], check=True, capture_output=True, text=True,
-                             env={**os.environ, **env}).stdout
+                              str(args.workdir), "--chunk-frames", chunk_frames, "--workers", str(workers)],
+                             check=True, capture_output=True, text=True, env={**os.environ, **env}).stdout
         fit = json.loads(out.strip().splitlines()[-1])
         iteration = fit["seconds"] / fit["passes"]
+        peak = f"{fit['peak_mib']:.0f}" + (f" + {workers} x {fit['worker_peak_mib']:.0f}" if workers > 1 else "")
         print(f"| {args.frames} | {name} | {plain:.2f} | {fit['seconds']:.2f} | {fit['passes']} | "
               f"{iteration / plain:.2f} | {lm * 1e3:.2f} | {lm * args.frames:.0f} | "
-              f"{lm * args.frames / fit['seconds']:.0f} | {fit['peak_mib']:.0f} | {fit['error'] / fit['floor']:.3f} |")
+              f"{lm * args.frames / fit['seconds']:.0f} | {peak} | {fit['error'] / fit['floor']:.3f} |",
+              flush=True)
 
 
 if __name__ == "__main__":

@@ -29,6 +29,9 @@ class DatasetError(ValueError):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
 
+    def __reduce__(self):  # so that the error crosses from a worker process intact
+        return type(self), (self.path, self.problem)
+
 
 __all__ = ["DatasetError", "__version__", "run_logged"]
 

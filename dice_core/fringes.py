@@ -41,7 +41,10 @@ adu for B and A.
 
 from __future__ import annotations
 
+import concurrent.futures
+import contextlib
 import logging
+import multiprocessing
 from dataclasses import dataclass, field
 from typing import Iterable
 
@@ -272,8 +275,42 @@ class FringeSolution:
     masked: np.ndarray = None
 
 
-def _pass(chunks: Iterable[Chunk], dark, idx, G, *, extra=None, moments=False, reference=None,
-          centred=False):
+def _accumulate(chunks: Iterable[Chunk], projector, offset, centre, subtract_centre):
+    """The streaming part of a pass over one run of chunks (see :func:`_pass`).
+
+    Returns the frame products X P (frame, m) in the chunks' type, F'X (3,
+    pixel) in float64, with F = X P[:, :3] - offset[:3], and the pixels holding a
+    saturated sample. Module-level, so that a worker process can run it.
+    """
+    n_pixels = projector.shape[0]
+    projector_c = centre_c = offset_c = work = None
+    products, FtX = [], np.zeros((3, n_pixels))
+    saturated = np.zeros(n_pixels, bool)
+    for chunk in chunks:
+        n = chunk.frames.shape[0]
+        X = chunk.frames.reshape(n, -1)
+        if projector_c is None or projector_c[0].dtype != X.dtype:
+            # Products with at most 4 columns: OpenBLAS runs pass 1's 3 + 4 columns in
+            # three quarters of the time of one product with 7 (BENCHMARKS.md).
+            projector_c = [np.ascontiguousarray(projector[:, i:i + 4], dtype=X.dtype)
+                           for i in range(0, projector.shape[1], 4)]
+            centre_c = centre.astype(X.dtype)
+            offset_c = offset[:3].astype(X.dtype)
+        if subtract_centre:
+            if work is None or work.shape[0] < n or work.dtype != X.dtype:
+                work = np.empty((max(n, 1), n_pixels), dtype=X.dtype)
+            X = np.subtract(X, centre_c, out=work[:n])
+        coef = np.hstack([X @ block for block in projector_c])
+        # F'X while the chunk is in the cache, F formed in the chunk's type
+        np.add(FtX, (coef[:, :3] - offset_c).T @ X, out=FtX)
+        if chunk.any_saturated:
+            saturated |= chunk.saturated.reshape(n, -1).any(axis=0)
+        products.append(coef)
+    products = np.concatenate(products) if products else np.empty((0, projector.shape[1]))
+    return products, FtX, saturated
+
+
+def _pass(lanes, dark, idx, G, *, extra=None, reference=None, centred=False, executor=None):
     """One streaming pass: frame factors per chunk, then per-pixel normal equations.
 
     Works on whole frames, so that a chunk is never copied: pixels outside
@@ -289,10 +326,13 @@ def _pass(chunks: Iterable[Chunk], dark, idx, G, *, extra=None, moments=False, r
     whose rounding would otherwise show at 1e-7 pixel; r - d folds into the
     algebra like the dark.
 
+    ``lanes`` are consecutive runs of chunks (re-iterables), reduced one after
+    the other or, given an ``executor``, in its worker processes, and summed
+    in lane order: the result does not depend on which.
     ``extra`` (pixel, m) adds regressors to the frame fit only (the K(t) terms).
     Returns frame factors (frame, 3 [+m]), F'I (3, pixel), F'F (3, 3), the
-    third moments sum_t F_tk F_t F_t' (3, 3, 3) when asked, and the pixels of
-    ``idx`` holding a saturated sample.
+    third moments sum_t F_tk F_t F_t' (3, 3, 3), and the pixels of ``idx``
+    holding a saturated sample.
     """
     design = G if extra is None else np.column_stack([G, extra])
     n_pixels = dark.size
@@ -301,31 +341,27 @@ def _pass(chunks: Iterable[Chunk], dark, idx, G, *, extra=None, moments=False, r
     centre = np.zeros(n_pixels) if reference is None else reference.ravel().astype(np.float64)
     level = centre - dark.ravel()  # X - d = (X - r) + (r - d)
     offset = -(level @ projector)
-    projector_c = reference_c = work = None
-    frames_out, FtX, FtF, Fsum = [], np.zeros((3, n_pixels)), np.zeros((3, 3)), np.zeros(3)
-    third = np.zeros((3, 3, 3)) if moments else None
-    saturated = np.zeros(n_pixels, bool)
-    for chunk in chunks:
-        n = chunk.frames.shape[0]
-        X = chunk.frames.reshape(n, -1)
-        if projector_c is None or projector_c.dtype != X.dtype:
-            projector_c = projector.astype(X.dtype)
-            reference_c = centre.astype(X.dtype)
-        if reference is not None and not centred:
-            if work is None or work.shape[0] < n or work.dtype != X.dtype:
-                work = np.empty((max(n, 1), n_pixels), dtype=X.dtype)
-            X = np.subtract(X, reference_c, out=work[:n])
-        coef = (X @ projector_c).astype(np.float64) - offset
-        F = coef[:, :3]
-        FtX += (F.T.astype(X.dtype) @ X).astype(np.float64)
-        Fsum += F.sum(axis=0)
-        FtF += F.T @ F
-        if moments:
-            third += np.einsum("tk,ti,tj->kij", F, F, F)
-        saturated |= chunk.saturated.reshape(n, -1).any(axis=0)
-        frames_out.append(coef)
-    FtI = FtX[:, idx] + np.outer(Fsum, level[idx])
-    return np.concatenate(frames_out), FtI, FtF, third, saturated[idx]
+    subtract_centre = reference is not None and not centred
+    if executor is None:
+        results = [_accumulate(lane, projector, offset, centre, subtract_centre) for lane in lanes]
+    else:
+        n = len(lanes)
+        results = list(executor.map(_accumulate, lanes, [projector] * n, [offset] * n, [centre] * n,
+                                    [subtract_centre] * n))
+    coef = np.concatenate([products for products, _, _ in results]).astype(np.float64) - offset
+    if coef.shape[0] == 0:
+        raise FringeError("no frames to fit")
+    FtX, saturated = np.zeros((3, n_pixels)), np.zeros(n_pixels, bool)
+    for _, lane_FtX, lane_saturated in results:
+        FtX += lane_FtX
+        saturated |= lane_saturated
+    F = coef[:, :3]
+    # Sums over frames, from the frame factors kept for the product anyway: vectorised once
+    # per pass instead of a few small operations per chunk.
+    FtI = FtX[:, idx] + np.outer(F.sum(axis=0), level[idx])
+    FtF = F.T @ F
+    third = ((F[:, :, None] * F[:, None, :]).reshape(-1, 9).T @ F).reshape(3, 3, 3).transpose(2, 0, 1)
+    return coef, FtI, FtF, third, saturated[idx]
 
 
 def _floor(G_phys, FtF, third, gain, read_noise, k_norm):
@@ -351,8 +387,31 @@ def _phase_coverage(phase, bins=16):
     return np.unique(np.clip(sectors, 0, bins - 1)).size / bins
 
 
+#: Consecutive parts a :class:`dice_core.io.FrameStream` is reduced in (see ``fit_baseline``'s ``workers``).
+LANES = 2
+
+
+def _lane_executor(workers: int, n_lanes: int):
+    """Worker processes for the lanes of a pass, or a context holding None to run them in this process.
+
+    Processes, not threads: the per-chunk work is a series of numpy calls too
+    short for two threads to overlap under the interpreter lock (measured: two
+    threads 1.0-1.1x as fast as one, two processes 1.7-1.9x; BENCHMARKS.md).
+    Forked, so that the workers start in milliseconds with everything imported.
+    """
+    if _lane_workers(workers, n_lanes) > 1:
+        return concurrent.futures.ProcessPoolExecutor(_lane_workers(workers, n_lanes),
+                                                      mp_context=multiprocessing.get_context("fork"))
+    return contextlib.nullcontext(None)
+
+
+def _lane_workers(workers: int, n_lanes: int) -> int:
+    """Worker processes used: no more than lanes, and none where processes cannot be forked."""
+    return min(workers, n_lanes) if "fork" in multiprocessing.get_all_start_methods() else 1
+
+
 def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, tolerance=1e-7, max_passes=10,
-                 min_contrast=0.02, min_relative_contrast=0.5, smooth_degree=6,
+                 min_contrast=0.02, min_relative_contrast=0.5, smooth_degree=6, workers=1,
                  label="baseline") -> FringeSolution:
     """Global fringe solution of one metrology acquisition.
 
@@ -391,6 +450,12 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         alpha alike and leave the contrast unchanged).
     smooth_degree : int
         Degree of the polynomial that iota / flat follows.
+    workers : int
+        Processes that read the stream's parts at once. A stream with a
+        ``split`` method (:class:`dice_core.io.FrameStream`) is always reduced
+        in the same consecutive parts (``LANES``, groups of whole files), one
+        after the other with one worker: the result does not depend on
+        ``workers``, only the time does.
     label : str
         Name in log messages and errors.
 
@@ -405,7 +470,10 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     """
     mask = detector.science_mask()
     dark0 = np.nan_to_num(dark)
-    first = next(iter(stream))
+    chunks = iter(stream)
+    first = next(chunks)
+    if hasattr(chunks, "close"):  # a generator: release its file now, not at garbage collection
+        chunks.close()
     reference = first.frames.mean(axis=0)  # centres the float32 products (see _pass)
     centred = hasattr(stream, "centred")
     if centred:  # the reader subtracts it while converting, at no extra pass; _pass only folds it in
@@ -417,93 +485,97 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     x, y = cols.astype(float), rows.astype(float)
     xc, yc = x - x.mean(), y - y.mean()
 
-    # Pass 1: perfect pixels; K free per frame, linearised about k0:
-    # sin(theta + phi + dK.r) ~ sin(theta + phi) + (dK.r)(u1 alpha cos theta - u2 alpha sin theta).
-    theta0 = k0[0] * xc + k0[1] * yc
-    G = np.column_stack([np.ones(idx.size), np.sin(theta0), np.cos(theta0)])
-    extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
-    coef, FtI, FtF, third, saturated = _pass(stream, dark0, idx, G, extra=extra, moments=True,
-                                             reference=reference, centred=centred)
-    u1, u2 = coef[:, 1], coef[:, 2]
-    amp2 = u1**2 + u2**2
-    if np.median(np.sqrt(amp2) / np.abs(coef[:, 0])) < min_contrast:
-        raise FringeError(f"{label}: no fringe contrast (amplitude/level "
-                          f"{np.median(np.sqrt(amp2) / np.abs(coef[:, 0])):.1e} < {min_contrast})")
-    coverage = _phase_coverage(np.arctan2(u2, u1))
-    if coverage < 1:
-        raise FringeError(f"{label}: the phase sweep covers only {coverage * 360:.0f} of 360 degrees; "
-                          "every pixel must see at least a full fringe period")
-    k_frame = np.column_stack([k0[0] + (coef[:, 3] * u1 - coef[:, 4] * u2) / amp2,
-                               k0[1] + (coef[:, 5] * u1 - coef[:, 6] * u2) / amp2])
-    log.info("%s: pass 1, K(t) mean (%.6f, %.6f), rms (%.2e, %.2e) rad/pixel", label,
-             *k_frame.mean(axis=0), *k_frame.std(axis=0))
+    lanes = stream.split(LANES) if hasattr(stream, "split") else [stream]
+    with _lane_executor(workers, len(lanes)) as executor:
+        log.info("%s: each pass reads %d part(s) of the frames, in %d process(es)", label, len(lanes),
+                 max(1, _lane_workers(workers, len(lanes))))
+        # Pass 1: perfect pixels; K free per frame, linearised about k0:
+        # sin(theta + phi + dK.r) ~ sin(theta + phi) + (dK.r)(u1 alpha cos theta - u2 alpha sin theta).
+        theta0 = k0[0] * xc + k0[1] * yc
+        G = np.column_stack([np.ones(idx.size), np.sin(theta0), np.cos(theta0)])
+        extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
+        coef, FtI, FtF, third, saturated = _pass(lanes, dark0, idx, G, extra=extra, reference=reference,
+                                                 centred=centred, executor=executor)
+        u1, u2 = coef[:, 1], coef[:, 2]
+        amp2 = u1**2 + u2**2
+        if np.median(np.sqrt(amp2) / np.abs(coef[:, 0])) < min_contrast:
+            raise FringeError(f"{label}: no fringe contrast (amplitude/level "
+                              f"{np.median(np.sqrt(amp2) / np.abs(coef[:, 0])):.1e} < {min_contrast})")
+        coverage = _phase_coverage(np.arctan2(u2, u1))
+        if coverage < 1:
+            raise FringeError(f"{label}: the phase sweep covers only {coverage * 360:.0f} of 360 degrees; "
+                              "every pixel must see at least a full fringe period")
+        k_frame = np.column_stack([k0[0] + (coef[:, 3] * u1 - coef[:, 4] * u2) / amp2,
+                                   k0[1] + (coef[:, 5] * u1 - coef[:, 6] * u2) / amp2])
+        log.info("%s: pass 1, K(t) mean (%.6f, %.6f), rms (%.2e, %.2e) rad/pixel", label,
+                 *k_frame.mean(axis=0), *k_frame.std(axis=0))
 
-    # Pixels leave the fit when found unusable, so that they bias neither the frame fits nor
-    # the plane of K: first those with saturated samples, then those without fringe contrast.
-    active = ~saturated
-    if saturated.any():
-        log.warning("%s: %d pixel(s) with saturated samples left out of the fit", label, saturated.sum())
-    FtI = FtI[:, active]
-    faint = np.zeros(idx.size, bool)
-    history, offsets, state = [], np.full(idx.size, np.nan), None
-    for n_pass in range(1, max_passes + 1):
-        fit_idx = idx[active]
-        if n_pass > 1:
-            coef, FtI, FtF, third, _ = _pass(stream, dark0, fit_idx, np.linalg.solve(FtF, FtI).T, moments=True,
-                                             reference=reference, centred=centred)
-        F = coef[:, :3]
-        G_new = np.linalg.solve(FtF, FtI).T
-        fx, fy = x[active], y[active]
-        flat_px = None if flat is None else np.nan_to_num(flat.ravel()[fit_idx], nan=1.0)
-        M = fix_gauge(F, G_new, flat=flat_px, x=fx, y=fy, smooth_degree=smooth_degree)
-        F_phys, G_phys = F @ M, G_new @ np.linalg.inv(M).T
-        # alpha A / (iota B), with the frame factors at their median level and amplitude
-        contrast = (np.hypot(G_phys[:, 1], G_phys[:, 2]) / G_phys[:, 0]
-                    * np.median(np.hypot(F_phys[:, 1], F_phys[:, 2])) / np.median(F_phys[:, 0]))
-        if np.median(contrast) < min_contrast:
-            raise FringeError(f"{label}: no fringe contrast (median {np.median(contrast):.1e} < {min_contrast})")
-        low = contrast < max(min_contrast, min_relative_contrast * np.median(contrast))
-        if low.any():
-            log.warning("%s: pass %d, %d pixel(s) without fringe contrast left out", label, n_pass, low.sum())
-            where = np.flatnonzero(active)[low]
-            faint[where] = True
-            active[where] = False
-            G_new, G_phys, FtI = G_new[~low], G_phys[~low], FtI[:, ~low]
-            fx, fy = fx[~low], fy[~low]
-        k, fitted = projected_offsets(np.arctan2(G_phys[:, 1], G_phys[:, 2]), fx, fy, k_frame.mean(axis=0))
-        new_offsets = np.full(idx.size, np.nan)
-        new_offsets[active] = fitted
-        if n_pass > 1:
-            change = (new_offsets - offsets)[active]
-            history.append({"pass": n_pass, "max_change": float(np.max(np.abs(change))),
-                            "rms_change": float(np.sqrt(np.mean(change**2)))})
-            log.info("%s: pass %d, offsets changed by %.2e pixel max, %.2e rms", label, n_pass,
-                     history[-1]["max_change"], history[-1]["rms_change"])
-        offsets = new_offsets
-        state = (F_phys, G_phys, M.T @ FtF @ M, np.einsum("ak,bi,cj,abc->kij", M, M, M, third), k)
-        if history and history[-1]["max_change"] < tolerance and not low.any():
-            break
-    else:
-        log.warning("%s: not converged to %.1e pixel after %d passes", label, tolerance, max_passes)
+        # Pixels leave the fit when found unusable, so that they bias neither the frame fits nor
+        # the plane of K: first those with saturated samples, then those without fringe contrast.
+        active = ~saturated
+        if saturated.any():
+            log.warning("%s: %d pixel(s) with saturated samples left out of the fit", label, saturated.sum())
+        FtI = FtI[:, active]
+        faint = np.zeros(idx.size, bool)
+        history, offsets, state = [], np.full(idx.size, np.nan), None
+        for n_pass in range(1, max_passes + 1):
+            fit_idx = idx[active]
+            if n_pass > 1:
+                coef, FtI, FtF, third, _ = _pass(lanes, dark0, fit_idx, np.linalg.solve(FtF, FtI).T,
+                                                 reference=reference, centred=centred, executor=executor)
+            F = coef[:, :3]
+            G_new = np.linalg.solve(FtF, FtI).T
+            fx, fy = x[active], y[active]
+            flat_px = None if flat is None else np.nan_to_num(flat.ravel()[fit_idx], nan=1.0)
+            M = fix_gauge(F, G_new, flat=flat_px, x=fx, y=fy, smooth_degree=smooth_degree)
+            F_phys, G_phys = F @ M, G_new @ np.linalg.inv(M).T
+            # alpha A / (iota B), with the frame factors at their median level and amplitude
+            contrast = (np.hypot(G_phys[:, 1], G_phys[:, 2]) / G_phys[:, 0]
+                        * np.median(np.hypot(F_phys[:, 1], F_phys[:, 2])) / np.median(F_phys[:, 0]))
+            if np.median(contrast) < min_contrast:
+                raise FringeError(f"{label}: no fringe contrast (median {np.median(contrast):.1e} < {min_contrast})")
+            low = contrast < max(min_contrast, min_relative_contrast * np.median(contrast))
+            if low.any():
+                log.warning("%s: pass %d, %d pixel(s) without fringe contrast left out", label, n_pass, low.sum())
+                where = np.flatnonzero(active)[low]
+                faint[where] = True
+                active[where] = False
+                G_new, G_phys, FtI = G_new[~low], G_phys[~low], FtI[:, ~low]
+                fx, fy = fx[~low], fy[~low]
+            k, fitted = projected_offsets(np.arctan2(G_phys[:, 1], G_phys[:, 2]), fx, fy, k_frame.mean(axis=0))
+            new_offsets = np.full(idx.size, np.nan)
+            new_offsets[active] = fitted
+            if n_pass > 1:
+                change = (new_offsets - offsets)[active]
+                history.append({"pass": n_pass, "max_change": float(np.max(np.abs(change))),
+                                "rms_change": float(np.sqrt(np.mean(change**2)))})
+                log.info("%s: pass %d, offsets changed by %.2e pixel max, %.2e rms", label, n_pass,
+                         history[-1]["max_change"], history[-1]["rms_change"])
+            offsets = new_offsets
+            state = (F_phys, G_phys, M.T @ FtF @ M, np.einsum("ak,bi,cj,abc->kij", M, M, M, third), k)
+            if history and history[-1]["max_change"] < tolerance and not low.any():
+                break
+        else:
+            log.warning("%s: not converged to %.1e pixel after %d passes", label, tolerance, max_passes)
 
-    F_phys, G_phys, FtF_phys, third_phys, k = state
-    noise_px = np.zeros(active.sum()) if read_noise is None else np.nan_to_num(read_noise.ravel()[idx[active]])
-    iota = G_phys[:, 0]
-    alpha = np.hypot(G_phys[:, 1], G_phys[:, 2])
-    level = F_phys[:, 0] * iota.mean()
-    amplitude = np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean()
-    phase = np.arctan2(F_phys[:, 2], F_phys[:, 1])
-    floor = _floor(G_phys, FtF_phys, third_phys, detector.gain, noise_px, np.hypot(*k))
-    if faint.any():
-        log.warning("%s: %d pixel(s) without fringe contrast masked", label, faint.sum())
+        F_phys, G_phys, FtF_phys, third_phys, k = state
+        noise_px = np.zeros(active.sum()) if read_noise is None else np.nan_to_num(read_noise.ravel()[idx[active]])
+        iota = G_phys[:, 0]
+        alpha = np.hypot(G_phys[:, 1], G_phys[:, 2])
+        level = F_phys[:, 0] * iota.mean()
+        amplitude = np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean()
+        phase = np.arctan2(F_phys[:, 2], F_phys[:, 1])
+        floor = _floor(G_phys, FtF_phys, third_phys, detector.gain, noise_px, np.hypot(*k))
+        if faint.any():
+            log.warning("%s: %d pixel(s) without fringe contrast masked", label, faint.sum())
 
-    def full(values):
-        out = np.full(idx.size, np.nan)
-        out[active] = values
-        return out
+        def full(values):
+            out = np.full(idx.size, np.nan)
+            out[active] = values
+            return out
 
-    return FringeSolution(rows, cols, offsets, full(iota / iota.mean()), full(alpha / alpha.mean()),
-                          full(floor), k, k_frame, level, amplitude, phase, history, ~active)
+        return FringeSolution(rows, cols, offsets, full(iota / iota.mean()), full(alpha / alpha.mean()),
+                              full(floor), k, k_frame, level, amplitude, phase, history, ~active)
 
 
 def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:

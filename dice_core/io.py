@@ -17,11 +17,8 @@ from __future__ import annotations
 import copy
 import datetime as _dt
 import json
-import mmap
 import os
-import queue
 import tempfile
-import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,11 +41,20 @@ __all__ = [
     "write_cube",
     "write_product",
     "read_product",
-    "DEFAULT_CHUNK_FRAMES",
+    "CHUNK_BYTES",
+    "auto_chunk_frames",
 ]
 
-#: Frames per chunk when streaming. 256 frames of 80x84 pixels are 14 MB in float64.
-DEFAULT_CHUNK_FRAMES = 256
+#: Size of a chunk of float32 samples when the number of frames per chunk is
+#: left to the reader: a chunk that stays in a core's cache (1 MiB of L2 on the
+#: development machine) is streamed about twice as fast as one of several MiB,
+#: by the conversion and by the products over the chunk (BENCHMARKS.md).
+CHUNK_BYTES = 1 << 20
+
+
+def auto_chunk_frames(shape) -> int:
+    """Frames per chunk for frames of ``shape`` (rows, cols): :data:`CHUNK_BYTES` of float32, at least 1."""
+    return max(1, CHUNK_BYTES // (4 * int(shape[0]) * int(shape[1])))
 
 _FITS_BLOCK = 2880
 _SUPPORTED = "unsigned 16-bit (BITPIX 16, BZERO 32768), 32-bit integer (BITPIX 32) or 32-bit float (BITPIX -32)"
@@ -90,14 +96,16 @@ class Chunk(NamedTuple):
     """Consecutive frames of an acquisition.
 
     ``start`` is the index of the first frame in the whole acquisition,
-    ``frames`` the samples (frame, row, col) in ADU (float64 unless asked otherwise), and
+    ``frames`` the samples (frame, row, col) in ADU (float64 unless asked otherwise),
     ``saturated`` a boolean array of the same shape, True where the sample is at
-    or above the detector's saturation level.
+    or above the detector's saturation level (a read-only view when none is),
+    and ``any_saturated`` whether any is, which lets a consumer skip the mask.
     """
 
     start: int
     frames: np.ndarray
     saturated: np.ndarray
+    any_saturated: bool = True
 
 
 def open_cube(path, detector: Detector | None = None) -> CubeFile:
@@ -219,9 +227,10 @@ class FrameStream:
         Its files are concatenated along frames in the order listed.
     detector : Detector
         Frame shape and saturation level.
-    chunk_frames : int, keyword-only
+    chunk_frames : int or "auto", keyword-only
         Frames per chunk (a chunk never spans two files, so the last chunk of
-        each file may be shorter).
+        each file may be shorter); "auto" (or None) for
+        :func:`auto_chunk_frames`, 39 frames of 80x84 pixels.
     min_frames : int, keyword-only
         Fewer frames than this raise :class:`DatasetError` on construction.
     purpose : str, keyword-only
@@ -233,11 +242,6 @@ class FrameStream:
         A reference frame (ADU) subtracted from every frame in the same pass as
         the conversion: chunks then hold ``samples - subtract``. Saturation is
         still judged on the raw samples.
-    prefetch : bool, keyword-only
-        Read and convert the next chunk in a background thread while the
-        consumer works on the current one (file reads and numpy conversions
-        release the GIL, so on two cores they overlap with the consumer's
-        arithmetic). Holds at most two chunks ahead.
 
     Raises
     ------
@@ -248,18 +252,20 @@ class FrameStream:
     """
 
     def __init__(self, acquisition: Acquisition, detector: Detector, *,
-                 chunk_frames: int = DEFAULT_CHUNK_FRAMES, min_frames: int = 1, purpose: str = "",
-                 dtype=np.float64, subtract=None, prefetch: bool = False):
-        if chunk_frames < 1:
-            raise ValueError(f"chunk_frames must be >= 1, got {chunk_frames}")
+                 chunk_frames: int | str | None = "auto", min_frames: int = 1, purpose: str = "",
+                 dtype=np.float64, subtract=None):
+        if chunk_frames is None or chunk_frames == "auto":
+            chunk_frames = auto_chunk_frames(detector.shape)
+        if isinstance(chunk_frames, str) or chunk_frames < 1:
+            raise ValueError(f'chunk_frames must be "auto" or an integer >= 1, got {chunk_frames!r}')
         self.acquisition = acquisition
         self.detector = detector
         self.chunk_frames = int(chunk_frames)
         self.dtype = np.dtype(dtype)
         self.subtract = None if subtract is None else np.asarray(subtract, dtype=np.float64)
-        self.prefetch = bool(prefetch)
         self.cubes = [open_cube(f, detector) for f in acquisition.files]
         self.n_frames = sum(c.n_frames for c in self.cubes)
+        self.first_frame = 0  # index in the whole acquisition of this stream's first frame (see split)
         if self.n_frames < min_frames:
             names = ", ".join(str(c.path) for c in self.cubes)
             why = f" for {purpose}" if purpose else ""
@@ -272,97 +278,85 @@ class FrameStream:
         twin.subtract = np.asarray(reference, dtype=np.float64)
         return twin
 
+    def split(self, parts: int) -> list["FrameStream"]:
+        """The acquisition as up to ``parts`` consecutive streams of whole files.
+
+        Files are grouped so that the groups hold about equal numbers of
+        frames; a stream of fewer files than ``parts`` gives one stream per
+        file. Chunks keep their index in the whole acquisition (``start``), and
+        each part verifies the checksums of its own files. For reductions run
+        on the parts in parallel (:func:`dice_core.fringes.fit_baseline`).
+        """
+        if parts < 1:
+            raise ValueError(f"parts must be >= 1, got {parts}")
+        ends = np.cumsum([c.n_frames for c in self.cubes])
+        # cut after the file whose end is nearest to each k/parts of the frames
+        cuts = sorted({int(np.argmin(np.abs(ends - self.n_frames * k / parts))) + 1 for k in range(1, parts)})
+        bounds = [0, *[c for c in cuts if 0 < c < len(self.cubes)], len(self.cubes)]
+        pieces = []
+        for begin, end in zip(bounds[:-1], bounds[1:]):
+            piece = copy.copy(self)
+            piece.cubes = self.cubes[begin:end]
+            piece.first_frame = self.first_frame + sum(c.n_frames for c in self.cubes[:begin])
+            piece.n_frames = sum(c.n_frames for c in piece.cubes)
+            pieces.append(piece)
+        return pieces
+
     @property
     def shape(self) -> tuple[int, int, int]:
-        """(frames, rows, cols) of the whole acquisition."""
+        """(frames, rows, cols) of this stream (of the whole acquisition unless it is a part, see split)."""
         return (self.n_frames, *self.detector.shape)
 
     def __iter__(self) -> Iterator[Chunk]:
-        return self._read_ahead() if self.prefetch else self._chunks()
-
-    def _read_ahead(self) -> Iterator[Chunk]:
-        """:meth:`_chunks` run in a background thread, two chunks ahead; errors re-raised here."""
-        chunks: queue.Queue = queue.Queue(maxsize=2)
-        stop = threading.Event()
-        done = object()
-
-        def produce():
-            try:
-                for chunk in self._chunks():
-                    while not stop.is_set():
-                        try:
-                            chunks.put(chunk, timeout=0.1)
-                            break
-                        except queue.Full:
-                            continue
-                    if stop.is_set():
-                        return
-                chunks.put(done)
-            except BaseException as exc:  # handed to the consumer
-                chunks.put(exc)
-
-        worker = threading.Thread(target=produce, name="FrameStream read-ahead", daemon=True)
-        worker.start()
-        try:
-            while True:
-                item = chunks.get()
-                if item is done:
-                    return
-                if isinstance(item, BaseException):
-                    raise item
-                yield item
-        finally:
-            stop.set()
-            while worker.is_alive():  # let a blocked put see the stop
-                try:
-                    chunks.get_nowait()
-                except queue.Empty:
-                    pass
-                worker.join(timeout=0.05)
+        return self._chunks()
 
     def _chunks(self) -> Iterator[Chunk]:
-        start = 0
+        start = self.first_frame
         saturation = self.detector.saturation
-        page = mmap.PAGESIZE
+        frame_pixels = self.detector.shape[0] * self.detector.shape[1]
+        unsaturated = None  # read-only all-False mask, shared by the chunks of one shape
         for cube in self.cubes:
             checksum = _OnesComplementSum() if ("DATASUM" in cube.header or "CHECKSUM" in cube.header) else None
             shift = cube.bzero if self.subtract is None else cube.bzero - self.subtract
             shift = np.asarray(shift, dtype=self.dtype) if np.any(shift) else None
-            with open(cube.path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
-                view = memoryview(mapped)
-                try:
-                    for first in range(0, cube.n_frames, self.chunk_frames):
-                        n = min(self.chunk_frames, cube.n_frames - first)
-                        begin = cube.header_bytes + first * cube.frame_bytes
-                        end = begin + n * cube.frame_bytes
-                        if end > len(mapped):
-                            raise DatasetError(cube.path, f"file ended inside frame "
-                                                          f"{first + (len(mapped) - begin) // cube.frame_bytes}")
-                        raw = view[begin:end]
-                        if checksum is not None:
-                            checksum.update(raw)
-                        stored = np.frombuffer(raw, dtype=cube.disk_dtype).reshape(n, *cube.shape)
-                        if cube.disk_dtype.kind == "f":
-                            saturated = stored >= saturation
-                        else:  # judge the stored integers: cheaper than converted samples
-                            saturated = stored >= saturation - cube.bzero
-                        frames = stored.astype(self.dtype)
-                        del stored, raw  # no view into the map may outlive it
-                        # the converted chunk is ours: give the mapped pages back
-                        mapped.madvise(mmap.MADV_DONTNEED, begin - begin % page, end - (begin - begin % page))
-                        if shift is not None:
-                            frames += shift
-                        if cube.disk_dtype.kind == "f":
-                            bad = ~np.isfinite(frames)
-                            if bad.any():
-                                t, r, c = np.argwhere(bad)[0]
-                                raise DatasetError(cube.path, f"{int(bad.sum())} non-finite sample(s) in frames "
-                                                              f"{first}..{first + n - 1}, first at frame {first + t}, "
-                                                              f"row {r}, col {c}")
-                        yield Chunk(start, frames, saturated)
-                        start += n
-                finally:
-                    view.release()
+            # Saturation is judged on the stored values: cheaper than on converted samples.
+            threshold = saturation if cube.disk_dtype.kind == "f" else saturation - cube.bzero
+            # One raw buffer per file, reused by every chunk: a chunk-sized buffer stays in
+            # the CPU cache, where a fresh one per chunk would cost page faults at each read.
+            buffer = np.empty(min(self.chunk_frames, cube.n_frames) * frame_pixels, dtype=cube.disk_dtype)
+            with open(cube.path, "rb", buffering=0) as f:
+                f.seek(cube.header_bytes)
+                for first in range(0, cube.n_frames, self.chunk_frames):
+                    n = min(self.chunk_frames, cube.n_frames - first)
+                    stored = buffer[:n * frame_pixels]
+                    got = f.readinto(memoryview(stored).cast("B"))
+                    if got < stored.nbytes:
+                        raise DatasetError(cube.path, f"file ended inside frame {first + got // cube.frame_bytes}")
+                    if checksum is not None:
+                        checksum.update(stored.view(np.uint8))
+                    stored = stored.reshape(n, *cube.shape)
+                    frames = stored.astype(self.dtype)
+                    # The stored values, converted exactly, are judged before any shift: the
+                    # maximum of the converted chunk, still in the cache, is the cheapest test,
+                    # and the mask is built only when something saturates.
+                    any_saturated = bool(frames.max() >= threshold)
+                    if any_saturated:
+                        saturated = stored >= threshold
+                    else:
+                        if unsaturated is None or unsaturated.shape != stored.shape:
+                            unsaturated = np.broadcast_to(np.False_, stored.shape)
+                        saturated = unsaturated
+                    if shift is not None:
+                        frames += shift
+                    if cube.disk_dtype.kind == "f":
+                        bad = ~np.isfinite(frames)
+                        if bad.any():
+                            t, r, c = np.argwhere(bad)[0]
+                            raise DatasetError(cube.path, f"{int(bad.sum())} non-finite sample(s) in frames "
+                                                          f"{first}..{first + n - 1}, first at frame {first + t}, "
+                                                          f"row {r}, col {c}")
+                    yield Chunk(start, frames, saturated, any_saturated)
+                    start += n
             if checksum is not None:
                 _check_checksums(cube, checksum.value())
 

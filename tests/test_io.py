@@ -7,7 +7,8 @@ from astropy.io import fits
 
 from dice_core import DatasetError
 from dice_core.calibration import dark_maps
-from dice_core.io import FrameStream, open_cube, read_product, write_cube, write_product
+from dice_core.io import (CHUNK_BYTES, FrameStream, auto_chunk_frames, open_cube, read_product, write_cube,
+                          write_product)
 from dice_core.manifest import Acquisition, Detector
 
 DETECTOR = Detector(shape=(6, 7), science_rows=(0, 6), science_cols=(0, 7), gain=2.0, saturation=60000.0)
@@ -209,33 +210,55 @@ def test_failed_product_write_keeps_the_old_product(tmp_path):
     assert list(tmp_path.iterdir()) == [path]
 
 
-def test_read_ahead_and_reference_give_the_same_samples(tmp_path, rng):
+def test_chunks_across_files_hold_their_own_samples_and_can_be_centred(tmp_path, rng):
     data = cube(40, rng)
+    data[30, 1, 2] = 65000  # saturated, in the second file only
     write_cube(tmp_path / "a.fits", [data[:25]], shape=(6, 7), n_frames=25)
     write_cube(tmp_path / "b.fits", [data[25:]], shape=(6, 7), n_frames=15)
     paths = [tmp_path / "a.fits", tmp_path / "b.fits"]
-    plain, _ = collect(stream(paths, chunk_frames=6))
-    ahead, chunks = collect(stream(paths, chunk_frames=6, prefetch=True))
-    np.testing.assert_array_equal(ahead, plain)
+    # every chunk is kept until the end: the reader's reused raw buffer must not show through
+    frames, chunks = collect(stream(paths, chunk_frames=6))
+    np.testing.assert_array_equal(frames, data)
     assert [c.start for c in chunks] == [0, 6, 12, 18, 24, 25, 31, 37]
+    assert [c.any_saturated for c in chunks] == [False] * 5 + [True] + [False] * 2
+    saturated = np.concatenate([c.saturated for c in chunks])
+    assert saturated.sum() == 1 and saturated[30, 1, 2]
     reference = data[0]
     centred, _ = collect(stream(paths, chunk_frames=6, dtype=np.float32).centred(reference))
     np.testing.assert_allclose(centred, data - reference, atol=1e-3)
 
 
-def test_read_ahead_hands_errors_over_and_stops_when_abandoned(tmp_path, rng):
-    data = cube(30, rng).astype(np.float32)
-    data[20, 0, 0] = np.inf
-    path = tmp_path / "inf.fits"
-    write_cube(path, [data], shape=(6, 7), n_frames=30, dtype="float32")
-    with pytest.raises(DatasetError, match="non-finite"):
-        collect(stream([path], chunk_frames=4, prefetch=True))
-    import threading
+def test_split_into_consecutive_groups_of_whole_files(tmp_path, rng):
+    data = cube(50, rng)
+    sizes = [10, 10, 5, 25]
+    paths, first = [], 0
+    for i, n in enumerate(sizes):
+        paths.append(tmp_path / f"{i}.fits")
+        fits.PrimaryHDU(data[first:first + n].astype(np.float32)).writeto(paths[-1], checksum=True)
+        first += n
+    whole = stream(paths, chunk_frames=4)
+    parts = whole.split(2)
+    # about half the frames each: the cut falls after the third file (25 frames), not the second (20)
+    assert [len(p.cubes) for p in parts] == [3, 1] and [p.n_frames for p in parts] == [25, 25]
+    frames = [collect(p) for p in parts]
+    np.testing.assert_array_equal(np.concatenate([f for f, _ in frames]), data)
+    assert [c.start for c in frames[1][1]] == [25, 29, 33, 37, 41, 45, 49]  # indices in the whole acquisition
+    assert len(whole.split(10)) == 4 and len(whole.split(1)) == 1
+    raw = bytearray(paths[3].read_bytes())  # each part verifies its own files
+    raw[2880 + 101] ^= 0x10
+    paths[3].write_bytes(bytes(raw))
+    collect(parts[0])
+    with pytest.raises(DatasetError, match="3.fits: DATASUM does not verify"):
+        collect(parts[1])
+    with pytest.raises(ValueError, match="parts"):
+        whole.split(0)
 
-    before = threading.active_count()
-    for chunk in stream([path], chunk_frames=2, prefetch=True):
-        break  # the consumer leaves after one chunk: the reader thread must end
-    import gc
 
-    gc.collect()
-    assert threading.active_count() == before
+def test_chunk_size_is_chosen_for_the_cache_unless_given(tmp_path, rng):
+    write_cube(tmp_path / "a.fits", [cube(3, rng)], shape=(6, 7), n_frames=3)
+    assert stream([tmp_path / "a.fits"]).chunk_frames == auto_chunk_frames((6, 7)) == CHUNK_BYTES // (4 * 42)
+    assert auto_chunk_frames((80, 84)) == 39 and auto_chunk_frames((2048, 2048)) == 1
+    assert stream([tmp_path / "a.fits"], chunk_frames=2).chunk_frames == 2
+    for bad in (0, "fast"):
+        with pytest.raises(ValueError, match="chunk_frames"):
+            stream([tmp_path / "a.fits"], chunk_frames=bad)

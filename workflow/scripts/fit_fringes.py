@@ -2,8 +2,9 @@
 
 import os
 
-# Before numpy loads: one BLAS thread, so that the reader's read-ahead thread has the
-# other core (measured 1.4x faster on 2 cores; BENCHMARKS.md).
+# Before numpy loads: one BLAS thread. The products of the fit have 3 or 4 columns and a
+# cache-sized chunk, too small to share between threads (measured faster; BENCHMARKS.md);
+# the rule's threads go to worker processes, each reading its part of the files.
 for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(variable, "1")
 
@@ -14,21 +15,20 @@ from dice_core import fringes, io  # noqa: E402
 from dice_core.manifest import load_manifest  # noqa: E402
 
 
-def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config):
+def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config, workers):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     dark = io.read_product(dark_path)
     flat = io.read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
-                            min_frames=16, purpose="a fringe solution", dtype="float32",
-                            prefetch=True)
+                            min_frames=16, purpose="a fringe solution", dtype="float32")
     log.info("baseline %s: %d frames in %d file(s); flat %s", baseline, stream.n_frames, len(stream.cubes),
              "used for the gauge" if flat is not None else "not used")
     options = config["metrology"]
     solution = fringes.fit_baseline(stream, dark["dark"].values, manifest.detector, flat=flat,
                                     read_noise=dark["noise"].values, tolerance=options["tolerance"],
                                     max_passes=options["max_passes"], smooth_degree=options["smooth_degree"],
-                                    label=f"baseline {baseline}")
+                                    workers=workers, label=f"baseline {baseline}")
     product = fringes.solution_dataset(solution, manifest.detector)
     log.info("baseline %s: K = (%.6f, %.6f) rad/pixel, offsets rms %.3e pixel, photon floor %.3e pixel, "
              "%d pixel(s) masked", baseline, *solution.k, float(product["projected_offset"].std()),
@@ -41,4 +41,4 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config):
 
 dice_core.run_logged(snakemake.log[0], fit_fringes, snakemake.input.manifest, snakemake.input.dark,
                      list(snakemake.input.prnu), snakemake.wildcards.baseline, snakemake.output.metrology,
-                     snakemake.config)
+                     snakemake.config, snakemake.threads)
