@@ -257,7 +257,9 @@ class FringeSolution:
     history : list of dict
         Per pass from the second: max and rms change of the offsets (pixel).
     masked : ndarray (pixel,) of bool
-        Pixels left without an offset (saturated samples, no contrast).
+        Pixels left without an offset (saturated samples, no contrast, not converged).
+    masked_by_reason : dict
+        Number of masked pixels by reason: ``saturated``, ``no_contrast``, ``unconverged``.
     """
 
     rows: np.ndarray
@@ -273,6 +275,7 @@ class FringeSolution:
     phase: np.ndarray
     history: list = field(default_factory=list)
     masked: np.ndarray = None
+    masked_by_reason: dict = field(default_factory=dict)
 
 
 def _accumulate(chunks: Iterable[Chunk], projector, offset, centre, subtract_centre):
@@ -440,7 +443,9 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         Read noise, adu rms, for the photon-noise floor (0 if not given).
     tolerance : float
         Convergence: largest change of any offset between passes, pixel.
+        Pixels still changing by more after ``max_passes`` are masked.
     max_passes : int
+        At least 2.
     min_contrast : float
         Fringe contrast (alpha A / iota B) below which the fit is refused (for
         the median pixel) or a pixel is masked.
@@ -466,8 +471,12 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     Raises
     ------
     FringeError
-        Phase sweep not covering 2 pi, no fringe contrast.
+        Phase sweep not covering 2 pi, no fringe contrast, no pixel converged.
+    ValueError
+        ``max_passes`` under 2.
     """
+    if max_passes < 2:
+        raise ValueError(f"max_passes must be >= 2 (the convergence test compares two passes), got {max_passes}")
     mask = detector.science_mask()
     dark0 = np.nan_to_num(dark)
     chunks = iter(stream)
@@ -516,7 +525,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         if saturated.any():
             log.warning("%s: %d pixel(s) with saturated samples left out of the fit", label, saturated.sum())
         FtI = FtI[:, active]
-        faint = np.zeros(idx.size, bool)
+        faint, unconverged = np.zeros(idx.size, bool), np.zeros(idx.size, bool)
         history, offsets, state = [], np.full(idx.size, np.nan), None
         for n_pass in range(1, max_passes + 1):
             fit_idx = idx[active]
@@ -556,7 +565,23 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
             if history and history[-1]["max_change"] < tolerance and not low.any():
                 break
         else:
-            log.warning("%s: not converged to %.1e pixel after %d passes", label, tolerance, max_passes)
+            # A pixel still moving by more than the tolerance has no offset to trust: masked,
+            # and the plane of K and the offsets' normalisation taken over the others.
+            moving = np.abs(change) >= tolerance
+            log.warning("%s: not converged to %.1e pixel after %d passes; %d pixel(s) still moving masked",
+                        label, tolerance, max_passes, moving.sum())
+            where = np.flatnonzero(active)[moving]
+            unconverged[where] = True
+            active[where] = False
+            if not active.any():
+                raise FringeError(f"{label}: no pixel converged to {tolerance:.1e} pixel in {max_passes} passes")
+            F_phys, G_phys, FtF_phys, third_phys, _ = state
+            G_phys = G_phys[~moving]
+            k, fitted = projected_offsets(np.arctan2(G_phys[:, 1], G_phys[:, 2]), fx[~moving], fy[~moving],
+                                          k_frame.mean(axis=0))
+            offsets = np.full(idx.size, np.nan)
+            offsets[active] = fitted
+            state = (F_phys, G_phys, FtF_phys, third_phys, k)
 
         F_phys, G_phys, FtF_phys, third_phys, k = state
         noise_px = np.zeros(active.sum()) if read_noise is None else np.nan_to_num(read_noise.ravel()[idx[active]])
@@ -574,8 +599,10 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
             out[active] = values
             return out
 
+        reasons = {"saturated": int(saturated.sum()), "no_contrast": int(faint.sum()),
+                   "unconverged": int(unconverged.sum())}
         return FringeSolution(rows, cols, offsets, full(iota / iota.mean()), full(alpha / alpha.mean()),
-                              full(floor), k, k_frame, level, amplitude, phase, history, ~active)
+                              full(floor), k, k_frame, level, amplitude, phase, history, ~active, reasons)
 
 
 def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:
@@ -602,7 +629,8 @@ def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:
             "photon_noise_floor": (rc, as_map(floor),
                                    {"units": "pixel", "long_name": "1-sigma offset error from photon and read noise"}),
             "masked": (rc, as_map(solution.masked.astype(np.int8), np.int8(0)),
-                       {"units": "1", "long_name": "1 where the pixel has no offset (saturated or no contrast)"}),
+                       {"units": "1",
+                        "long_name": "1 where the pixel has no offset (saturated, no contrast or not converged)"}),
             "kx": ((), float(solution.k[0]), {"units": "rad/pixel", "long_name": "mean wavevector along x"}),
             "ky": ((), float(solution.k[1]), {"units": "rad/pixel", "long_name": "mean wavevector along y"}),
             "phase": (("frame",), solution.phase, {"units": "rad", "long_name": "fringe phase phi(t)"}),
@@ -620,6 +648,8 @@ def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:
             "photon_noise_floor_rms": ((), float(np.sqrt(np.nanmean(floor**2))),
                                        {"units": "pixel", "long_name": "rms photon-noise floor of the offsets"}),
             "n_masked": ((), int(solution.masked.sum()), {"units": "1", "long_name": "pixels without an offset"}),
+            **{f"n_masked_{reason}": ((), count, {"units": "1", "long_name": f"pixels masked: {reason.replace('_', ' ')}"})
+               for reason, count in solution.masked_by_reason.items()},
         },
         coords={"row": np.arange(detector.shape[0]), "col": np.arange(detector.shape[1]),
                 "frame": np.arange(solution.phase.size), "iteration": [h["pass"] for h in history]},

@@ -31,12 +31,12 @@ def true_projection(truth, solution):
     return p - design @ np.linalg.lstsq(design, p, rcond=None)[0]
 
 
-def fit(manifest, truth, baseline, *, flat=True, noisy=True, stream=None, workers=1):
+def fit(manifest, truth, baseline, *, flat=True, noisy=True, stream=None, **options):
     stream = stream or FrameStream(manifest.baselines[baseline], manifest.detector)
     return fringes.fit_baseline(stream, truth["bias"].values, manifest.detector,
                                 flat=truth["sensitivity"].values if flat else None,
-                                read_noise=truth["read_noise"].values if noisy else None, workers=workers,
-                                label=baseline)
+                                read_noise=truth["read_noise"].values if noisy else None, label=baseline,
+                                **options)
 
 
 def rms(values):
@@ -202,6 +202,7 @@ def test_saturated_and_fringeless_pixels_are_masked_and_counted(noisy):
     for pixel in ((30, 40), (50, 60)):
         assert solution.masked[where[pixel]] and np.isnan(solution.offsets[where[pixel]])
     assert solution.masked.sum() == 2
+    assert solution.masked_by_reason == {"saturated": 1, "no_contrast": 1, "unconverged": 0}
     ratio = rms(solution.offsets - true_projection(truth, solution)) / rms(solution.photon_floor)
     assert ratio < 1.2
 
@@ -246,3 +247,26 @@ def test_a_bad_sample_read_by_a_worker_process_is_reported_with_its_file(tmp_pat
     bad = FrameStream(Acquisition("baseline H1H4", tuple(paths)), manifest.detector)
     with pytest.raises(DatasetError, match=r"part1\.fits: 1 non-finite sample\(s\) in frames .*frame 600, row 20, col 30"):
         fit(manifest, truth, "H1H4", stream=bad, workers=2)
+
+
+def test_pixels_that_do_not_converge_are_masked_and_counted(noisy, caplog):
+    manifest, truth = noisy
+    converged = fit(manifest, truth, "H1H4", max_passes=2)
+    # a tolerance that the last pass meets for most pixels, not for those that moved most (the
+    # last change is a faint ripple at K, so those lie along its crests: several percent)
+    tolerance = 0.9 * converged.history[-1]["max_change"]
+    with caplog.at_level("WARNING", logger="dice_core.fringes"):
+        solution = fit(manifest, truth, "H1H4", max_passes=2, tolerance=tolerance)
+    n = solution.masked_by_reason["unconverged"]
+    assert 1 <= n < 0.2 * solution.masked.size and solution.masked.sum() == n
+    assert f"{n} pixel(s) still moving masked" in caplog.text
+    assert np.isnan(solution.offsets[solution.masked]).all()
+    # the others keep their accuracy, with the plane of K taken over them alone
+    ratio = rms(solution.offsets - true_projection(truth, solution)) / rms(solution.photon_floor)
+    assert ratio < 1.2
+    product = fringes.solution_dataset(solution, manifest.detector)
+    assert int(product["n_masked_unconverged"]) == n == int(product["masked"].sum())
+    with pytest.raises(fringes.FringeError, match="no pixel converged"):
+        fit(manifest, truth, "H1H4", max_passes=2, tolerance=1e-30)
+    with pytest.raises(ValueError, match="max_passes must be >= 2"):
+        fit(manifest, truth, "H1H4", max_passes=1)
