@@ -6,6 +6,7 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.io` -- stream FITS cubes in chunks of frames, write netCDF products;
 - :mod:`dice_core.calibration` -- dark and PRNU (flat-field) maps;
 - :mod:`dice_core.fringes` -- global fringe solution of a metrology baseline;
+- :mod:`dice_core.allan` -- Allan deviations of the pixel offsets;
 - :mod:`dice_core.deprojection` -- x and y offsets from a pair of baselines;
 - :mod:`dice_core.detector` -- the pixel-response model (truncated hyper-Gaussian PRFs);
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;

@@ -62,6 +62,8 @@ __all__ = [
     "fit_baseline",
     "fix_gauge",
     "projected_offsets",
+    "photon_floor",
+    "frame_moments",
     "solution_dataset",
 ]
 
@@ -362,12 +364,17 @@ def _pass(lanes, dark, idx, G, *, extra=None, reference=None, centred=False, exe
     # Sums over frames, from the frame factors kept for the product anyway: vectorised once
     # per pass instead of a few small operations per chunk.
     FtI = FtX[:, idx] + np.outer(F.sum(axis=0), level[idx])
-    FtF = F.T @ F
-    third = ((F[:, :, None] * F[:, None, :]).reshape(-1, 9).T @ F).reshape(3, 3, 3).transpose(2, 0, 1)
+    FtF, third = frame_moments(F)
     return coef, FtI, FtF, third, saturated[idx]
 
 
-def _floor(G_phys, FtF, third, gain, read_noise, k_norm):
+def frame_moments(F):
+    """F'F (3, 3) and the third moments sum_t F_tk F_t F_t' (3, 3, 3) of frame factors F (frame, 3)."""
+    third = ((F[:, :, None] * F[:, None, :]).reshape(-1, 9).T @ F).reshape(3, 3, 3).transpose(2, 0, 1)
+    return F.T @ F, third
+
+
+def photon_floor(G_phys, FtF, third, gain, read_noise, k_norm):
     """Per-pixel 1-sigma offset error from photon and read noise for the unweighted temporal fit.
 
     Sample variance (adu^2) of pixel p at frame t: F_t.G_p / g + sigma_r^2; so
@@ -590,7 +597,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         level = F_phys[:, 0] * iota.mean()
         amplitude = np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean()
         phase = np.arctan2(F_phys[:, 2], F_phys[:, 1])
-        floor = _floor(G_phys, FtF_phys, third_phys, detector.gain, noise_px, np.hypot(*k))
+        floor = photon_floor(G_phys, FtF_phys, third_phys, detector.gain, noise_px, np.hypot(*k))
         if faint.any():
             log.warning("%s: %d pixel(s) without fringe contrast masked", label, faint.sum())
 

@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 
 from dice_core.manifest import Detector  # noqa: E402
 
-__all__ = ["map_figure", "maps_figure", "metrology_figure", "save"]
+__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "save"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -121,6 +121,39 @@ def metrology_figure(ds, detector, *, title):
     ax.set_ylabel("offset change from previous pass [pixel]")
     ax.set_title(f"convergence: {iteration.max()} passes", fontsize=9)
     ax.legend(fontsize=8)
+    fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def allan_figure(ds, *, title):
+    """The paper's Allan figure from an ``allan/<baseline>.nc`` dataset, log-log against frames per group.
+
+    Sample pixels (thin green), their rms (black) and the rms of 10x10-pixel
+    blocks (blue); white noise of matched single-batch scatter (dotted); the
+    photon-noise limits from the batch fits' own errors (dashed) and the
+    paper's formula (dash-dotted).
+    """
+    fig, ax = plt.subplots(figsize=(8, 6), constrained_layout=True)
+    n = ds["n_frames"].values
+    ax.loglog(n, ds["sample_deviation"].values, color="tab:green", lw=0.5, alpha=0.5)
+    ax.loglog([], [], color="tab:green", lw=0.5, label=f"{ds.sizes['sample']} individual pixels")
+    block = int(ds.attrs.get("block_size", 10))
+    curves = (("pixel", "deviation_mean", "white_deviation_mean", "black", f"pixels, rms (slope "
+               f"{float(ds['slope']):.2f})"),
+              ("block", "deviation_block_mean", "white_deviation_block_mean", "tab:blue",
+               f"{block}x{block} blocks, rms"))
+    for kind, measured, white, colour, label in curves:
+        ax.loglog(n, ds[measured].values, color=colour, lw=2, label=label)
+        ax.loglog(n, ds[white].values, color=colour, ls=":", lw=1.2, label=f"white noise, {kind}s")
+        ax.loglog(n, ds[f"photon_limit_{kind}"].values, color=colour, ls="--", lw=1, label=f"photon limit, {kind}s")
+        ax.loglog(n, ds[f"photon_limit_{kind}_paper"].values, color=colour, ls="-.", lw=0.8, alpha=0.7,
+                  label=f"paper's photon limit, {kind}s")
+    ax.set_xlabel("frames per group")
+    ax.set_ylabel("deviation of projected offsets [pixel]")
+    ax.set_title(f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (one fringe period) "
+                 f"on average", fontsize=9)
+    ax.grid(True, which="both", lw=0.3, alpha=0.5)
+    ax.legend(fontsize=7, ncol=2)
     fig.suptitle(title, fontsize=11)
     return fig
 

@@ -156,6 +156,14 @@ class MetrologyConfig:
     phase_jitter: float = 1e-2         # rad rms, white
     phase_random_walk: float = 0.0     # rad per sqrt(frame)
     intensity_random_walk: float = 0.0  # relative per sqrt(frame), scales B and A
+    # Stray light: a parasitic fringe from the same laser (its phase follows the sweep) with its
+    # own wavevector, amplitude relative to A, and an extra path that random-walks (a drift).
+    # Unlike the walks above, common to all pixels and absorbed by the per-frame phase and
+    # level, it moves each pixel's apparent phase differently: correlated noise in the offsets.
+    stray_light: float = 0.0           # relative to A
+    stray_light_period: float = 7.0    # pixel
+    stray_light_angle_deg: float = 40.0
+    stray_light_phase_walk: float = 0.0  # rad per sqrt(frame), of the extra path
     sweep_cycles: float = 4.0          # fringe periods swept in one direction
     sweep_frames: int = 500            # frames of one one-way sweep
     sweep_time_constant: float = 0.3   # of the exponential segments, in sweeps
@@ -478,6 +486,7 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
     phase = np.empty((len(names), m.frames))
     level = np.empty_like(phase)
     amplitude = np.empty_like(phase)
+    stray_phase = np.empty_like(phase)
     for i, name in enumerate(names):
         rng = _rng(cfg, "metrology", name)
         phase[i] = _phase_history(cfg, name, rng)
@@ -486,6 +495,9 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
             laser *= 1 + m.intensity_random_walk * np.cumsum(rng.standard_normal(m.frames))
         level[i] = m.mean_level * laser
         amplitude[i] = m.amplitude * laser * (1 + m.amplitude_rsd * rng.standard_normal(m.frames))
+        rng = _rng(cfg, "stray light", name)
+        stray_phase[i] = phase[i] + rng.uniform(0, 2 * np.pi) + m.stray_light_phase_walk * np.cumsum(
+            rng.standard_normal(m.frames))
 
     fibers = list(cfg.flats.fibers)
     illumination = np.empty((len(fibers), rows, cols))
@@ -524,6 +536,10 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
             "phase": (("baseline", "frame"), phase, {"units": "rad", "long_name": "fringe phase phi(t)"}),
             "fringe_level": (("baseline", "frame"), level, {"units": "adu", "long_name": "fringe mean level B(t)"}),
             "fringe_amplitude": (("baseline", "frame"), amplitude, {"units": "adu", "long_name": "fringe amplitude A(t)"}),
+            "stray_light_phase": (("baseline", "frame"), stray_phase,
+                                  {"units": "rad", "long_name": "phase of the parasitic (stray-light) fringe",
+                                   "relative_amplitude": m.stray_light, "period": m.stray_light_period,
+                                   "angle_deg": m.stray_light_angle_deg}),
             "flat_illumination": (("flat", "row", "col"), illumination,
                                   {"units": "1", "long_name": "relative flat-field illumination"}),
             "stage_translation": (("position", "axis"), poses[:, :3],
@@ -594,6 +610,12 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name
         base = prf.sensitivity * envelope
         response = prf.fringe_response(float(b["kx"]), float(b["ky"])) * envelope * truth["visibility"].values
         level, amplitude, phase = (b[v].values for v in ("fringe_level", "fringe_amplitude", "phase"))
+        m = cfg.metrology
+        if m.stray_light:
+            ks = 2 * np.pi / m.stray_light_period * np.array([math.cos(math.radians(m.stray_light_angle_deg)),
+                                                               math.sin(math.radians(m.stray_light_angle_deg))])
+            stray = m.stray_light * prf.fringe_response(*ks) * envelope
+            stray_phase = b["stray_light_phase"].values
     elif kind == "position":
         p = truth.sel(position=int(name))
         st = cfg.stars
@@ -615,6 +637,9 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name
             signal = (level[t, None, None] * base
                       + amplitude[t, None, None] * (np.sin(phase[t])[:, None, None] * response.real
                                                     + np.cos(phase[t])[:, None, None] * response.imag))
+            if m.stray_light:
+                signal += amplitude[t, None, None] * (np.sin(stray_phase[t])[:, None, None] * stray.real
+                                                      + np.cos(stray_phase[t])[:, None, None] * stray.imag)
         else:
             signal = flux[first:last, None, None] * image
         yield _read_out(signal, truth, cfg, photon_rng, read_rng)

@@ -58,10 +58,11 @@ def test_products_and_figures_exist(out):
                     "raw/dataset.yaml", "raw/truth.nc"):
         assert (out / product).is_file(), product
     for product in ("metrology/H1H4.nc", "metrology/V2V4.nc", "calibration/offsets_P14.nc",
-                    "calibration/offsets_P24.nc", "calibration/offsets_difference_P24.nc"):
+                    "calibration/offsets_P24.nc", "calibration/offsets_difference_P24.nc", "allan/H1H4.nc",
+                    "allan/V2V4.nc"):
         assert (out / product).is_file(), product
     for figure in ("dark", "dark_noise", "prnu_fiber_a", "prnu_fiber_b", "prnu_difference_fiber_b",
-                   "metrology_H1H4", "offsets_P14", "offsets_difference_P24"):
+                   "metrology_H1H4", "offsets_P14", "offsets_difference_P24", "allan_H1H4"):
         for ext in ("png", "pdf"):
             assert (out / "figures" / f"{figure}.{ext}").stat().st_size > 1000, figure
     for log in ("measure_dark", "measure_prnu_fiber_a", "simulate_truth"):
@@ -118,6 +119,21 @@ def test_metrology_products_follow_the_contract_and_the_truth(out):
         assert np.sqrt(np.mean(error**2)) < 1.2 * np.sqrt(np.mean(floor**2)), axis
     difference = read_product(out / "calibration/offsets_difference_P24.nc")
     assert float(difference["ddx_std"]) < 1.3 * float(difference["ddx_photon_noise_floor"])
+
+
+def test_allan_product_follows_the_contract(out):
+    manifest = load_manifest(out / "raw" / "dataset.yaml")
+    outside = ~manifest.detector.science_mask()
+    ds = read_product(out / "allan/H1H4.nc")
+    assert ds["n_frames"].dims == ("n_frames",) and np.all(np.diff(ds["n_frames"].values) > 0)
+    for name in ("deviation", "allan_deviation"):
+        assert ds[name].dims == ("n_frames", "row", "col") and ds[name].attrs["units"] == "pixel"
+        assert np.isnan(ds[name].values[:, outside]).all()
+    for name in ("deviation_mean", "allan_deviation_mean", "photon_limit_pixel", "photon_limit_block"):
+        assert ds[name].dims == ("n_frames",) and ds[name].attrs["units"] == "pixel"
+    # 300 frames of the ci preset: photon-limited and white, within the scatter of a few batches
+    assert float(ds["slope"]) == pytest.approx(-0.5, abs=0.15)
+    np.testing.assert_allclose(ds["deviation_mean"], ds["photon_limit_pixel"], rtol=0.25)
 
 
 def test_up_to_date_then_dice_core_change_reruns_what_it_affects(workdir):
@@ -197,3 +213,8 @@ def test_default_preset_against_truth(tmp_path):
         projected = n[0] * truth["dx"].values + n[1] * truth["dy"].values
         error = metrology["projected_offset"].values[sl] - projected[sl]
         assert np.sqrt(np.mean(error**2)) < 1.2 * float(metrology["photon_noise_floor_rms"]), baseline
+        # Allan deviations of the same baseline: white, and at the photon limit to the last point
+        ds = read_product(out / "allan" / f"{baseline}.nc")
+        assert float(ds["slope"]) == pytest.approx(-0.5, abs=0.05), baseline
+        last = ds.isel(n_frames=-1)
+        assert float(last["deviation_mean"]) == pytest.approx(float(last["photon_limit_pixel"]), rel=0.2)

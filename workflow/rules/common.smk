@@ -141,7 +141,8 @@ def metrology_targets():
         return []
     targets = []
     for baseline in MANIFEST.baselines:
-        targets += [f"{OUT}/metrology/{baseline}.nc", *figure_pair(f"metrology_{baseline}").values()]
+        targets += [f"{OUT}/metrology/{baseline}.nc", *figure_pair(f"metrology_{baseline}").values(),
+                    f"{OUT}/allan/{baseline}.nc", *figure_pair(f"allan_{baseline}").values()]
     for pair in MANIFEST.pairs:
         targets += [f"{OUT}/calibration/offsets_{pair}.nc", *figure_pair(f"offsets_{pair}").values()]
     for pair in list(MANIFEST.pairs)[1:]:

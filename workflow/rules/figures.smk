@@ -73,6 +73,22 @@ rule plot_metrology:
         "../scripts/plot_metrology.py"
 
 
+rule plot_allan:
+    input:
+        allan=rules.allan_deviation.output.allan,
+    output:
+        png=report(f"{OUT}/figures/allan_{{baseline}}.png", category="Metrology", caption="../report/allan.rst"),
+        pdf=f"{OUT}/figures/allan_{{baseline}}.pdf",
+    params:
+        code=code_version("plotting", "io"),
+    log:
+        f"{OUT}/logs/plot_allan_{{baseline}}.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/plot_allan.py"
+
+
 rule plot_offsets:
     input:
         offsets=rules.deproject_offsets.output.offsets,

@@ -55,3 +55,23 @@ rule compare_pairs:
         "../envs/dice.yaml"
     script:
         "../scripts/compare_pairs.py"
+
+
+rule allan_deviation:
+    input:
+        manifest=MANIFEST_FILE,
+        metrology=rules.fit_fringes.output.metrology,
+        dark=rules.measure_dark.output.dark,
+        cubes=baseline_files,
+    output:
+        allan=f"{OUT}/allan/{{baseline}}.nc",
+    params:
+        code=code_version("io", "manifest", "allan", "fringes", "polynomials"),
+    log:
+        f"{OUT}/logs/allan_deviation_{{baseline}}.log",
+    benchmark:
+        f"{OUT}/benchmarks/allan_deviation_{{baseline}}.tsv"
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/allan_deviation.py"

@@ -1,0 +1,436 @@
+"""Allan deviations of projected pixel offsets (paper: section "Allan deviations").
+
+The metrology acquisition is cut into consecutive *batches*, each just long
+enough for every pixel to see a full fringe period (the unwrapped fringe
+phase spans 2 pi within the batch). Each batch gives one map of projected
+offsets: the temporal sine fit of appendix B on the batch's frames alone, with
+the frame factors of the global solution (B(t), A(t), phi(t)) held fixed.
+Batches are then averaged in groups of m consecutive batches, for a
+logarithmic set of m from 1 to half the number of batches, and two statistics
+are formed per pixel:
+
+- the deviation between group means, the paper's definition: the standard
+  deviation (ddof 1) of the n_groups = floor(n_batches / m) group means;
+- the classical (non-overlapping) Allan deviation,
+  sqrt(sum_j (g_{j+1} - g_j)^2 / (2 (n_groups - 1))), as allantools' ``adev``
+  computes it for frequency data.
+
+Averages over pixels (and over 10x10-pixel blocks of pixel-averaged offsets)
+average the variances and take the root: with two or three groups left, a
+mean of per-pixel deviations is biased low.
+
+Photon-noise limit of one pixel's offset from N frames (the paper's formula,
+with its sqrt(N/2) moved to the denominator, see docs/metrology.md):
+
+    sigma(N) = sqrt(B iota / g + sigma_r^2) / (A alpha |K| sqrt(N / 2))
+
+with B and A the mean level and fringe amplitude (adu), iota and alpha the
+pixel's relative intensity and amplitude, g the gain (e-/adu) and sigma_r the
+read noise (adu). A block of n pixels averages n independent offsets.
+
+Units: pixel for offsets and deviations, frames for integration lengths.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import xarray as xr
+
+from dice_core.fringes import frame_moments, photon_floor
+from dice_core.polynomials import polynomial_design
+
+__all__ = [
+    "AllanError",
+    "fringe_batches",
+    "batch_offsets",
+    "batch_floors",
+    "group_sizes",
+    "group_deviation",
+    "allan_deviation",
+    "block_weights",
+    "photon_limit",
+    "allan_dataset",
+]
+
+log = logging.getLogger(__name__)
+
+
+class AllanError(ValueError):
+    """An acquisition that cannot give an Allan deviation (too few frames for two batches...)."""
+
+
+def fringe_batches(phase, *, span: float = 2 * np.pi) -> np.ndarray:
+    """Consecutive batches of frames, each the shortest whose unwrapped phase spans ``span``.
+
+    Parameters
+    ----------
+    phase : ndarray (frame,)
+        Fringe phase phi(t), rad (wrapped or not; unwrapped here, so that
+        consecutive frames must differ by less than pi).
+    span : float
+        Phase range a batch must cover, rad: 2 pi makes every pixel see one
+        full fringe period whatever its own phase.
+
+    Returns
+    -------
+    ndarray (batch, 2) of int
+        [start, stop) frame indices. Frames after the last complete batch are
+        left out.
+
+    Raises
+    ------
+    AllanError
+        Fewer than two complete batches.
+    """
+    unwrapped = np.unwrap(np.asarray(phase, dtype=float))
+    edges = []
+    start, low, high = 0, np.inf, -np.inf
+    for t, value in enumerate(unwrapped):
+        low, high = min(low, value), max(high, value)
+        if high - low >= span:
+            edges.append((start, t + 1))
+            start, low, high = t + 1, np.inf, -np.inf
+    if len(edges) < 2:
+        raise AllanError(f"{len(unwrapped)} frames hold {len(edges)} batch(es) of a full fringe period; "
+                         "at least two are needed for an Allan deviation")
+    return np.array(edges, dtype=int)
+
+
+def _remove_affine(design, values):
+    """``values`` (pixel,) minus their least-squares fit on ``design`` (pixel, k)."""
+    return values - design @ np.linalg.lstsq(design, values, rcond=None)[0]
+
+
+def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows, cols, *,
+                  reference=None, label="baseline"):
+    """Projected offsets of every pixel in every batch, in one pass over the frames.
+
+    For each batch b, with the frame factors F_t = (B, A cos phi, A sin phi)(t)
+    of the global solution, the pixel factors are G_b = (F_b'F_b)^-1 F_b' I_b
+    (the temporal sine fit of appendix B), the batch phase
+    theta_b = atan2(G_b1, G_b2), and the offsets the wrapped difference to
+    ``reference_phase`` divided by |K|, with their affine part removed (as
+    every offset map is defined).
+
+    Parameters
+    ----------
+    chunks : iterable of Chunk
+        The acquisition's frames in order, adu (float32 or float64); if
+        ``reference`` is given, each chunk holds frames minus ``reference``
+        (see :meth:`dice_core.io.FrameStream.centred`).
+    batches : ndarray (batch, 2)
+        From :func:`fringe_batches`.
+    frame_factors : ndarray (frame, 3)
+        (B, A cos phi, A sin phi) per frame, adu.
+    dark : ndarray (row, col)
+        Mean dark, adu.
+    reference_phase : ndarray (pixel,)
+        Phase of the pixels ``rows``, ``cols`` that the offsets are measured from, rad.
+    k : (float, float)
+        Mean wavevector, rad/pixel.
+    rows, cols : ndarray (pixel,)
+        Pixels to fit.
+    reference : ndarray (row, col), optional
+        Frame subtracted from the chunks by the reader, adu.
+
+    Returns
+    -------
+    ndarray (batch, pixel)
+        Each batch's projected offsets minus those of ``reference_phase`` (the
+        global solution's), pixel, affine part removed.
+    """
+    n_cols = np.shape(dark)[1]
+    idx = rows * n_cols + cols
+    centre = np.zeros(np.size(dark)) if reference is None else np.ravel(reference).astype(np.float64)
+    level = (centre - np.ravel(dark))[idx]  # X - d = (X - r) + (r - d), folded into the sums
+    design = polynomial_design(cols.astype(float), rows.astype(float), 1)
+    k_norm = float(np.hypot(*k))
+    out = np.full((len(batches), idx.size), np.nan)
+    FtX = np.zeros((3, np.size(dark)))  # whole frames: a chunk is never copied
+    b = 0
+    for chunk in chunks:
+        n = chunk.frames.shape[0]
+        X = chunk.frames.reshape(n, -1)
+        first = chunk.start
+        while b < len(batches) and first < chunk.start + n:
+            start, stop = batches[b]
+            lo, hi = max(first, start), min(chunk.start + n, stop)
+            if hi > lo:
+                F = frame_factors[lo:hi].astype(X.dtype)
+                FtX += (F.T @ X[lo - chunk.start:hi - chunk.start]).astype(np.float64)
+            if hi < stop:
+                break
+            F = frame_factors[start:stop]
+            G = np.linalg.solve(F.T @ F, FtX[:, idx] + np.outer(F.sum(axis=0), level))
+            theta = np.arctan2(G[1], G[2])
+            delta = np.angle(np.exp(1j * (theta - reference_phase)))
+            out[b] = _remove_affine(design, delta) / k_norm
+            FtX[:] = 0
+            first = stop
+            b += 1
+            if b % 50 == 0:
+                log.info("%s: %d / %d batches fitted", label, b, len(batches))
+        if b == len(batches):
+            break
+    if b < len(batches):
+        raise AllanError(f"{label}: the frames ended in batch {b} of {len(batches)}")
+    return out
+
+
+def batch_floors(frame_factors, batches, pixel_factors, gain, read_noise, k_norm) -> np.ndarray:
+    """1-sigma photon-noise error of each batch's offset of each pixel, pixel (batch, pixel).
+
+    The exact error of the unweighted temporal fit on the batch's own frames
+    (:func:`dice_core.fringes.photon_floor`, from the third moments of the
+    batch's frame factors): unlike :func:`photon_limit`, it knows how unevenly
+    a short batch of an irregular sweep samples the phase.
+    """
+    out = np.empty((len(batches), pixel_factors.shape[0]))
+    for b, (start, stop) in enumerate(batches):
+        FtF, third = frame_moments(frame_factors[start:stop])
+        out[b] = photon_floor(pixel_factors, FtF, third, gain, read_noise, k_norm)
+    return out
+
+
+def group_sizes(n_batches: int, *, per_decade: int = 10) -> np.ndarray:
+    """Batches per group, 1 to n_batches // 2, about ``per_decade`` sizes per factor of 10."""
+    top = n_batches // 2
+    if top < 1:
+        raise AllanError(f"{n_batches} batch(es): at least two are needed")
+    sizes = np.unique(np.round(np.logspace(0, np.log10(top), max(2, int(per_decade * np.log10(top)) + 1))))
+    return sizes.astype(int)
+
+
+def _group_means(series, m):
+    n_groups = series.shape[0] // m
+    return series[:n_groups * m].reshape(n_groups, m, *series.shape[1:]).mean(axis=1)
+
+
+def group_deviation(series, m: int) -> np.ndarray:
+    """Standard deviation (ddof 1) of the means of consecutive groups of ``m`` samples (the paper's).
+
+    ``series`` is (sample, ...); samples after the last whole group are left out.
+    """
+    return _group_means(np.asarray(series, dtype=float), m).std(axis=0, ddof=1)
+
+
+def allan_deviation(series, m: int) -> np.ndarray:
+    """Non-overlapping Allan deviation of ``series`` (sample, ...) at averaging factor ``m``.
+
+    sqrt(sum_j (g_{j+1} - g_j)^2 / (2 (n_groups - 1))) over the group means g_j;
+    equal to allantools' ``adev(series, rate=1, data_type="freq", taus=[m])``.
+    """
+    means = _group_means(np.asarray(series, dtype=float), m)
+    return np.sqrt(np.mean(np.diff(means, axis=0) ** 2, axis=0) / 2)
+
+
+def block_weights(rows, cols, good, *, block: int = 10) -> np.ndarray:
+    """Averaging matrix (pixel, block) over block x block squares of the ``good`` pixels.
+
+    Blocks tile the bounding box of the pixels from its first row and column;
+    only whole blocks are kept, and a block's weights are 1 / (its good
+    pixels). ``maps @ weights`` gives block means.
+    """
+    r0, c0 = rows.min(), cols.min()
+    n_r, n_c = (rows.max() - r0 + 1) // block, (cols.max() - c0 + 1) // block
+    br, bc = (rows - r0) // block, (cols - c0) // block
+    members = np.zeros((rows.size, n_r * n_c))
+    inside = good & (br < n_r) & (bc < n_c)
+    members[np.flatnonzero(inside), (br * n_c + bc)[inside]] = 1.0
+    members = members[:, members.sum(axis=0) > 0]
+    return members / members.sum(axis=0)
+
+
+def photon_limit(n_frames, level, amplitude, iota, alpha, gain, read_noise, k_norm):
+    """1-sigma photon-noise limit of each pixel's projected offset from ``n_frames`` frames, pixel.
+
+    sqrt(B iota / g + sigma_r^2) / (A alpha |K| sqrt(N / 2)); ``n_frames`` may be
+    an array (broadcast against the pixel arrays as (n, 1) x (pixel,)).
+    """
+    noise = np.sqrt(level * iota / gain + read_noise**2)  # adu, one frame
+    per_frame = np.atleast_1d(noise / (amplitude * alpha * k_norm))  # pixel, one frame at the best phase
+    return per_frame[None, :] / np.sqrt(np.asarray(n_frames, dtype=float)[:, None] / 2)
+
+
+def _mean_variance_root(deviations, axis=-1):
+    """Root of the mean variance over ``axis``: a mean of deviations is biased low with few groups."""
+    return np.sqrt(np.nanmean(np.square(deviations), axis=axis))
+
+
+def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, amplitude, iota, alpha, read_noise,
+                  k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40) -> xr.Dataset:
+    """The ``allan/<baseline>.nc`` product from the batch offsets.
+
+    Parameters
+    ----------
+    offsets : ndarray (batch, pixel)
+        From :func:`batch_offsets`, pixel.
+    floors : ndarray (batch, pixel)
+        Their photon-noise errors (:func:`batch_floors`), pixel.
+    batches : ndarray (batch, 2)
+    rows, cols : ndarray (pixel,)
+    detector : Detector
+        Shape and gain.
+    level, amplitude : float
+        Mean B and A of the acquisition, adu.
+    iota, alpha, read_noise : ndarray (pixel,)
+        Relative intensity and amplitude (1), read noise (adu).
+    k : (float, float)
+        Wavevector, rad/pixel.
+    block : int
+        Side of the pixel blocks, pixel.
+    seed : int
+        Of the white-noise reference cube.
+    n_sample_pixels : int
+        Pixels whose own deviation curves the figure draws (evenly spread).
+
+    Returns
+    -------
+    xarray.Dataset
+        Coordinate ``n_frames`` (mean frames per group). Per pixel:
+        ``deviation`` and ``allan_deviation`` (n_frames, row, col). Averaged:
+        ``deviation_mean``, ``allan_deviation_mean``, ``deviation_block_mean``,
+        ``allan_deviation_block_mean``, the white-noise references
+        ``white_deviation_mean`` and ``white_deviation_block_mean``, and the
+        photon-noise limits ``photon_limit_pixel``, ``photon_limit_block``;
+        ``slope`` of log deviation_mean against log n_frames; the batch offsets
+        and lengths.
+    """
+    n_batches = offsets.shape[0]
+    sizes = group_sizes(n_batches)
+    frames_per_batch = float(np.mean(batches[:, 1] - batches[:, 0]))
+    n_frames = sizes * frames_per_batch
+    good = np.isfinite(offsets).all(axis=0)
+    weights = block_weights(rows, cols, good, block=block)
+    blocks = np.where(good, offsets, 0.0) @ weights
+    # white noise of the same per-pixel (and per-block) scatter as the data at one batch per group
+    rng = np.random.default_rng(seed)
+    white = rng.standard_normal(offsets.shape) * np.std(offsets, axis=0, ddof=1)
+    white_blocks = rng.standard_normal(blocks.shape) * np.std(blocks, axis=0, ddof=1)
+
+    per_pixel = np.stack([group_deviation(offsets, m) for m in sizes])
+    per_pixel_allan = np.stack([allan_deviation(offsets, m) for m in sizes])
+    per_block = np.stack([group_deviation(blocks, m) for m in sizes])
+    per_block_allan = np.stack([allan_deviation(blocks, m) for m in sizes])
+    white_pixel = np.stack([group_deviation(white, m) for m in sizes])
+    white_block = np.stack([group_deviation(white_blocks, m) for m in sizes])
+    # The limits: the variance of a group mean is the sum of its batches' variances over m^2,
+    # averaged over groups (as the deviation between group means is), then over pixels or blocks.
+    variance = np.where(good, floors, 0.0) ** 2
+    block_variance = variance @ weights**2  # independent pixels in a block
+    limit_pixel = np.array([np.sqrt(np.mean(_group_means(variance, m)) / m * good.size / good.sum())
+                            for m in sizes])
+    limit_block = np.array([np.sqrt(np.mean(_group_means(block_variance, m)) / m) for m in sizes])
+    k_norm = float(np.hypot(*k))
+    paper = np.where(good, photon_limit(n_frames, level, amplitude, iota, alpha, detector.gain, read_noise, k_norm),
+                     0.0)
+    paper_pixel = np.sqrt(np.sum(paper**2, axis=1) / good.sum())
+    paper_block = np.sqrt(np.mean(paper**2 @ weights**2, axis=1))
+    mean = _mean_variance_root(per_pixel)
+    slope = float(np.polyfit(np.log(n_frames), np.log(mean), 1)[0]) if len(sizes) > 1 else np.nan
+
+    def as_maps(values):
+        out = np.full((values.shape[0], *detector.shape), np.nan)
+        out[:, rows, cols] = values
+        return out
+
+    sample = np.flatnonzero(good)[np.linspace(0, good.sum() - 1, min(n_sample_pixels, good.sum())).astype(int)]
+    dims, maps = ("n_frames",), ("n_frames", "row", "col")
+    return xr.Dataset(
+        {
+            "group_size": (dims, sizes, {"units": "1", "long_name": "batches per group"}),
+            "n_groups": (dims, n_batches // sizes, {"units": "1", "long_name": "groups the deviation is taken over"}),
+            "deviation": (maps, as_maps(per_pixel),
+                          {"units": "pixel", "long_name": "standard deviation between group means (paper's)"}),
+            "allan_deviation": (maps, as_maps(per_pixel_allan),
+                                {"units": "pixel", "long_name": "non-overlapping Allan deviation"}),
+            "deviation_mean": (dims, mean, {"units": "pixel",
+                                            "long_name": "deviation between group means, rms over pixels"}),
+            "allan_deviation_mean": (dims, _mean_variance_root(per_pixel_allan),
+                                     {"units": "pixel", "long_name": "Allan deviation, rms over pixels"}),
+            "deviation_block_mean": (dims, _mean_variance_root(per_block),
+                                     {"units": "pixel", "long_name": f"deviation of {block}x{block}-pixel "
+                                                                    "block means, rms over blocks"}),
+            "allan_deviation_block_mean": (dims, _mean_variance_root(per_block_allan),
+                                           {"units": "pixel", "long_name": f"Allan deviation of {block}x{block}"
+                                                                          "-pixel block means, rms over blocks"}),
+            "white_deviation_mean": (dims, _mean_variance_root(white_pixel),
+                                     {"units": "pixel", "long_name": "deviation_mean of white noise of the "
+                                                                    "data's single-batch scatter"}),
+            "white_deviation_block_mean": (dims, _mean_variance_root(white_block),
+                                           {"units": "pixel", "long_name": "deviation_block_mean of white noise "
+                                                                          "of the blocks' single-batch scatter"}),
+            "photon_limit_pixel": (dims, limit_pixel, {"units": "pixel", "long_name": "photon-noise limit of "
+                                                       "deviation_mean, from the batch fits' own errors"}),
+            "photon_limit_block": (dims, limit_block, {"units": "pixel", "long_name": "photon-noise limit of "
+                                                       "deviation_block_mean, from the batch fits' own errors"}),
+            "photon_limit_pixel_paper": (dims, paper_pixel, {"units": "pixel", "long_name": "paper's photon-noise "
+                                                             "limit of one pixel, sqrt(Bi/g+sr^2)/(Aa|K|sqrt(N/2))"}),
+            "photon_limit_block_paper": (dims, paper_block, {"units": "pixel", "long_name": "paper's photon-noise "
+                                                             f"limit of a {block}x{block}-pixel block"}),
+            "slope": ((), slope, {"units": "1", "long_name": "log-log slope of deviation_mean against n_frames"}),
+            "sample_pixel": (("sample",), sample, {"units": "1", "long_name": "index of pixels drawn in the figure"}),
+            "sample_deviation": (("n_frames", "sample"), per_pixel[:, sample],
+                                 {"units": "pixel", "long_name": "deviation of the sample pixels"}),
+            "batch_start": (("batch",), batches[:, 0], {"units": "1", "long_name": "first frame of the batch"}),
+            "batch_frames": (("batch",), batches[:, 1] - batches[:, 0], {"units": "1",
+                                                                        "long_name": "frames in the batch"}),
+            "batch_offset": (("batch", "row", "col"), as_maps(offsets).astype(np.float32),
+                             {"units": "pixel", "long_name": "projected offset of each batch minus the global "
+                                                             "solution's, affine part removed"}),
+        },
+        coords={"n_frames": ("n_frames", n_frames, {"units": "1", "long_name": "mean frames per group"}),
+                "row": np.arange(detector.shape[0]), "col": np.arange(detector.shape[1]),
+                "batch": np.arange(n_batches)},
+        attrs={"frames_per_batch": frames_per_batch, "block_size": block},
+    )
+
+
+def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector, *, block: int = 10,
+                      label: str = "baseline") -> xr.Dataset:
+    """Allan deviations of one baseline from its raw frames and its global solution.
+
+    Parameters
+    ----------
+    stream : FrameStream
+        The metrology acquisition (read once, centred on its first chunk's mean
+        frame so that the float32 products stay exact).
+    metrology : xarray.Dataset
+        The baseline's ``metrology/<baseline>.nc`` product: phase, level and
+        amplitude per frame; projected_offset, iota, alpha, kx, ky.
+    dark : xarray.Dataset
+        ``calibration/dark.nc``: dark and noise (read noise), adu.
+    detector : Detector
+    block : int
+        Side of the pixel blocks, pixel.
+
+    Raises
+    ------
+    AllanError
+        Too few frames for two batches; a stream shorter than the solution.
+    """
+    phase = metrology["phase"].values
+    if stream.n_frames != phase.size:
+        raise AllanError(f"{label}: the acquisition has {stream.n_frames} frames, its solution {phase.size}")
+    batches = fringe_batches(phase)
+    log.info("%s: %d batches of %.0f frames on average (one fringe period each), %d frames left over",
+             label, len(batches), np.mean(batches[:, 1] - batches[:, 0]), phase.size - batches[-1, 1])
+    offsets_map = metrology["projected_offset"].values
+    rows, cols = np.nonzero(np.isfinite(offsets_map))
+    k = np.array([float(metrology["kx"]), float(metrology["ky"])])
+    reference_phase = k[0] * cols + k[1] * rows + np.hypot(*k) * offsets_map[rows, cols]
+    level, amplitude = metrology["level"].values, metrology["amplitude"].values
+    frame_factors = np.column_stack([level, amplitude * np.cos(phase), amplitude * np.sin(phase)])
+    first = next(iter(stream))
+    reference = first.frames.mean(axis=0)
+    offsets = batch_offsets(stream.centred(reference), batches, frame_factors, np.nan_to_num(dark["dark"].values),
+                            reference_phase, k, rows, cols, reference=reference, label=label)
+    iota, alpha = metrology["iota"].values[rows, cols], metrology["alpha"].values[rows, cols]
+    read_noise = np.nan_to_num(dark["noise"].values[rows, cols])
+    pixel_factors = np.column_stack([iota, alpha * np.sin(reference_phase), alpha * np.cos(reference_phase)])
+    floors = batch_floors(frame_factors, batches, pixel_factors, detector.gain, read_noise, np.hypot(*k))
+    return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),
+                         amplitude=float(np.mean(amplitude)), iota=iota, alpha=alpha, read_noise=read_noise, k=k,
+                         block=block)
