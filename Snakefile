@@ -20,6 +20,7 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/calibration.smk"
 include: "workflow/rules/metrology.smk"
+include: "workflow/rules/centroids.smk"
 include: "workflow/rules/figures.smk"
 
 
@@ -27,4 +28,5 @@ rule all:
     input:
         calibration_targets(),
         metrology_targets(),
+        centroid_targets(),
     default_target: True

@@ -38,6 +38,13 @@ __all__ = [
     "cramer_rao",
     "fourier_displacement",
     "offset_corrected",
+    "MODES",
+    "METHODS",
+    "mode_corrections",
+    "position_frames",
+    "PositionCentroids",
+    "measure_positions",
+    "centroids_dataset",
 ]
 
 
@@ -310,3 +317,218 @@ def offset_corrected(image: np.ndarray, dx: np.ndarray, dy: np.ndarray, *, itera
         shifted_minus_grid = dx * px + dy * py + 0.5 * (dx * dx * pxx + 2 * dx * dy * pxy + dy * dy * pyy)
         corrected = image - shifted_minus_grid
     return corrected
+
+
+MODES = ("raw", "flat", "metrology", "flat+metrology")
+METHODS = ("fourier", "gaussian")
+
+
+def mode_corrections(mode: str) -> tuple[bool, bool]:
+    """(flat, metrology) corrections of a calibration mode (dark subtraction is always on)."""
+    if mode not in MODES:
+        raise ValueError(f"unknown calibration mode {mode!r}; modes are {', '.join(MODES)}")
+    return "flat" in mode, "metrology" in mode
+
+
+def position_frames(chunks, n_frames: int, n_batches: int, *, label: str = "position"):
+    """Mean frame, the mean frames of ``n_batches`` consecutive batches, and saturated-sample counts.
+
+    One pass over a position's frames; memory is a few frames whatever their
+    number. Batches split the frames as evenly as possible.
+
+    Raises
+    ------
+    ValueError
+        Fewer frames than batches.
+    """
+    if n_frames < n_batches:
+        raise ValueError(f"{label}: {n_frames} frame(s) for {n_batches} batches; each batch needs one at least")
+    edges = np.linspace(0, n_frames, n_batches + 1).round().astype(int)
+    sums = saturated = None
+    for chunk in chunks:
+        frames = np.asarray(chunk.frames, dtype=np.float64)
+        if sums is None:
+            sums = np.zeros((n_batches, *frames.shape[1:]))
+            saturated = np.zeros(frames.shape[1:], dtype=np.int64)
+        batch = np.searchsorted(edges, chunk.start + np.arange(frames.shape[0]), side="right") - 1
+        for b in np.unique(batch):
+            sums[b] += frames[batch == b].sum(axis=0)
+        if chunk.any_saturated:
+            saturated += chunk.saturated.sum(axis=0)
+    counts = np.diff(edges).astype(float)
+    return sums.sum(axis=0) / n_frames, sums / counts[:, None, None], saturated
+
+
+@dataclass
+class PositionCentroids:
+    """Centroids of every star at every position (arrays (position, star)), pixel; see :func:`measure_positions`."""
+
+    x: np.ndarray
+    y: np.ndarray
+    precision_x: np.ndarray
+    precision_y: np.ndarray
+    limit_x: np.ndarray
+    limit_y: np.ndarray
+    n_frames: np.ndarray
+    n_saturated: np.ndarray
+    windows: np.ndarray  # (star, size, size): the corrected mean windows of the first position, adu
+
+
+def _noise_weights(window_image, n_frames, gain, read_noise):
+    """1 / sigma of each pixel of a mean of ``n_frames`` frames, adu."""
+    return 1.0 / np.sqrt((np.clip(window_image, 0, None) / gain + read_noise**2) / n_frames)
+
+
+def measure_positions(frames_of, n_frames_of, positions, approx, detector, dark, *, read_noise, prnu=None,
+                      dx=None, dy=None, method: str = "fourier", half_size: int = 7, n_batches: int = 4,
+                      label: str = "stars", log=None) -> PositionCentroids:
+    """Centroids of the stars at every detector position, with their precision and photon-noise limit.
+
+    Parameters
+    ----------
+    frames_of : callable
+        ``frames_of(position)`` gives the position's chunks (a fresh iterable).
+    n_frames_of : callable
+        ``n_frames_of(position)``: its number of frames.
+    positions : sequence
+        Position labels (indices), in acquisition order.
+    approx : sequence of (row, col)
+        Approximate star positions at the first position; fix the star order.
+        Each later position's windows are centred on the previous position's
+        centroids, so that they follow the stage.
+    detector : Detector
+        Shape and gain (e-/adu).
+    dark, read_noise : ndarray (row, col)
+        Mean dark and read noise, adu.
+    prnu : ndarray (row, col), optional
+        Flat-field correction (windows divided by it).
+    dx, dy : ndarray (row, col), optional
+        Pixel offsets for the offset correction (:func:`offset_corrected`).
+    method : {"fourier", "gaussian"}
+        Fourier resampling against each star's window at the first position,
+        tied to the central star's Gaussian fit there (stars tied to one
+        another by Fourier resampling too); or a Gaussian fit per star.
+        Both weight pixels by their photon and read noise.
+    half_size : int
+        Windows are 2 half_size + 1 pixels square.
+    n_batches : int
+        Consecutive batches of each position's frames measured separately:
+        their scatter over sqrt(n_batches) is the precision of the position.
+
+    Returns
+    -------
+    PositionCentroids
+        x, y: centroids of the mean of all frames; precision_x, precision_y:
+        the standard deviation of the batches' centroids over sqrt(n_batches),
+        the standard error of x and y; limit_x, limit_y: the Cramer-Rao bound
+        of the mean of all frames. A star with a saturated sample in its
+        window at a position is NaN there (logged).
+
+    Raises
+    ------
+    WindowError
+        A star's window leaves the detector or the calibrated area.
+    ValueError
+        Unknown method; a position with fewer frames than batches.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown centroid method {method!r}; methods are {', '.join(METHODS)}")
+    n_pos, n_star = len(positions), len(approx)
+    out = {name: np.full((n_pos, n_star), np.nan) for name in ("x", "y", "px", "py", "lx", "ly")}
+    n_saturated = np.zeros((n_pos, n_star), dtype=np.int64)
+    n_frames = np.zeros(n_pos, dtype=np.int64)
+    centres = [(float(r), float(c)) for r, c in approx]
+    references, first_windows = None, None
+    size = 2 * half_size + 1
+    central = int(np.argmin([np.hypot(r - np.mean([a[0] for a in approx]), c - np.mean([a[1] for a in approx]))
+                             for r, c in approx]))
+    for i, position in enumerate(positions):
+        where = f"position {position}"
+        n = n_frames_of(position)
+        mean, batch_means, saturated = position_frames(frames_of(position), n, n_batches, label=where)
+        n_frames[i] = n
+        windows = [star_window(r, c, half_size, detector.shape, label=f"star {s} at {where}")
+                   for s, (r, c) in enumerate(centres)]
+
+        def corrected(frame, window, star):
+            image = frame[window.slices] - dark[window.slices]
+            if prnu is not None:
+                image = image / prnu[window.slices]
+            if dx is not None:
+                image = offset_corrected(image, dx[window.slices], dy[window.slices])
+            if not np.all(np.isfinite(image)):
+                raise WindowError(f"star {star} at {where}: its window reaches pixels without calibration "
+                                  "(outside the science area)")
+            return image
+
+        images = [corrected(mean, w, s) for s, w in enumerate(windows)]
+        batch_images = [[corrected(frame, w, s) for s, w in enumerate(windows)] for frame in batch_means]
+        noise = [_noise_weights(image, n, detector.gain, read_noise[w.slices]) for image, w in zip(images, windows)]
+        if references is None:
+            references = [(w, image) for w, image in zip(windows, images)]
+            first_windows = np.array(images)
+            anchor = gaussian_fit(images[central], windows[central], weights=noise[central])
+            # each star's reference tied to the central one's, by the method itself
+            ties = [np.zeros(2) if s == central or method == "gaussian" else
+                    fourier_displacement(images[central], images[s]) + np.array(
+                        [windows[s].col0 - windows[central].col0, windows[s].row0 - windows[central].row0])
+                    for s in range(n_star)]
+
+        def locate(image, window, star, weights):
+            if method == "gaussian":
+                fit = gaussian_fit(image, window, weights=weights)
+                return np.array([fit.x, fit.y])
+            ref_window, ref_image = references[star]
+            shift = fourier_displacement(ref_image, image, weights=weights)
+            origin = np.array([window.col0 - ref_window.col0, window.row0 - ref_window.row0])
+            return np.array([anchor.x, anchor.y]) + ties[star] + shift + origin
+
+        for s, window in enumerate(windows):
+            n_saturated[i, s] = int(saturated[window.slices].sum())
+            if n_saturated[i, s]:
+                if log is not None:
+                    log.warning("%s: star %d at %s has %d saturated sample(s) in its window: not measured",
+                                label, s, where, n_saturated[i, s])
+                continue
+            xy = locate(images[s], window, s, noise[s])
+            batch_xy = np.array([locate(b[s], window, s, noise[s] / np.sqrt(n_batches)) for b in batch_images])
+            fit = gaussian_fit(images[s], window, weights=noise[s])
+            limit = cramer_rao(fit, window, gain=detector.gain * n, read_noise=read_noise[window.slices] / np.sqrt(n))
+            out["x"][i, s], out["y"][i, s] = xy
+            out["px"][i, s], out["py"][i, s] = batch_xy.std(axis=0, ddof=1) / np.sqrt(n_batches)
+            out["lx"][i, s], out["ly"][i, s] = limit
+            centres[s] = (xy[1], xy[0])
+        if log is not None:
+            log.info("%s: %s, %d frames: central star at x %.4f, y %.4f pixel", label, where, n,
+                     out["x"][i, central], out["y"][i, central])
+    return PositionCentroids(out["x"], out["y"], out["px"], out["py"], out["lx"], out["ly"], n_frames, n_saturated,
+                             first_windows)
+
+
+def centroids_dataset(result: PositionCentroids, positions, *, mode: str, method: str):
+    """The ``centroids/<mode>.nc`` product: x, y (position, star) and their error budget, pixel."""
+    import xarray as xr
+
+    dims = ("position", "star")
+    n_star = result.x.shape[1]
+    size = result.windows.shape[-1]
+    return xr.Dataset(
+        {
+            "x": (dims, result.x, {"units": "pixel", "long_name": "star centroid along x (columns)"}),
+            "y": (dims, result.y, {"units": "pixel", "long_name": "star centroid along y (rows)"}),
+            "precision_x": (dims, result.precision_x, {"units": "pixel", "long_name": "standard error of x from "
+                                                       "the scatter of the position's batches"}),
+            "precision_y": (dims, result.precision_y, {"units": "pixel", "long_name": "standard error of y from "
+                                                       "the scatter of the position's batches"}),
+            "photon_limit_x": (dims, result.limit_x, {"units": "pixel", "long_name": "Cramer-Rao bound of x"}),
+            "photon_limit_y": (dims, result.limit_y, {"units": "pixel", "long_name": "Cramer-Rao bound of y"}),
+            "n_frames": (("position",), result.n_frames, {"units": "1", "long_name": "frames averaged"}),
+            "n_saturated": (dims, result.n_saturated, {"units": "1", "long_name": "saturated samples in the "
+                                                       "star's window (the star is not measured)"}),
+            "window": (("star", "window_row", "window_col"), result.windows,
+                       {"units": "adu", "long_name": "corrected mean window of each star at the first position"}),
+        },
+        coords={"position": np.asarray(positions), "star": np.arange(n_star),
+                "window_row": np.arange(size), "window_col": np.arange(size)},
+        attrs={"mode": mode, "method": method},
+    )

@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 
 from dice_core.manifest import Detector  # noqa: E402
 
-__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "save"]
+__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "save"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -155,6 +155,52 @@ def allan_figure(ds, *, title):
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
     ax.legend(fontsize=7, ncol=2)
     fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def centroids_figure(ds, *, title):
+    """Star windows and the central star's path, from a ``centroids/<mode>.nc`` dataset.
+
+    Top: each star's corrected mean window at the first position (adu).
+    Bottom: the central star (nearest the stars' mean position) in x and y
+    against the position index, with the precision of each position from its
+    batches (error bars) and the Cramer-Rao bound (band); and its path, x
+    against y.
+    """
+    n_star = ds.sizes["star"]
+    fig = plt.figure(figsize=(max(10, 2.4 * n_star), 8), constrained_layout=True)
+    grid = fig.add_gridspec(2, max(n_star, 3))
+    x0, y0 = ds["x"].values[0], ds["y"].values[0]
+    central = int(np.nanargmin(np.hypot(x0 - np.nanmean(x0), y0 - np.nanmean(y0))))
+    for s in range(n_star):
+        ax = fig.add_subplot(grid[0, s])
+        image = ax.imshow(ds["window"].values[s], origin="lower", cmap="magma")
+        fig.colorbar(image, ax=ax, shrink=0.7, label="adu")
+        ax.set_title(f"star {s}" + (" (central)" if s == central else "") + f"\nx {x0[s]:.3f}, y {y0[s]:.3f}",
+                     fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    position = ds["position"].values
+    half = max(n_star, 3) // 2
+    ax = fig.add_subplot(grid[1, :half])
+    for axis, colour in (("x", "C0"), ("y", "C1")):
+        values = ds[axis].values[:, central]
+        offset = np.nanmean(values)
+        ax.errorbar(position, values - offset, yerr=ds[f"precision_{axis}"].values[:, central], fmt="o-",
+                    color=colour, ms=3, lw=0.8, capsize=2, label=f"{axis} - {offset:.3f} (batch precision)")
+        limit = ds[f"photon_limit_{axis}"].values[:, central]
+        ax.fill_between(position, values - offset - limit, values - offset + limit, color=colour, alpha=0.15)
+    ax.set_xlabel("position")
+    ax.set_ylabel("central star [pixel]")
+    ax.set_title("central star over the positions (bands: Cramer-Rao bound)", fontsize=9)
+    ax.legend(fontsize=8)
+    ax = fig.add_subplot(grid[1, half:])
+    ax.plot(ds["x"].values[:, central], ds["y"].values[:, central], "o-", ms=3, lw=0.8)
+    ax.set_xlabel("x [pixel]")
+    ax.set_ylabel("y [pixel]")
+    ax.set_title("stage path seen by the central star", fontsize=9)
+    ax.set_aspect("equal", adjustable="datalim")
+    fig.suptitle(f"{title} ({ds.attrs.get('method', '')})", fontsize=11)
     return fig
 
 

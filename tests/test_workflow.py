@@ -59,10 +59,12 @@ def test_products_and_figures_exist(out):
         assert (out / product).is_file(), product
     for product in ("metrology/H1H4.nc", "metrology/V2V4.nc", "calibration/offsets_P14.nc",
                     "calibration/offsets_P24.nc", "calibration/offsets_difference_P24.nc", "allan/H1H4.nc",
-                    "allan/V2V4.nc"):
+                    "allan/V2V4.nc", "centroids/raw.nc", "centroids/flat.nc", "centroids/metrology.nc",
+                    "centroids/flat+metrology.nc"):
         assert (out / product).is_file(), product
     for figure in ("dark", "dark_noise", "prnu_fiber_a", "prnu_fiber_b", "prnu_difference_fiber_b",
-                   "metrology_H1H4", "offsets_P14", "offsets_difference_P24", "allan_H1H4"):
+                   "metrology_H1H4", "offsets_P14", "offsets_difference_P24", "allan_H1H4",
+                   "centroids_flat+metrology"):
         for ext in ("png", "pdf"):
             assert (out / "figures" / f"{figure}.{ext}").stat().st_size > 1000, figure
     for log in ("measure_dark", "measure_prnu_fiber_a", "simulate_truth"):
@@ -134,6 +136,20 @@ def test_allan_product_follows_the_contract(out):
     # 300 frames of the ci preset: photon-limited and white, within the scatter of a few batches
     assert float(ds["slope"]) == pytest.approx(-0.5, abs=0.15)
     np.testing.assert_allclose(ds["deviation_mean"], ds["photon_limit_pixel"], rtol=0.25)
+
+
+def test_centroid_products_follow_the_contract_and_the_truth(out):
+    truth = read_product(out / "raw" / "truth.nc")
+    errors = {}
+    for mode in ("raw", "flat", "metrology", "flat+metrology"):
+        ds = read_product(out / "centroids" / f"{mode}.nc")
+        for axis in ("x", "y"):
+            assert ds[axis].dims == ("position", "star") and ds[axis].attrs["units"] == "pixel"
+        assert ds.attrs["mode"] == mode and ds.sizes["star"] == truth.sizes["star"]
+        # against truth, each position's common translation removed (differential astrometry)
+        e = np.stack([ds["x"].values - truth["star_x"].values, ds["y"].values - truth["star_y"].values])
+        errors[mode] = np.sqrt(np.mean(np.square(e - e.mean(axis=2, keepdims=True))))
+    assert errors["flat+metrology"] < errors["raw"]
 
 
 def test_up_to_date_then_dice_core_change_reruns_what_it_affects(workdir):

@@ -62,6 +62,7 @@ wildcard_constraints:
     flat="|".join(map(re.escape, MANIFEST.flats)) or "(?!)",
     baseline="|".join(map(re.escape, MANIFEST.baselines)) or "(?!)",
     pair="|".join(map(re.escape, MANIFEST.pairs)) or "(?!)",
+    mode="raw|flat|metrology|flat\\+metrology",
 
 
 def skipped(what, why):
@@ -150,4 +151,47 @@ def metrology_targets():
                     *figure_pair(f"offsets_difference_{pair}").values()]
     if not MANIFEST.pairs:
         skipped("deprojection", "the dataset names no pair of baselines")
+    return targets
+
+
+def centroid_pair():
+    """The metrology pair whose offsets the metrology modes use."""
+    pair = config["centroids"]["pair"] or MANIFEST.reference_pair
+    if pair is not None and pair not in MANIFEST.pairs:
+        raise WorkflowError(f"centroids.pair {pair!r} is not a pair of {MANIFEST.path} "
+                            f"(pairs: {', '.join(MANIFEST.pairs) or 'none'})")
+    return pair
+
+
+def position_files(wildcards):
+    return [local_path(f) for p in MANIFEST.positions for f in p.acquisition.files]
+
+
+def centroid_calibrations(wildcards):
+    """The calibration products a mode needs: the reference PRNU, the pair's offsets."""
+    inputs = {}
+    if "flat" in wildcards.mode:
+        inputs["prnu"] = f"{OUT}/calibration/prnu.nc"
+    if "metrology" in wildcards.mode:
+        inputs["offsets"] = f"{OUT}/calibration/offsets_{centroid_pair()}.nc"
+    return inputs
+
+
+def centroid_targets():
+    """Centroid products and figures of the configured modes that this dataset allows."""
+    if not MANIFEST.positions:
+        skipped("centroids", f"{MANIFEST.path} has no star positions")
+        return []
+    if MANIFEST.dark is None:
+        skipped("centroids", f"{MANIFEST.path} has no dark to subtract")
+        return []
+    targets = []
+    for mode in config["centroids"]["modes"]:
+        if "flat" in mode and not MANIFEST.flats:
+            skipped(f"centroid mode {mode}", "the dataset has no flat field")
+            continue
+        if "metrology" in mode and centroid_pair() is None:
+            skipped(f"centroid mode {mode}", "the dataset names no pair of metrology baselines")
+            continue
+        targets += [f"{OUT}/centroids/{mode}.nc", *figure_pair(f"centroids_{mode}").values()]
     return targets
