@@ -429,7 +429,9 @@ def measure_positions(frames_of, n_frames_of, positions, approx, detector, dark,
     WindowError
         A star's window leaves the detector or the calibrated area.
     ValueError
-        Unknown method; a position with fewer frames than batches.
+        Unknown method; a position with fewer frames than batches; with the
+        Fourier method, a saturated star at the first position (its window is
+        every later one's reference).
     """
     if method not in METHODS:
         raise ValueError(f"unknown centroid method {method!r}; methods are {', '.join(METHODS)}")
@@ -465,6 +467,10 @@ def measure_positions(frames_of, n_frames_of, positions, approx, detector, dark,
         batch_images = [[corrected(frame, w, s) for s, w in enumerate(windows)] for frame in batch_means]
         noise = [_noise_weights(image, n, detector.gain, read_noise[w.slices]) for image, w in zip(images, windows)]
         if references is None:
+            if method == "fourier" and any(saturated[w.slices].any() for w in windows):
+                s = next(s for s, w in enumerate(windows) if saturated[w.slices].any())
+                raise ValueError(f"star {s} at {where}: saturated samples in the window every later position "
+                                 "is resampled against; the fourier method needs an unsaturated first position")
             references = [(w, image) for w, image in zip(windows, images)]
             first_windows = np.array(images)
             anchor = gaussian_fit(images[central], windows[central], weights=noise[central])

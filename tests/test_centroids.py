@@ -241,3 +241,38 @@ def test_positions_report_precision_saturation_and_bad_input(star_dataset, caplo
         measure(manifest, truth, flat=True, metrology=True, n_batches=5)
     with pytest.raises(ValueError, match="unknown centroid method"):
         measure(manifest, truth, flat=True, metrology=True, method="barycentre")
+
+
+def test_a_saturated_window_is_refused_counted_and_logged(star_dataset, caplog):
+    import logging
+
+    from dice_core.io import Chunk, FrameStream
+
+    manifest, truth = star_dataset
+    streams = {p.index: FrameStream(p.acquisition, manifest.detector) for p in manifest.positions}
+    row, col = (int(round(v)) for v in manifest.star_approx[2])
+
+    def frames_of(index):
+        for chunk in streams[index]:
+            if index != 3:
+                yield chunk
+                continue
+            saturated = np.zeros(chunk.frames.shape, bool)
+            saturated[0, row, col] = True  # star 2's peak, at position 3
+            yield Chunk(chunk.start, chunk.frames, saturated, True)
+
+    log = logging.getLogger("test-centroids")
+    with caplog.at_level("WARNING", logger="test-centroids"):
+        result = centroids.measure_positions(
+            frames_of, lambda i: streams[i].n_frames, list(streams), manifest.star_approx, manifest.detector,
+            truth["bias"].values, read_noise=np.ones(manifest.detector.shape), n_batches=2, log=log)
+    assert result.n_saturated[2, 2] == 1 and result.n_saturated.sum() == 1
+    assert np.isnan(result.x[2, 2]) and np.isfinite(np.delete(result.x.ravel(), 2 * 5 + 2)).all()
+    assert "star 2 at position 3 has 1 saturated sample(s) in its window: not measured" in caplog.text
+    # at the first position the window is every later one's reference: refused
+    first = next(iter(streams))
+    with pytest.raises(ValueError, match="star 2 at position 1: saturated samples in the window every later"):
+        centroids.measure_positions(
+            lambda i: frames_of(3) if i == first else streams[i], lambda i: streams[i].n_frames, list(streams),
+            manifest.star_approx, manifest.detector, truth["bias"].values, read_noise=np.ones(manifest.detector.shape),
+            n_batches=2)
