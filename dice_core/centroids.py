@@ -27,6 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import xarray as xr
 from scipy.optimize import least_squares
 
 __all__ = [
@@ -513,8 +514,6 @@ def measure_positions(frames_of, n_frames_of, positions, approx, detector, dark,
 
 def centroids_dataset(result: PositionCentroids, positions, *, mode: str, method: str):
     """The ``centroids/<mode>.nc`` product: x, y (position, star) and their error budget, pixel."""
-    import xarray as xr
-
     dims = ("position", "star")
     n_star = result.x.shape[1]
     size = result.windows.shape[-1]
