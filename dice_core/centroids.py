@@ -497,9 +497,9 @@ def measure_positions(frames_of, n_frames_of, positions, approx, detector, dark,
                     log.warning("%s: star %d at %s has %d saturated sample(s) in its window: not measured",
                                 label, s, where, n_saturated[i, s])
                 continue
-            xy = locate(images[s], window, s, noise[s])
+            fit = gaussian_fit(images[s], window, weights=noise[s])  # the shape and flux of the bound
+            xy = np.array([fit.x, fit.y]) if method == "gaussian" else locate(images[s], window, s, noise[s])
             batch_xy = np.array([locate(b[s], window, s, noise[s] / np.sqrt(n_batches)) for b in batch_images])
-            fit = gaussian_fit(images[s], window, weights=noise[s])
             limit = cramer_rao(fit, window, gain=detector.gain * n, read_noise=read_noise[window.slices] / np.sqrt(n))
             out["x"][i, s], out["y"][i, s] = xy
             out["px"][i, s], out["py"][i, s] = batch_xy.std(axis=0, ddof=1) / np.sqrt(n_batches)
