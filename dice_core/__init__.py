@@ -8,6 +8,7 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.fringes` -- global fringe solution of a metrology baseline;
 - :mod:`dice_core.allan` -- Allan deviations of the pixel offsets;
 - :mod:`dice_core.centroids` -- pseudo-star windows, Gaussian fit, Fourier resampling, offset correction;
+- :mod:`dice_core.astrometry` -- barycentre residuals, Procrustes superimposition, accuracies;
 - :mod:`dice_core.deprojection` -- x and y offsets from a pair of baselines;
 - :mod:`dice_core.detector` -- the pixel-response model (truncated hyper-Gaussian PRFs);
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;

@@ -1,0 +1,74 @@
+"""Procrustes superimposition, its Monte Carlo correction factor and error bars, barycentre residuals."""
+
+import numpy as np
+import pytest
+
+from dice_core import astrometry
+
+# the simulator's layout: a central star and the corners of a 40-pixel square (x, y)
+LAYOUT = np.array([[46.0, 40.0], [26.0, 20.0], [66.0, 20.0], [26.0, 60.0], [66.0, 60.0]])
+
+
+def transformed(rng, n_positions, layout=LAYOUT):
+    """Positions that differ by translation, anisotropic scale and rotation only (stage-like sizes)."""
+    params = np.column_stack([rng.normal(0, 1, n_positions), rng.normal(0, 1, n_positions),
+                              rng.normal(0, 2e-4, n_positions), rng.normal(0, 2e-4, n_positions),
+                              rng.normal(0, 2e-3, n_positions)])
+    return np.array([astrometry._transform(q, layout) for q in params])
+
+
+def test_translation_anisotropic_scale_and_rotation_leave_zero_residual(rng):
+    result = astrometry.procrustes(transformed(rng, 33))
+    assert result.rms < 1e-12
+    # the residuals of the barycentre method are not zero: it cannot absorb scale or rotation
+    assert np.sqrt(np.mean(astrometry.barycentre_residuals(transformed(rng, 33)) ** 2)) > 1e-3
+
+
+def test_correction_factor_for_five_stars_is_the_papers_1_4(rng):
+    """10 coordinates per position, 5 absorbed by its transform, and the mean shape fitted too:
+    the residuals keep about (10 N - 5 N - 5) / 10 N of a white jitter's variance, so the factor is
+    about sqrt(2 N / (N - 1)), sqrt(2) = 1.41 for many positions; the paper found 1.4."""
+    n = 33
+    result = astrometry.procrustes(transformed(rng, n))
+    factor, error = astrometry.correction_factor(result)
+    assert error < 0.005
+    assert factor == pytest.approx(np.sqrt(2 * 5 * n / (2 * 5 * n - 5 * n - 2 * 5 + 5)), rel=0.02)
+    assert 1.38 < factor < 1.5
+    # the first-order Monte Carlo agrees with full nonlinear superimpositions of jittered data
+    configurations = astrometry._model(result.mean, result.params)
+    ratios = [1e-4 / astrometry.procrustes(configurations + 1e-4 * rng.standard_normal(configurations.shape)).rms
+              for _ in range(30)]
+    assert np.mean(ratios) == pytest.approx(factor, rel=0.02)
+
+
+def test_corrected_accuracy_recovers_the_injected_jitter_within_its_error_bar(rng):
+    """Over 40 data sets, the Monte Carlo error bar covers the injected jitter as a 1-sigma bar should."""
+    jitter = 1e-4
+    inside, deviations = 0, []
+    for _ in range(40):
+        configurations = transformed(rng, 33)
+        configurations += jitter * rng.standard_normal(configurations.shape)
+        result = astrometry.accuracy(configurations, trials=500)
+        deviations.append((result.accuracy - jitter) / result.error)
+        inside += abs(result.accuracy - jitter) < result.error
+    assert 0.5 <= inside / 40 <= 0.9  # 68% expected
+    assert np.max(np.abs(deviations)) < 3.5
+    assert abs(np.mean(deviations)) < 0.5  # unbiased
+
+
+def test_groups_of_contiguous_positions(rng):
+    configurations = transformed(rng, 33)
+    groups = astrometry.group_means(configurations, 3)
+    assert groups.shape == (3, 5, 2)
+    np.testing.assert_allclose(groups[1], configurations[11:22].mean(axis=0))
+    with pytest.raises(astrometry.AstrometryError, match="2 position\\(s\\) for 3 groups"):
+        astrometry.group_means(configurations[:2], 3)
+
+
+def test_bad_input(rng):
+    configurations = transformed(rng, 10)
+    with pytest.raises(astrometry.AstrometryError, match="2 star\\(s\\): at least 3"):
+        astrometry.procrustes(configurations[:, :2])
+    configurations[4, 2, 0] = np.nan
+    with pytest.raises(astrometry.AstrometryError, match="NaN"):
+        astrometry.accuracy(configurations)
