@@ -21,6 +21,7 @@ include: "workflow/rules/simulate.smk"
 include: "workflow/rules/calibration.smk"
 include: "workflow/rules/metrology.smk"
 include: "workflow/rules/centroids.smk"
+include: "workflow/rules/astrometry.smk"
 include: "workflow/rules/figures.smk"
 
 
@@ -29,4 +30,5 @@ rule all:
         calibration_targets(),
         metrology_targets(),
         centroid_targets(),
+        astrometry_targets(),
     default_target: True

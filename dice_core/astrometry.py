@@ -252,3 +252,76 @@ def group_means(configurations, n_groups: int) -> np.ndarray:
         raise AstrometryError(f"{c.shape[0]} position(s) for {n_groups} groups")
     size = c.shape[0] // n_groups
     return c[:size * n_groups].reshape(n_groups, size, *c.shape[1:]).mean(axis=1)
+
+
+def select_positions(ds, positions=None):
+    """The (position, star, 2) configurations of a centroids dataset, over an inclusive index range.
+
+    Raises
+    ------
+    AstrometryError
+        A range that selects no position, or an unmeasured (NaN) star in it.
+    """
+    if positions is not None:
+        first, last = positions
+        ds = ds.sel(position=(ds["position"] >= first) & (ds["position"] <= last))
+        if ds.sizes["position"] == 0:
+            raise AstrometryError(f"no position with an index in [{first}, {last}]")
+    return np.stack([ds["x"].values, ds["y"].values], axis=-1), ds["position"].values
+
+
+def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: int = 2000, seed: int = 0):
+    """Accuracies of every calibration mode, over positions (p) and over groups of positions (g).
+
+    Parameters
+    ----------
+    datasets : dict
+        Mode name -> its ``centroids/<mode>.nc`` dataset.
+    positions : (int, int), optional
+        Inclusive range of position indices.
+    groups : int
+        Contiguous groups of positions for (g).
+
+    Returns
+    -------
+    rows : list of dict
+        One per mode and grouping: mode, method, flat, metrology, grouping
+        ("position" or "group"), n (positions or groups), accuracy and error
+        (pixel), rms_residual (pixel), factor.
+    residuals : dict
+        Mode -> (position indices, Procrustes residuals (position, star, 2)) over positions.
+    """
+    rows, residuals = [], {}
+    for mode, ds in datasets.items():
+        configurations, index = select_positions(ds, positions)
+        for grouping, data in (("position", configurations), ("group", group_means(configurations, groups))):
+            result = accuracy(data, trials=trials, seed=seed)
+            rows.append({"mode": mode, "method": ds.attrs.get("method", ""), "flat": "flat" in mode,
+                         "metrology": "metrology" in mode, "grouping": grouping, "n": data.shape[0],
+                         "accuracy": result.accuracy, "error": result.error, "rms_residual": result.rms_residual,
+                         "factor": result.factor})
+            if grouping == "position":
+                residuals[mode] = (index, result.result.residuals)
+    return rows, residuals
+
+
+def _latex_value(value, error):
+    exponent = int(np.floor(np.log10(abs(value)))) if value else 0
+    return rf"${value / 10**exponent:.2f}\pm{error / 10**exponent:.2f}\e{{{exponent}}}$"
+
+
+def latex_table(rows) -> str:
+    """The accuracies laid out as the paper's table of calibrations: metrology in rows, flat in columns."""
+    cell = {(r["metrology"], r["flat"], r["grouping"]): r for r in rows}
+    lines = [r"% Accuracies (pixel) with different calibrations; (p) over positions, (g) over groups.",
+             r"% \e{n} stands for x10^n and \specialcell makes a two-line cell, as in the paper.",
+             r"\begin{tabular}{lcc}", r"\hline", r" & No flat & Flat \\", r"\hline"]
+    for metrology in (False, True):
+        entries = []
+        for flat in (False, True):
+            parts = [f"({g[0]}) " + _latex_value(cell[metrology, flat, g]["accuracy"], cell[metrology, flat, g]["error"])
+                     for g in ("position", "group") if (metrology, flat, g) in cell]
+            entries.append(r"\specialcell{" + r"\\".join(parts) + "}" if parts else "--")
+        lines.append(f"{'Metrology' if metrology else 'No metrology'} & {entries[0]} & {entries[1]} " + r"\\")
+    lines += [r"\hline", r"\end{tabular}", ""]
+    return "\n".join(lines)

@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 
 from dice_core.manifest import Detector  # noqa: E402
 
-__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "save"]
+__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure", "save"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -201,6 +201,29 @@ def centroids_figure(ds, *, title):
     ax.set_title("stage path seen by the central star", fontsize=9)
     ax.set_aspect("equal", adjustable="datalim")
     fig.suptitle(f"{title} ({ds.attrs.get('method', '')})", fontsize=11)
+    return fig
+
+
+def procrustes_figure(ds, *, title="Procrustes residuals"):
+    """Residuals of every star (x plain, y dotted) against the position, one panel per mode (pixel)."""
+    modes = list(ds["mode"].values)
+    fig, axes = plt.subplots(len(modes), 1, figsize=(9, 2.6 * len(modes)), sharex=True, squeeze=False,
+                             constrained_layout=True)
+    position = ds["position"].values
+    for ax, mode in zip(axes[:, 0], modes):
+        residual = ds["residual"].sel(mode=mode).values
+        for s in range(residual.shape[1]):
+            colour = "black" if s == 0 else f"C{s}"
+            ax.plot(position, residual[:, s, 0], color=colour, lw=0.9, label=f"star {s}")
+            ax.plot(position, residual[:, s, 1], color=colour, lw=0.9, ls=":")
+        accuracy = float(ds["accuracy"].sel(mode=mode))
+        for sign in (-1, 1):
+            ax.axhline(sign * accuracy, color="grey", ls="--", lw=0.7)
+        ax.set_ylabel("residual [pixel]")
+        ax.set_title(f"{mode}: corrected accuracy {accuracy:.2e} pixel (dashed); x plain, y dotted", fontsize=9)
+    axes[0, 0].legend(fontsize=7, ncol=5)
+    axes[-1, 0].set_xlabel("position")
+    fig.suptitle(title, fontsize=11)
     return fig
 
 

@@ -64,7 +64,7 @@ def test_products_and_figures_exist(out):
         assert (out / product).is_file(), product
     for figure in ("dark", "dark_noise", "prnu_fiber_a", "prnu_fiber_b", "prnu_difference_fiber_b",
                    "metrology_H1H4", "offsets_P14", "offsets_difference_P24", "allan_H1H4",
-                   "centroids_flat+metrology"):
+                   "centroids_flat+metrology", "procrustes_residuals"):
         for ext in ("png", "pdf"):
             assert (out / "figures" / f"{figure}.{ext}").stat().st_size > 1000, figure
     for log in ("measure_dark", "measure_prnu_fiber_a", "simulate_truth"):
@@ -152,6 +152,35 @@ def test_centroid_products_follow_the_contract_and_the_truth(out):
     assert errors["flat+metrology"] < errors["raw"]
 
 
+def read_accuracy_table(path):
+    import csv
+
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_accuracy_table_follows_the_contract(out):
+    rows = read_accuracy_table(out / "tables" / "accuracy.csv")
+    assert {"flat", "metrology", "grouping", "accuracy", "error"} <= set(rows[0])
+    assert {(r["flat"], r["metrology"], r["grouping"]) for r in rows} == {
+        (f, m, g) for f in ("true", "false") for m in ("true", "false") for g in ("position", "group")}
+    assert all(float(r["accuracy"]) > 0 and float(r["error"]) > 0 for r in rows)
+    assert "\\begin{tabular}" in (out / "tables" / "accuracy.tex").read_text()
+
+
+def test_a_mode_added_to_the_sweep_runs_only_its_own_jobs(workdir, out):
+    """Snakemake's own up-to-date logic: the other modes' centroids are not redone."""
+    (workdir / "three_modes.yaml").write_text("centroids:\n  modes: [raw, flat, metrology]\n")
+    plan = snakemake(workdir, "-n", "--config", "dataset=ci", "--configfile", "three_modes.yaml").stdout
+    assert "measure_centroids" not in plan and "accuracy_table" in plan  # the table gathers a new list
+    (out / "centroids" / "metrology.nc").unlink()  # as if metrology had just been added to the list
+    run = snakemake(workdir, "--config", "dataset=ci")
+    ran = run.stdout + run.stderr
+    assert ran.count("rule measure_centroids:") == 1 and "wildcards: mode=metrology" in ran
+    assert "rule accuracy_table:" in ran
+    assert (out / "centroids" / "metrology.nc").is_file()
+
+
 def test_up_to_date_then_dice_core_change_reruns_what_it_affects(workdir):
     assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
     module = workdir / "dice_core" / "calibration.py"
@@ -234,3 +263,22 @@ def test_default_preset_against_truth(tmp_path):
         assert float(ds["slope"]) == pytest.approx(-0.5, abs=0.05), baseline
         last = ds.isel(n_frames=-1)
         assert float(last["deviation_mean"]) == pytest.approx(float(last["photon_limit_pixel"]), rel=0.2)
+    # the accuracy table: all four modes in both groupings, flat + metrology best, each calibration
+    # helping, and each accuracy (p) consistent with the same Procrustes accuracy of its true errors
+    from dice_core import astrometry
+
+    rows = {(r["mode"], r["grouping"]): r for r in read_accuracy_table(out / "tables" / "accuracy.csv")}
+    assert len(rows) == 8
+    value = {key: float(r["accuracy"]) for key, r in rows.items()}
+    for grouping in ("position", "group"):
+        assert value["flat+metrology", grouping] == min(value[m, grouping] for m in
+                                                         ("raw", "flat", "metrology", "flat+metrology"))
+    assert value["flat", "position"] < value["raw", "position"]
+    assert value["flat+metrology", "position"] < value["flat", "position"]
+    layout = np.stack([truth["star_x"].values[0], truth["star_y"].values[0]], axis=-1)
+    for mode in ("raw", "flat", "metrology", "flat+metrology"):
+        ds = read_product(out / "centroids" / f"{mode}.nc")
+        errors = np.stack([ds["x"].values - truth["star_x"].values, ds["y"].values - truth["star_y"].values], -1)
+        truth_based = astrometry.accuracy(layout + errors, trials=500).accuracy
+        row = rows[mode, "position"]
+        assert abs(float(row["accuracy"]) - truth_based) < 3 * float(row["error"]), mode

@@ -11,7 +11,8 @@ rule measure_centroids:
         centroids=f"{OUT}/centroids/{{mode}}.nc",
     params:
         code=code_version("io", "manifest", "centroids"),
-        options=lambda w: config["centroids"],
+        # what a mode's product depends on: adding a mode to the list re-runs nothing else
+        options=lambda w: {k: v for k, v in config["centroids"].items() if k != "modes"},
     log:
         f"{OUT}/logs/measure_centroids_{{mode}}.log",
     benchmark:

@@ -195,3 +195,14 @@ def centroid_targets():
             continue
         targets += [f"{OUT}/centroids/{mode}.nc", *figure_pair(f"centroids_{mode}").values()]
     return targets
+
+
+def astrometry_targets():
+    """The accuracy table of the centroid modes this dataset allows, and its figure."""
+    if not centroid_targets():
+        return []
+    return [f"{OUT}/tables/accuracy.csv", f"{OUT}/tables/accuracy.tex", *figure_pair("procrustes_residuals").values()]
+
+
+def centroid_products(wildcards):
+    return [t for t in centroid_targets() if t.endswith(".nc")]

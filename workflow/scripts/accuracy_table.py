@@ -1,0 +1,56 @@
+"""Snakemake step: Procrustes accuracies of every centroid mode, as tables/accuracy.csv and a LaTeX table."""
+
+import csv
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+import dice_core
+from dice_core import astrometry, io
+
+COLUMNS = ["flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "n", "rms_residual", "factor"]
+
+
+def write_text_atomically(path, text):
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    with os.fdopen(fd, "w", newline="") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def accuracy_table(centroid_paths, csv_path, tex_path, residuals_path, config):
+    log = logging.getLogger("dice")
+    options = config["astrometry"]
+    datasets = {io.read_product(p).attrs["mode"]: io.read_product(p) for p in centroid_paths}
+    rows, residuals = astrometry.mode_accuracies(datasets, positions=options["positions"], groups=options["groups"],
+                                                 trials=options["trials"])
+    for row in rows:
+        log.info("mode %-15s %-8s n=%-3d accuracy %.2e +- %.1e pixel (rms residual %.2e x factor %.3f)",
+                 row["mode"], row["grouping"], row["n"], row["accuracy"], row["error"], row["rms_residual"],
+                 row["factor"])
+    lines = [",".join(COLUMNS)]
+    for row in rows:
+        lines.append(",".join(f"{row[c]:.6e}" if isinstance(row[c], float) else str(row[c]).lower()
+                              if isinstance(row[c], bool) else str(row[c]) for c in COLUMNS))
+    write_text_atomically(csv_path, "\n".join(lines) + "\n")
+    write_text_atomically(tex_path, astrometry.latex_table(rows))
+    modes = list(residuals)
+    index = residuals[modes[0]][0]
+    product = xr.Dataset(
+        {"residual": (("mode", "position", "star", "axis"), np.stack([residuals[m][1] for m in modes]),
+                      {"units": "pixel", "long_name": "Procrustes residual of each star"}),
+         "accuracy": (("mode",), [next(r["accuracy"] for r in rows if r["mode"] == m and r["grouping"] == "position")
+                                  for m in modes], {"units": "pixel", "long_name": "corrected accuracy (p)"})},
+        coords={"mode": modes, "position": index, "axis": ["x", "y"]})
+    io.write_product(product, residuals_path, title="Procrustes residuals per calibration mode", config=config,
+                     inputs=list(centroid_paths))
+
+
+dice_core.run_logged(snakemake.log[0], accuracy_table, list(snakemake.input.centroids), snakemake.output.csv,
+                     snakemake.output.tex, snakemake.output.residuals, snakemake.config)
