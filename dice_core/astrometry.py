@@ -18,8 +18,8 @@ Configurations are arrays (position, star, 2) of (x, y) centroids.
 - :func:`correction_factor`: the superimposition absorbs part of any random
   error (5 parameters per position fit 10 coordinates, and M is fitted too):
   by Monte Carlo on the actual geometry and number of positions, the ratio of
-  an injected white jitter to the rms residual it leaves (about
-  sqrt(2 N / (N - 1)), 1.4 and a little more, for 5 stars).
+  an injected white jitter to the rms residual it leaves (about sqrt(2),
+  1.4 and a little more, for 5 stars; see :func:`correction_factor`).
 - :func:`accuracy`: corrected rms residual, and its error bar by Monte Carlo
   with independent jitter per star.
 """
@@ -199,9 +199,9 @@ def correction_factor(result: ProcrustesResult, *, trials: int = 2000, seed: int
     on every coordinate and superimposes them (to first order, exact for
     errors this small against the star separations). Returns the mean over
     trials of jitter / rms residual, and its standard error. With S stars and
-    N positions, 2SN coordinates lose 5N transform and 2S - 5 mean-shape
-    degrees of freedom: about sqrt(2SN / (2SN - 5N - 2S + 5)), sqrt(2) = 1.41
-    for 5 stars and many positions (the paper's 1.4).
+    N positions, 2SN coordinates lose 5N transform and 2S - 4 mean-shape
+    degrees of freedom (4: the gauge): about sqrt(2SN / (2SN - 5N - 2S + 4)),
+    sqrt(2) = 1.41 for 5 stars and many positions (the paper's 1.4).
     """
     basis = _tangent_basis(result.mean, result.params)
     rng = np.random.default_rng(seed)

@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 
 from dice_core.manifest import Detector  # noqa: E402
 
-__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure", "save"]
+__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure", "barycentre_figure", "save"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -221,6 +221,34 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
             ax.axhline(sign * accuracy, color="grey", ls="--", lw=0.7)
         ax.set_ylabel("residual [pixel]")
         ax.set_title(f"{mode}: corrected accuracy {accuracy:.2e} pixel (dashed); x plain, y dotted", fontsize=9)
+    axes[0, 0].legend(fontsize=7, ncol=5)
+    axes[-1, 0].set_xlabel("position")
+    fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def barycentre_figure(ds, *, title="Barycentre residuals"):
+    """The paper's barycentre-residual figures, one row per mode: against the position (x plain,
+    y dotted; the positions used for the accuracies between dotted lines), and x against y."""
+    modes = list(ds["mode"].values)
+    fig, axes = plt.subplots(len(modes), 2, figsize=(12, 2.8 * len(modes)), squeeze=False, constrained_layout=True,
+                             gridspec_kw={"width_ratios": [2, 1]})
+    position = ds["all_position"].values
+    used = ds["position"].values
+    for row, mode in zip(axes, modes):
+        residual = ds["barycentre_residual"].sel(mode=mode).values
+        for s in range(residual.shape[1]):
+            colour = "black" if s == 0 else f"C{s}"
+            row[0].plot(position, residual[:, s, 0], color=colour, lw=0.9, label=f"star {s}")
+            row[0].plot(position, residual[:, s, 1], color=colour, lw=0.9, ls=":")
+            row[1].plot(residual[:, s, 0], residual[:, s, 1], color=colour, lw=0.6, marker=".", ms=3)
+        for edge in (used.min(), used.max()):
+            row[0].axvline(edge, color="grey", ls=":", lw=0.8)
+        row[0].set_ylabel("residual [pixel]")
+        row[0].set_title(f"{mode}: x plain, y dotted; positions {used.min()}-{used.max()} used", fontsize=9)
+        row[1].set_xlabel("x residual [pixel]")
+        row[1].set_ylabel("y residual [pixel]")
+        row[1].set_aspect("equal", adjustable="datalim")
     axes[0, 0].legend(fontsize=7, ncol=5)
     axes[-1, 0].set_xlabel("position")
     fig.suptitle(title, fontsize=11)

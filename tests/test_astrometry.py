@@ -25,14 +25,14 @@ def test_translation_anisotropic_scale_and_rotation_leave_zero_residual(rng):
 
 
 def test_correction_factor_for_five_stars_is_the_papers_1_4(rng):
-    """10 coordinates per position, 5 absorbed by its transform, and the mean shape fitted too:
-    the residuals keep about (10 N - 5 N - 5) / 10 N of a white jitter's variance, so the factor is
-    about sqrt(2 N / (N - 1)), sqrt(2) = 1.41 for many positions; the paper found 1.4."""
+    """10 coordinates per position, 5 absorbed by its transform, and the mean shape fitted too (10
+    numbers less 4 gauge freedoms): the residuals keep (10 N - 5 N - 6) / 10 N of a white jitter's
+    variance, so the factor is about sqrt(2), 1.41 for many positions; the paper found 1.4."""
     n = 33
     result = astrometry.procrustes(transformed(rng, n))
     factor, error = astrometry.correction_factor(result)
     assert error < 0.005
-    assert factor == pytest.approx(np.sqrt(2 * 5 * n / (2 * 5 * n - 5 * n - 2 * 5 + 5)), rel=0.02)
+    assert factor == pytest.approx(np.sqrt(2 * 5 * n / (2 * 5 * n - 5 * n - 2 * 5 + 4)), rel=0.02)
     assert 1.38 < factor < 1.5
     # the first-order Monte Carlo agrees with full nonlinear superimpositions of jittered data
     configurations = astrometry._model(result.mean, result.params)

@@ -64,7 +64,7 @@ def test_products_and_figures_exist(out):
         assert (out / product).is_file(), product
     for figure in ("dark", "dark_noise", "prnu_fiber_a", "prnu_fiber_b", "prnu_difference_fiber_b",
                    "metrology_H1H4", "offsets_P14", "offsets_difference_P24", "allan_H1H4",
-                   "centroids_flat+metrology", "procrustes_residuals"):
+                   "centroids_flat+metrology", "procrustes_residuals", "barycentre_residuals"):
         for ext in ("png", "pdf"):
             assert (out / "figures" / f"{figure}.{ext}").stat().st_size > 1000, figure
     for log in ("measure_dark", "measure_prnu_fiber_a", "simulate_truth"):

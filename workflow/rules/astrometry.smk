@@ -26,6 +26,9 @@ rule plot_procrustes_residuals:
         png=report(f"{OUT}/figures/procrustes_residuals.png", category="Astrometry",
                    caption="../report/procrustes_residuals.rst"),
         pdf=f"{OUT}/figures/procrustes_residuals.pdf",
+        barycentre_png=report(f"{OUT}/figures/barycentre_residuals.png", category="Astrometry",
+                              caption="../report/barycentre_residuals.rst"),
+        barycentre_pdf=f"{OUT}/figures/barycentre_residuals.pdf",
     params:
         code=code_version("plotting", "io"),
     log:

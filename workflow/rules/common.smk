@@ -201,7 +201,8 @@ def astrometry_targets():
     """The accuracy table of the centroid modes this dataset allows, and its figure."""
     if not centroid_targets():
         return []
-    return [f"{OUT}/tables/accuracy.csv", f"{OUT}/tables/accuracy.tex", *figure_pair("procrustes_residuals").values()]
+    return [f"{OUT}/tables/accuracy.csv", f"{OUT}/tables/accuracy.tex", *figure_pair("procrustes_residuals").values(),
+            *figure_pair("barycentre_residuals").values()]
 
 
 def centroid_products(wildcards):

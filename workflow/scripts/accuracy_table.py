@@ -24,6 +24,15 @@ def write_text_atomically(path, text):
     os.replace(tmp, path)
 
 
+def _barycentre(configurations):
+    """Barycentre residuals over the positions where every star was measured (NaN elsewhere)."""
+    complete = np.isfinite(configurations).all(axis=(1, 2))
+    out = np.full(configurations.shape, np.nan)
+    if complete.sum() >= 2:
+        out[complete] = astrometry.barycentre_residuals(configurations[complete])
+    return out
+
+
 def accuracy_table(centroid_paths, csv_path, tex_path, residuals_path, config):
     log = logging.getLogger("dice")
     options = config["astrometry"]
@@ -42,12 +51,19 @@ def accuracy_table(centroid_paths, csv_path, tex_path, residuals_path, config):
     write_text_atomically(tex_path, astrometry.latex_table(rows))
     modes = list(residuals)
     index = residuals[modes[0]][0]
+    # barycentre residuals over every position, for the figure that shows why positions are selected
+    all_index = datasets[modes[0]]["position"].values
     product = xr.Dataset(
         {"residual": (("mode", "position", "star", "axis"), np.stack([residuals[m][1] for m in modes]),
                       {"units": "pixel", "long_name": "Procrustes residual of each star"}),
          "accuracy": (("mode",), [next(r["accuracy"] for r in rows if r["mode"] == m and r["grouping"] == "position")
-                                  for m in modes], {"units": "pixel", "long_name": "corrected accuracy (p)"})},
-        coords={"mode": modes, "position": index, "axis": ["x", "y"]})
+                                  for m in modes], {"units": "pixel", "long_name": "corrected accuracy (p)"}),
+         "barycentre_residual": (("mode", "all_position", "star", "axis"),
+                                 np.stack([_barycentre(astrometry.select_positions(datasets[m])[0])
+                                           for m in modes]),
+                                 {"units": "pixel", "long_name": "star minus the barycentre of the others, minus "
+                                                                 "its mean over positions"})},
+        coords={"mode": modes, "position": index, "all_position": all_index, "axis": ["x", "y"]})
     io.write_product(product, residuals_path, title="Procrustes residuals per calibration mode", config=config,
                      inputs=list(centroid_paths))
 
