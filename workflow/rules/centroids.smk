@@ -11,8 +11,7 @@ rule measure_centroids:
         centroids=f"{OUT}/centroids/{{mode}}.nc",
     params:
         code=code_version("io", "manifest", "centroids"),
-        # what a mode's product depends on: adding a mode to the list re-runs nothing else
-        options=lambda w: {k: v for k, v in config["centroids"].items() if k != "modes"},
+        options=centroid_options,
     log:
         f"{OUT}/logs/measure_centroids_{{mode}}.log",
     benchmark:
@@ -21,6 +20,15 @@ rule measure_centroids:
         "../envs/dice.yaml"
     script:
         "../scripts/measure_centroids.py"
+
+
+use rule measure_centroids as measure_centroids_by_method with:
+    output:
+        centroids=f"{OUT}/centroids/{{method}}/{{mode}}.nc",
+    log:
+        f"{OUT}/logs/measure_centroids_{{method}}_{{mode}}.log",
+    benchmark:
+        f"{OUT}/benchmarks/measure_centroids_{{method}}_{{mode}}.tsv"
 
 
 rule plot_centroids:

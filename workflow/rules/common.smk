@@ -63,6 +63,7 @@ wildcard_constraints:
     baseline="|".join(map(re.escape, MANIFEST.baselines)) or "(?!)",
     pair="|".join(map(re.escape, MANIFEST.pairs)) or "(?!)",
     mode="raw|flat|metrology|flat\\+metrology",
+    method="fourier|gaussian",
 
 
 def skipped(what, why):
@@ -177,6 +178,13 @@ def centroid_calibrations(wildcards):
     return inputs
 
 
+def centroid_options(wildcards):
+    """What a product depends on: the method and the window options, not the list of modes or methods,
+    so that adding an entry to either list runs only the new jobs."""
+    options = {k: v for k, v in config["centroids"].items() if k not in ("modes", "methods")}
+    return {**options, "method": getattr(wildcards, "method", config["centroids"]["methods"][0])}
+
+
 def centroid_targets():
     """Centroid products and figures of the configured modes that this dataset allows."""
     if not MANIFEST.positions:
@@ -194,6 +202,7 @@ def centroid_targets():
             skipped(f"centroid mode {mode}", "the dataset names no pair of metrology baselines")
             continue
         targets += [f"{OUT}/centroids/{mode}.nc", *figure_pair(f"centroids_{mode}").values()]
+        targets += [f"{OUT}/centroids/{method}/{mode}.nc" for method in config["centroids"]["methods"][1:]]
     return targets
 
 
@@ -206,4 +215,5 @@ def astrometry_targets():
 
 
 def centroid_products(wildcards):
+    """Every centroid product of the sweep: each allowed mode with each method."""
     return [t for t in centroid_targets() if t.endswith(".nc")]

@@ -36,19 +36,29 @@ def _barycentre(configurations):
 def accuracy_table(centroid_paths, csv_path, tex_path, residuals_path, config):
     log = logging.getLogger("dice")
     options = config["astrometry"]
-    datasets = {io.read_product(p).attrs["mode"]: io.read_product(p) for p in centroid_paths}
-    rows, residuals = astrometry.mode_accuracies(datasets, positions=options["positions"], groups=options["groups"],
-                                                 trials=options["trials"])
+    by_method = {}
+    for path in centroid_paths:
+        ds = io.read_product(path)
+        by_method.setdefault(ds.attrs["method"], {})[ds.attrs["mode"]] = ds
+    methods = [m for m in config["centroids"]["methods"] if m in by_method]
+    rows, tables = [], []
+    for method in methods:
+        method_rows, method_residuals = astrometry.mode_accuracies(
+            by_method[method], positions=options["positions"], groups=options["groups"], trials=options["trials"])
+        rows += method_rows
+        tables.append(f"% centroid method: {method}\n" + astrometry.latex_table(method_rows))
+        if method == methods[0]:  # the figures show the first method, whose products are centroids/<mode>.nc
+            datasets, residuals = by_method[method], method_residuals
     for row in rows:
-        log.info("mode %-15s %-8s n=%-3d accuracy %.2e +- %.1e pixel (rms residual %.2e x factor %.3f)",
-                 row["mode"], row["grouping"], row["n"], row["accuracy"], row["error"], row["rms_residual"],
-                 row["factor"])
+        log.info("%-8s mode %-15s %-8s n=%-3d accuracy %.2e +- %.1e pixel (rms residual %.2e x factor %.3f)",
+                 row["method"], row["mode"], row["grouping"], row["n"], row["accuracy"], row["error"],
+                 row["rms_residual"], row["factor"])
     lines = [",".join(COLUMNS)]
     for row in rows:
         lines.append(",".join(f"{row[c]:.6e}" if isinstance(row[c], float) else str(row[c]).lower()
                               if isinstance(row[c], bool) else str(row[c]) for c in COLUMNS))
     write_text_atomically(csv_path, "\n".join(lines) + "\n")
-    write_text_atomically(tex_path, astrometry.latex_table(rows))
+    write_text_atomically(tex_path, "\n".join(tables))
     modes = list(residuals)
     index = residuals[modes[0]][0]
     # barycentre residuals over every position, for the figure that shows why positions are selected

@@ -7,9 +7,8 @@ from dice_core import centroids, io
 from dice_core.manifest import load_manifest
 
 
-def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, mode, output, config):
+def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, mode, output, config, options):
     log = logging.getLogger("dice")
-    options = config["centroids"]
     manifest = load_manifest(manifest_path)
     use_flat, use_metrology = centroids.mode_corrections(mode)
     dark = io.read_product(dark_path)
@@ -39,4 +38,4 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, mode, o
 
 dice_core.run_logged(snakemake.log[0], measure_centroids, snakemake.input.manifest, snakemake.input.dark,
                      snakemake.input.get("prnu"), snakemake.input.get("offsets"), snakemake.wildcards.mode,
-                     snakemake.output.centroids, snakemake.config)
+                     snakemake.output.centroids, snakemake.config, snakemake.params.options)
