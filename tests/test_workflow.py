@@ -234,6 +234,33 @@ def test_external_dataset_with_a_bad_cube_fails_naming_it(workdir, out, tmp_path
     assert not list((workdir / "results" / "bench-broken").rglob("*.part"))
 
 
+def test_modes_without_their_calibration_are_skipped_or_refused(workdir, out, tmp_path):
+    """A dataset without flats: the flat modes are skipped, saying why (the dataset format lets any
+    section be absent); a metrology pair that the dataset does not have: a clear error."""
+    document = yaml.safe_load((out / "raw" / "dataset.yaml").read_text())
+    del document["flats"]
+    document["name"] = "bench-no-flats"
+    for section in ("dark", "stars", "metrology"):  # the raw files stay where they are
+        document.setdefault(section, {})
+    manifest = tmp_path / "dataset.yaml"
+    raw = out / "raw"
+    document["dark"]["files"] = [str(raw / f) for f in document["dark"]["files"]]
+    for position in document["stars"]["positions"]:
+        position["files"] = [str(raw / f) for f in position["files"]]
+    for baseline in document["metrology"]["baselines"].values():
+        baseline["files"] = [str(raw / f) for f in baseline["files"]]
+    manifest.write_text(yaml.safe_dump(document))
+    result = snakemake(workdir, "-n", "--config", f"dataset={manifest}")
+    said = result.stdout + result.stderr
+    assert "skipping centroid mode flat: the dataset has no flat field" in said
+    assert "skipping centroid mode flat+metrology: the dataset has no flat field" in said
+    assert "centroids/raw.nc" in said and "centroids/metrology.nc" in said and "centroids/flat.nc" not in said
+    (workdir / "bad_pair.yaml").write_text("centroids:\n  pair: P99\n")
+    result = snakemake(workdir, "-n", "--config", "dataset=ci", "--configfile", "bad_pair.yaml", check=False)
+    assert result.returncode != 0
+    assert "centroids.pair 'P99' is not a pair of" in result.stdout + result.stderr
+
+
 @pytest.mark.slow
 def test_default_preset_against_truth(tmp_path):
     """The README's main job (about 30 s): dark noise and PRNU of the 80x84 testbed against truth."""
