@@ -39,6 +39,7 @@ import numpy as np
 import xarray as xr
 
 from dice_core.fringes import frame_moments, photon_floor
+from dice_core.io import first_chunk
 from dice_core.polynomials import polynomial_design
 
 __all__ = [
@@ -423,8 +424,7 @@ def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector,
     reference_phase = k[0] * cols + k[1] * rows + np.hypot(*k) * offsets_map[rows, cols]
     level, amplitude = metrology["level"].values, metrology["amplitude"].values
     frame_factors = np.column_stack([level, amplitude * np.cos(phase), amplitude * np.sin(phase)])
-    first = next(iter(stream))
-    reference = first.frames.mean(axis=0)
+    reference = first_chunk(stream).frames.mean(axis=0)
     offsets = batch_offsets(stream.centred(reference), batches, frame_factors, np.nan_to_num(dark["dark"].values),
                             reference_phase, k, rows, cols, reference=reference, label=label)
     iota, alpha = metrology["iota"].values[rows, cols], metrology["alpha"].values[rows, cols]

@@ -30,6 +30,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import xarray as xr
 from scipy.optimize import least_squares
 
 __all__ = [
@@ -42,6 +43,12 @@ __all__ = [
     "Accuracy",
     "accuracy",
     "group_means",
+    "select_positions",
+    "mode_accuracies",
+    "latex_table",
+    "CSV_COLUMNS",
+    "accuracy_csv",
+    "residuals_dataset",
 ]
 
 
@@ -204,15 +211,28 @@ def correction_factor(result: ProcrustesResult, *, trials: int = 2000, seed: int
     degrees of freedom (4: the gauge): about sqrt(2SN / (2SN - 5N - 2S + 4)),
     sqrt(2) = 1.41 for 5 stars and many positions (the paper's 1.4).
     """
-    basis = _tangent_basis(result.mean, result.params)
-    rng = np.random.default_rng(seed)
-    residuals = _residuals(basis, rng.standard_normal((trials, basis.shape[0])))
-    ratios = 1.0 / np.sqrt(np.mean(residuals**2, axis=1))
+    ratios = 1.0 / np.sqrt(np.mean(_white_residuals(result, trials, seed) ** 2, axis=(1, 2, 3)))
     return float(ratios.mean()), float(ratios.std(ddof=1) / np.sqrt(trials))
 
 
+def _factors(white):
+    """Per-star and global correction factors from white-jitter residuals (trial, position, star, 2)."""
+    # per star: the jitter over the mean rms residual (unbiased for the accuracy, which multiplies
+    # a measured rms); globally, as correction_factor: the mean of jitter / rms over trials
+    per_star = 1.0 / np.sqrt(np.mean(white**2, axis=(1, 3))).mean(axis=0)
+    return per_star, float((1.0 / np.sqrt(np.mean(white**2, axis=(1, 2, 3)))).mean())
+
+
+def _white_residuals(result: ProcrustesResult, trials: int, seed: int, basis=None) -> np.ndarray:
+    """Residuals (trial, position, star, 2) that the superimposition leaves of unit white errors."""
+    basis = _tangent_basis(result.mean, result.params) if basis is None else basis
+    rng = np.random.default_rng(seed)
+    errors = rng.standard_normal((trials, basis.shape[0]))
+    return _residuals(basis, errors).reshape(trials, *result.residuals.shape)
+
+
 def star_factors(result: ProcrustesResult, *, trials: int = 2000, seed: int = 0) -> np.ndarray:
-    """The correction factor of each star (star,): white jitter over the rms of that star's residuals.
+    """The correction factor of each star (star,): white jitter over the mean rms of that star's residuals.
 
     The superimposition does not absorb all stars alike: the transforms have
     little leverage on a star near the centre of the pattern (factor about
@@ -221,11 +241,7 @@ def star_factors(result: ProcrustesResult, *, trials: int = 2000, seed: int = 0)
     the stars' errors differ, where one global factor would not (6% low for
     the spread of :func:`accuracy`'s test).
     """
-    basis = _tangent_basis(result.mean, result.params)
-    rng = np.random.default_rng(seed)
-    n_pos, n_star = result.residuals.shape[:2]
-    residuals = _residuals(basis, rng.standard_normal((trials, basis.shape[0]))).reshape(trials, n_pos, n_star, 2)
-    return 1.0 / np.sqrt(np.mean(residuals**2, axis=(1, 3))).mean(axis=0)
+    return _factors(_white_residuals(result, trials, seed))[0]
 
 
 @dataclass
@@ -261,13 +277,12 @@ def accuracy(configurations, *, trials: int = 2000, seed: int = 0) -> Accuracy:
     """
     c = _check(configurations)
     result = procrustes(c)
-    factors = star_factors(result, trials=trials, seed=seed)
+    basis = _tangent_basis(result.mean, result.params)  # one SVD for the factors and the error bar
+    factors, global_factor = _factors(_white_residuals(result, trials, seed, basis))
     value, per_star = _corrected(result.residuals, factors)
-    basis = _tangent_basis(result.mean, result.params)
     rng = np.random.default_rng(seed + 1)
     jitter = rng.standard_normal((trials, *c.shape)) * per_star[None, None, :, None]
     estimates, _ = _corrected(_residuals(basis, jitter.reshape(trials, -1)).reshape(trials, *c.shape), factors)
-    global_factor, _ = correction_factor(result, trials=trials, seed=seed)
     return Accuracy(float(value), float(np.std(estimates, ddof=1)), result.rms, global_factor, per_star, result)
 
 
@@ -357,3 +372,47 @@ def latex_table(rows) -> str:
         lines.append(f"{'Metrology' if metrology else 'No metrology'} & {entries[0]} & {entries[1]} " + r"\\")
     lines += [r"\hline", r"\end{tabular}", ""]
     return "\n".join(lines)
+
+
+#: Columns of ``tables/accuracy.csv``: the contract's first, then what makes each row traceable.
+CSV_COLUMNS = ("flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "n", "rms_residual", "factor")
+
+
+def accuracy_csv(rows) -> str:
+    """The rows of :func:`mode_accuracies` as CSV text (booleans as true/false, floats to 7 digits)."""
+    def text(value):
+        if isinstance(value, (bool, np.bool_)):
+            return str(bool(value)).lower()
+        return f"{value:.6e}" if isinstance(value, float) else str(value)
+
+    return "\n".join([",".join(CSV_COLUMNS), *(",".join(text(row[c]) for c in CSV_COLUMNS) for row in rows)]) + "\n"
+
+
+def _complete_barycentre_residuals(configurations):
+    """Barycentre residuals over the positions where every star was measured (NaN elsewhere)."""
+    complete = np.isfinite(configurations).all(axis=(1, 2))
+    out = np.full(configurations.shape, np.nan)
+    if complete.sum() >= 2:
+        out[complete] = barycentre_residuals(configurations[complete])
+    return out
+
+
+def residuals_dataset(datasets: dict, rows, residuals: dict) -> xr.Dataset:
+    """Procrustes residuals over the selected positions and barycentre residuals over all, per mode.
+
+    ``datasets``, ``rows`` and ``residuals`` are one method's: its centroid
+    datasets by mode, and what :func:`mode_accuracies` returned for them.
+    """
+    modes = list(residuals)
+    accuracy_p = {r["mode"]: r["accuracy"] for r in rows if r["grouping"] == "position"}
+    barycentre = [_complete_barycentre_residuals(select_positions(datasets[m])[0]) for m in modes]
+    return xr.Dataset(
+        {"residual": (("mode", "position", "star", "axis"), np.stack([residuals[m][1] for m in modes]),
+                      {"units": "pixel", "long_name": "Procrustes residual of each star"}),
+         "accuracy": (("mode",), [accuracy_p[m] for m in modes],
+                      {"units": "pixel", "long_name": "corrected accuracy (p)"}),
+         "barycentre_residual": (("mode", "all_position", "star", "axis"), np.stack(barycentre),
+                                 {"units": "pixel", "long_name": "star minus the barycentre of the others, minus "
+                                                                 "its mean over positions"})},
+        coords={"mode": modes, "position": residuals[modes[0]][0],
+                "all_position": datasets[modes[0]]["position"].values, "axis": ["x", "y"]})

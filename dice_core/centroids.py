@@ -95,7 +95,8 @@ class GaussianFit:
 
     ``width_x`` is the standard deviation along the direction ``angle`` (from
     +x towards +y; the major axis), ``width_y`` across it; ``cost`` is the
-    (weighted) sum of squared residuals.
+    (weighted) sum of squared residuals; ``params`` the fitted
+    (background, intensity, x, y, A, B, C) of the quadratic form.
     """
 
     background: float
@@ -106,14 +107,18 @@ class GaussianFit:
     width_y: float
     angle: float
     cost: float
+    params: np.ndarray
 
 
-def _gaussian_model(p, u0, v0):
+def _gaussian_model(p, xs, ys):
+    """Model values (pixel,) and their derivatives (pixel, 7) at pixel centres xs, ys."""
     b, amp, x, y, a, bb, c = p
-    u, v = u0 - x, v0 - y
-    q = a * u * u + 2 * bb * u * v + c * v * v
-    e = np.exp(-0.5 * q)
-    return b + amp * e, u, v, e
+    u, v = xs - x, ys - y
+    e = np.exp(-0.5 * (a * u * u + 2 * bb * u * v + c * v * v))
+    ae = amp * e
+    jacobian = np.column_stack([np.ones_like(e), e, ae * (a * u + bb * v), ae * (bb * u + c * v),
+                                -0.5 * ae * u * u, -ae * u * v, -0.5 * ae * v * v])
+    return b + ae, jacobian
 
 
 def gaussian_fit(image: np.ndarray, window: Window, *, weights=None) -> GaussianFit:
@@ -153,13 +158,7 @@ def gaussian_fit(image: np.ndarray, window: Window, *, weights=None) -> Gaussian
         return w * (_gaussian_model(p, xs, ys)[0] - data)
 
     def jacobian(p):
-        _, amp, _, _, a, bb, c = p
-        _, u, v, e = _gaussian_model(p, xs, ys)
-        ae = amp * e
-        return w[:, None] * np.column_stack([
-            np.ones_like(e), e,
-            ae * (a * u + bb * v), ae * (bb * u + c * v),
-            -0.5 * ae * u * u, -ae * u * v, -0.5 * ae * v * v])
+        return w[:, None] * _gaussian_model(p, xs, ys)[1]
 
     result = least_squares(residual, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
                            max_nfev=2000)
@@ -168,21 +167,7 @@ def gaussian_fit(image: np.ndarray, window: Window, *, weights=None) -> Gaussian
     eigenvalues, eigenvectors = np.linalg.eigh(covariance)
     angle = float(np.arctan2(eigenvectors[1, 1], eigenvectors[0, 1]))
     return GaussianFit(float(b), float(amp), float(x), float(y), float(np.sqrt(eigenvalues[1])),
-                       float(np.sqrt(eigenvalues[0])), angle, float(2 * result.cost))
-
-
-def _jacobian_at(fit: GaussianFit, window: Window):
-    """Model values and derivatives (pixel, 7) of a fitted Gaussian, for its error budget."""
-    covariance = np.array([[np.cos(fit.angle), -np.sin(fit.angle)], [np.sin(fit.angle), np.cos(fit.angle)]])
-    covariance = covariance @ np.diag([fit.width_x**2, fit.width_y**2]) @ covariance.T
-    a, bb, c = np.linalg.inv(covariance)[[0, 0, 1], [0, 1, 1]]
-    xg, yg = window.grid()
-    p = np.array([fit.background, fit.intensity, fit.x, fit.y, a, bb, c])
-    model, u, v, e = _gaussian_model(p, xg.ravel(), yg.ravel())
-    ae = fit.intensity * e
-    jac = np.column_stack([np.ones_like(e), e, ae * (a * u + bb * v), ae * (bb * u + c * v),
-                           -0.5 * ae * u * u, -ae * u * v, -0.5 * ae * v * v])
-    return model, jac
+                       float(np.sqrt(eigenvalues[0])), angle, float(2 * result.cost), result.x.copy())
 
 
 def cramer_rao(fit: GaussianFit, window: Window, *, gain: float, read_noise) -> np.ndarray:
@@ -192,7 +177,8 @@ def cramer_rao(fit: GaussianFit, window: Window, *, gain: float, read_noise) -> 
     noise (adu, scalar or per pixel of the window), all 7 parameters free:
     the bound is sqrt of the diagonal of the inverse Fisher matrix.
     """
-    model, jac = _jacobian_at(fit, window)
+    xg, yg = window.grid()
+    model, jac = _gaussian_model(fit.params, xg.ravel(), yg.ravel())
     variance = np.clip(model, 0, None) / gain + np.ravel(np.broadcast_to(read_noise, (window.size,) * 2)) ** 2
     fisher = jac.T @ (jac / variance[:, None])
     return np.sqrt(np.diag(np.linalg.inv(fisher))[2:4])

@@ -52,7 +52,7 @@ import numpy as np
 import scipy.linalg
 import xarray as xr
 
-from dice_core.io import Chunk
+from dice_core.io import Chunk, first_chunk
 from dice_core.polynomials import polynomial_design
 
 __all__ = [
@@ -486,10 +486,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         raise ValueError(f"max_passes must be >= 2 (the convergence test compares two passes), got {max_passes}")
     mask = detector.science_mask()
     dark0 = np.nan_to_num(dark)
-    chunks = iter(stream)
-    first = next(chunks)
-    if hasattr(chunks, "close"):  # a generator: release its file now, not at garbage collection
-        chunks.close()
+    first = first_chunk(stream)
     reference = first.frames.mean(axis=0)  # centres the float32 products (see _pass)
     centred = hasattr(stream, "centred")
     if centred:  # the reader subtracts it while converting, at no extra pass; _pass only folds it in

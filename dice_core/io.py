@@ -40,7 +40,9 @@ __all__ = [
     "open_cube",
     "write_cube",
     "write_product",
+    "write_text",
     "read_product",
+    "first_chunk",
     "CHUNK_BYTES",
     "auto_chunk_frames",
 ]
@@ -427,6 +429,28 @@ def write_cube(path, chunks, *, shape, n_frames, dtype="uint16", header=None):
 
 def _jsonable(value):
     return json.dumps(value, sort_keys=True, default=str)
+
+
+def first_chunk(chunks) -> Chunk:
+    """The first chunk of a re-iterable of chunks, its file released at once (e.g. for a reference frame)."""
+    iterator = iter(chunks)
+    try:
+        return next(iterator)
+    finally:
+        if hasattr(iterator, "close"):  # a generator: close its file now, not at garbage collection
+            iterator.close()
+
+
+def write_text(path, text: str):
+    """Write a text file (a table) atomically: under a temporary name, then renamed."""
+    path = Path(path)
+    tmp = _atomic_target(path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=()):

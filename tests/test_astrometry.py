@@ -74,3 +74,9 @@ def test_bad_input(rng):
     configurations[4, 2, 0] = np.nan
     with pytest.raises(astrometry.AstrometryError, match="NaN"):
         astrometry.accuracy(configurations)
+
+
+def test_the_central_star_is_barely_absorbed_the_corners_much(rng):
+    """Per-star factors (docs/astrometry.md): the transforms have little leverage on the centre."""
+    factors = astrometry.star_factors(astrometry.procrustes(transformed(rng, 33)))
+    assert factors[0] < 1.25 and np.all(factors[1:] > 1.45)

@@ -262,3 +262,14 @@ def test_chunk_size_is_chosen_for_the_cache_unless_given(tmp_path, rng):
     for bad in (0, "fast"):
         with pytest.raises(ValueError, match="chunk_frames"):
             stream([tmp_path / "a.fits"], chunk_frames=bad)
+
+
+def test_text_is_written_atomically_and_a_failure_keeps_the_old_file(tmp_path):
+    from dice_core.io import write_text
+
+    path = tmp_path / "tables" / "a.csv"
+    write_text(path, "a,b\n1,2\n")
+    assert path.read_text() == "a,b\n1,2\n"
+    with pytest.raises(TypeError):
+        write_text(path, None)  # not text: nothing is written
+    assert path.read_text() == "a,b\n1,2\n" and list(path.parent.iterdir()) == [path]
