@@ -47,6 +47,7 @@ def run_logged(log_path, step, /, *args, **kwargs):
     (and Snakemake) sees the step fail.
     """
     import logging
+    import os
 
     handler = logging.FileHandler(log_path, mode="w")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
@@ -56,6 +57,10 @@ def run_logged(log_path, step, /, *args, **kwargs):
     logging.captureWarnings(True)
     log = logging.getLogger("dice")
     log.info("dice_core %s: %s", __version__, getattr(step, "__name__", step))
+    # What the environment asks of thread pools; the reductions set their own (dice_core.parallel).
+    threads = [f"{name}={os.environ[name]}" for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                                          "MKL_NUM_THREADS") if name in os.environ]
+    log.info("thread variables in the environment: %s", ", ".join(threads) or "none")
     try:
         result = step(*args, **kwargs)
     except Exception:

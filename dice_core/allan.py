@@ -34,12 +34,14 @@ Units: pixel for offsets and deviations, frames for integration lengths.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 import xarray as xr
 
 from dice_core.fringes import frame_moments, photon_floor
 from dice_core.io import first_chunk
+from dice_core.parallel import LANES, blas_threads, lane_executor, lane_workers, one_blas_thread
 from dice_core.polynomials import polynomial_design
 
 __all__ = [
@@ -104,15 +106,82 @@ def _remove_affine(design, values):
     return values - design @ np.linalg.lstsq(design, values, rcond=None)[0]
 
 
+def _wrapped_about_mean(phase):
+    """Phases wrapped to (-pi, pi] about their circular mean (pixel,), rad.
+
+    A batch's pixel phases differ from the global solution's by a constant
+    that the gauge leaves free (the common phase of theta and phi(t)) plus the
+    small offset changes; wrapped about zero, a constant near pi would split
+    the pixels between +pi and -pi and give offsets of a whole period.
+    """
+    centre = np.angle(np.mean(np.exp(1j * phase)))
+    return np.angle(np.exp(1j * (phase - centre)))
+
+
+@dataclass(frozen=True)
+class _BatchFit:
+    """What turns a batch's sums F'X into its offsets (see :func:`batch_offsets`)."""
+
+    idx: np.ndarray  # flat indices of the fitted pixels
+    level: np.ndarray  # (reference - dark) at those pixels, adu
+    reference_phase: np.ndarray  # rad
+    design: np.ndarray  # affine design over the pixels
+    k_norm: float  # rad/pixel
+
+    def offsets(self, F, FtX):
+        """Projected offsets (pixel,) of a batch with frame factors F (frame, 3) and sums F'X (3, pixel of idx)."""
+        G = np.linalg.solve(F.T @ F, FtX + np.outer(F.sum(axis=0), self.level))
+        delta = _wrapped_about_mean(np.arctan2(G[1], G[2]) - self.reference_phase)
+        return _remove_affine(self.design, delta) / self.k_norm
+
+
+def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
+    """One lane's part of :func:`batch_offsets`: the batches its chunks hold whole, and the others' partial sums.
+
+    Returns ``(done, partial, blas_threads)``: ``done`` maps a batch index to its offsets
+    (pixel,), ``partial`` maps a batch the chunks hold only part of to its
+    sums F'X over those frames (3, pixel of ``fit.idx``) and the number of
+    those frames; ``blas_threads`` those of the process that ran it (for the
+    log). Module-level, so that a worker process can run it.
+    """
+    n_total = len(batches)
+    lengths = batches[:, 1] - batches[:, 0]
+    done, sums, covered = {}, {}, {}
+    for chunk in chunks:
+        n = chunk.frames.shape[0]
+        X = chunk.frames.reshape(n, -1)
+        lo_frame, hi_frame = chunk.start, chunk.start + n
+        # batches overlapping this chunk: those whose stop is after its first frame and start before its end
+        first = int(np.searchsorted(batches[:, 1], lo_frame, side="right"))
+        for b in range(first, n_total):
+            start, stop = batches[b]
+            if start >= hi_frame:
+                break
+            lo, hi = max(lo_frame, start), min(hi_frame, stop)
+            F = frame_factors[lo:hi].astype(X.dtype)
+            # F'X on whole frames (a chunk is never copied), summed in float64
+            part = (F.T @ X[lo - lo_frame:hi - lo_frame]).astype(np.float64)[:, fit.idx]
+            sums[b] = part if b not in sums else sums[b] + part
+            covered[b] = covered.get(b, 0) + hi - lo
+            if covered[b] == lengths[b]:
+                done[b] = fit.offsets(frame_factors[start:stop], sums.pop(b))
+                del covered[b]
+                if len(done) % 100 == 0:
+                    log.info("%s: %d batches fitted in one part of the frames", label, len(done))
+    return done, {b: (part, covered[b]) for b, part in sums.items()}, blas_threads()
+
+
+@one_blas_thread
 def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows, cols, *,
-                  reference=None, label="baseline"):
+                  reference=None, workers: int = 1, label="baseline"):
     """Projected offsets of every pixel in every batch, in one pass over the frames.
 
     For each batch b, with the frame factors F_t = (B, A cos phi, A sin phi)(t)
     of the global solution, the pixel factors are G_b = (F_b'F_b)^-1 F_b' I_b
     (the temporal sine fit of appendix B), the batch phase
-    theta_b = atan2(G_b1, G_b2), and the offsets the wrapped difference to
-    ``reference_phase`` divided by |K|, with their affine part removed (as
+    theta_b = atan2(G_b1, G_b2), and the offsets its difference to
+    ``reference_phase``, wrapped about its circular mean (the constant phase
+    the gauge leaves free), divided by |K|, with their affine part removed (as
     every offset map is defined).
 
     Parameters
@@ -120,7 +189,8 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     chunks : iterable of Chunk
         The acquisition's frames in order, adu (float32 or float64); if
         ``reference`` is given, each chunk holds frames minus ``reference``
-        (see :meth:`dice_core.io.FrameStream.centred`).
+        (see :meth:`dice_core.io.FrameStream.centred`). A stream with a
+        ``split`` method is read in :data:`dice_core.parallel.LANES` parts.
     batches : ndarray (batch, 2)
         From :func:`fringe_batches`.
     frame_factors : ndarray (frame, 3)
@@ -135,6 +205,9 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
         Pixels to fit.
     reference : ndarray (row, col), optional
         Frame subtracted from the chunks by the reader, adu.
+    workers : int
+        Processes reading the parts at once, one BLAS thread each; the result
+        does not depend on it (the parts are fixed and summed in order).
 
     Returns
     -------
@@ -145,38 +218,36 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     n_cols = np.shape(dark)[1]
     idx = rows * n_cols + cols
     centre = np.zeros(np.size(dark)) if reference is None else np.ravel(reference).astype(np.float64)
-    level = (centre - np.ravel(dark))[idx]  # X - d = (X - r) + (r - d), folded into the sums
-    design = polynomial_design(cols.astype(float), rows.astype(float), 1)
-    k_norm = float(np.hypot(*k))
+    fit = _BatchFit(idx=idx, level=(centre - np.ravel(dark))[idx],  # X - d = (X - r) + (r - d)
+                    reference_phase=np.asarray(reference_phase, float),
+                    design=polynomial_design(cols.astype(float), rows.astype(float), 1),
+                    k_norm=float(np.hypot(*k)))
+    batches = np.asarray(batches)
+    lanes = chunks.split(LANES) if hasattr(chunks, "split") else [chunks]
+    with lane_executor(workers, len(lanes)) as executor:
+        log.info("%s: %d batch fits over %d part(s) of the frames, in %d process(es)", label, len(batches),
+                 len(lanes), lane_workers(workers, len(lanes)))
+        n = len(lanes)
+        args = ([batches] * n, [frame_factors] * n, [fit] * n, [label] * n)
+        results = list(map(_lane_batch_offsets, lanes, *args) if executor is None
+                       else executor.map(_lane_batch_offsets, lanes, *args))
+    log.info("%s: BLAS threads: %d in this process, %s in the processes that read the parts", label,
+             blas_threads(), ", ".join(str(threads) for _, _, threads in results))
     out = np.full((len(batches), idx.size), np.nan)
-    FtX = np.zeros((3, np.size(dark)))  # whole frames: a chunk is never copied
-    b = 0
-    for chunk in chunks:
-        n = chunk.frames.shape[0]
-        X = chunk.frames.reshape(n, -1)
-        first = chunk.start
-        while b < len(batches) and first < chunk.start + n:
-            start, stop = batches[b]
-            lo, hi = max(first, start), min(chunk.start + n, stop)
-            if hi > lo:
-                F = frame_factors[lo:hi].astype(X.dtype)
-                FtX += (F.T @ X[lo - chunk.start:hi - chunk.start]).astype(np.float64)
-            if hi < stop:
-                break
-            F = frame_factors[start:stop]
-            G = np.linalg.solve(F.T @ F, FtX[:, idx] + np.outer(F.sum(axis=0), level))
-            theta = np.arctan2(G[1], G[2])
-            delta = np.angle(np.exp(1j * (theta - reference_phase)))
-            out[b] = _remove_affine(design, delta) / k_norm
-            FtX[:] = 0
-            first = stop
-            b += 1
-            if b % 50 == 0:
-                log.info("%s: %d / %d batches fitted", label, b, len(batches))
-        if b == len(batches):
-            break
-    if b < len(batches):
-        raise AllanError(f"{label}: the frames ended in batch {b} of {len(batches)}")
+    partial, covered = {}, {}
+    for done, sums, _ in results:  # in lane order, so that a batch cut between parts sums the same way always
+        for b, offsets in done.items():
+            out[b] = offsets
+        for b, (part, n_frames) in sums.items():
+            partial[b] = part if b not in partial else partial[b] + part
+            covered[b] = covered.get(b, 0) + n_frames
+    for b, part in partial.items():
+        start, stop = batches[b]
+        if covered[b] == stop - start:
+            out[b] = fit.offsets(frame_factors[start:stop], part)
+    fitted = np.isfinite(out).any(axis=1)
+    if not fitted.all():
+        raise AllanError(f"{label}: the frames ended in batch {np.flatnonzero(~fitted)[0]} of {len(batches)}")
     return out
 
 
@@ -390,7 +461,7 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
 
 
 def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector, *, block: int = 10,
-                      label: str = "baseline") -> xr.Dataset:
+                      workers: int = 1, label: str = "baseline") -> xr.Dataset:
     """Allan deviations of one baseline from its raw frames and its global solution.
 
     Parameters
@@ -406,6 +477,8 @@ def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector,
     detector : Detector
     block : int
         Side of the pixel blocks, pixel.
+    workers : int
+        Processes reading the stream's parts at once (see :func:`batch_offsets`).
 
     Raises
     ------
@@ -426,7 +499,7 @@ def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector,
     frame_factors = np.column_stack([level, amplitude * np.cos(phase), amplitude * np.sin(phase)])
     reference = first_chunk(stream).frames.mean(axis=0)
     offsets = batch_offsets(stream.centred(reference), batches, frame_factors, np.nan_to_num(dark["dark"].values),
-                            reference_phase, k, rows, cols, reference=reference, label=label)
+                            reference_phase, k, rows, cols, reference=reference, workers=workers, label=label)
     iota, alpha = metrology["iota"].values[rows, cols], metrology["alpha"].values[rows, cols]
     read_noise = np.nan_to_num(dark["noise"].values[rows, cols])
     pixel_factors = np.column_stack([iota, alpha * np.sin(reference_phase), alpha * np.cos(reference_phase)])

@@ -41,10 +41,7 @@ adu for B and A.
 
 from __future__ import annotations
 
-import concurrent.futures
-import contextlib
 import logging
-import multiprocessing
 from dataclasses import dataclass, field
 from typing import Iterable
 
@@ -53,6 +50,7 @@ import scipy.linalg
 import xarray as xr
 
 from dice_core.io import Chunk, first_chunk
+from dice_core.parallel import LANES, blas_threads, lane_executor, lane_workers, one_blas_thread
 from dice_core.polynomials import polynomial_design
 
 __all__ = [
@@ -284,8 +282,9 @@ def _accumulate(chunks: Iterable[Chunk], projector, offset, centre, subtract_cen
     """The streaming part of a pass over one run of chunks (see :func:`_pass`).
 
     Returns the frame products X P (frame, m) in the chunks' type, F'X (3,
-    pixel) in float64, with F = X P[:, :3] - offset[:3], and the pixels holding a
-    saturated sample. Module-level, so that a worker process can run it.
+    pixel) in float64, with F = X P[:, :3] - offset[:3], the pixels holding a
+    saturated sample, and the BLAS threads of the process that ran it (for the
+    log). Module-level, so that a worker process can run it.
     """
     n_pixels = projector.shape[0]
     projector_c = centre_c = offset_c = work = None
@@ -312,7 +311,7 @@ def _accumulate(chunks: Iterable[Chunk], projector, offset, centre, subtract_cen
             saturated |= chunk.saturated.reshape(n, -1).any(axis=0)
         products.append(coef)
     products = np.concatenate(products) if products else np.empty((0, projector.shape[1]))
-    return products, FtX, saturated
+    return products, FtX, saturated, blas_threads()
 
 
 def _pass(lanes, dark, idx, G, *, extra=None, reference=None, centred=False, executor=None):
@@ -336,8 +335,8 @@ def _pass(lanes, dark, idx, G, *, extra=None, reference=None, centred=False, exe
     in lane order: the result does not depend on which.
     ``extra`` (pixel, m) adds regressors to the frame fit only (the K(t) terms).
     Returns frame factors (frame, 3 [+m]), F'I (3, pixel), F'F (3, 3), the
-    third moments sum_t F_tk F_t F_t' (3, 3, 3), and the pixels of ``idx``
-    holding a saturated sample.
+    third moments sum_t F_tk F_t F_t' (3, 3, 3), the pixels of ``idx``
+    holding a saturated sample, and the BLAS threads each lane ran with.
     """
     design = G if extra is None else np.column_stack([G, extra])
     n_pixels = dark.size
@@ -353,11 +352,11 @@ def _pass(lanes, dark, idx, G, *, extra=None, reference=None, centred=False, exe
         n = len(lanes)
         results = list(executor.map(_accumulate, lanes, [projector] * n, [offset] * n, [centre] * n,
                                     [subtract_centre] * n))
-    coef = np.concatenate([products for products, _, _ in results]).astype(np.float64) - offset
+    coef = np.concatenate([products for products, _, _, _ in results]).astype(np.float64) - offset
     if coef.shape[0] == 0:
         raise FringeError("no frames to fit")
     FtX, saturated = np.zeros((3, n_pixels)), np.zeros(n_pixels, bool)
-    for _, lane_FtX, lane_saturated in results:
+    for _, lane_FtX, lane_saturated, _ in results:
         FtX += lane_FtX
         saturated |= lane_saturated
     F = coef[:, :3]
@@ -365,7 +364,7 @@ def _pass(lanes, dark, idx, G, *, extra=None, reference=None, centred=False, exe
     # per pass instead of a few small operations per chunk.
     FtI = FtX[:, idx] + np.outer(F.sum(axis=0), level[idx])
     FtF, third = frame_moments(F)
-    return coef, FtI, FtF, third, saturated[idx]
+    return coef, FtI, FtF, third, saturated[idx], [threads for _, _, _, threads in results]
 
 
 def frame_moments(F):
@@ -397,29 +396,7 @@ def _phase_coverage(phase, bins=16):
     return np.unique(np.clip(sectors, 0, bins - 1)).size / bins
 
 
-#: Consecutive parts a :class:`dice_core.io.FrameStream` is reduced in (see ``fit_baseline``'s ``workers``).
-LANES = 2
-
-
-def _lane_executor(workers: int, n_lanes: int):
-    """Worker processes for the lanes of a pass, or a context holding None to run them in this process.
-
-    Processes, not threads: the per-chunk work is a series of numpy calls too
-    short for two threads to overlap under the interpreter lock (measured: two
-    threads 1.0-1.1x as fast as one, two processes 1.7-1.9x; BENCHMARKS.md).
-    Forked, so that the workers start in milliseconds with everything imported.
-    """
-    if _lane_workers(workers, n_lanes) > 1:
-        return concurrent.futures.ProcessPoolExecutor(_lane_workers(workers, n_lanes),
-                                                      mp_context=multiprocessing.get_context("fork"))
-    return contextlib.nullcontext(None)
-
-
-def _lane_workers(workers: int, n_lanes: int) -> int:
-    """Worker processes used: no more than lanes, and none where processes cannot be forked."""
-    return min(workers, n_lanes) if "fork" in multiprocessing.get_all_start_methods() else 1
-
-
+@one_blas_thread
 def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, tolerance=1e-7, max_passes=10,
                  min_contrast=0.02, min_relative_contrast=0.5, smooth_degree=6, workers=1,
                  label="baseline") -> FringeSolution:
@@ -467,7 +444,8 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         ``split`` method (:class:`dice_core.io.FrameStream`) is always reduced
         in the same consecutive parts (``LANES``, groups of whole files), one
         after the other with one worker: the result does not depend on
-        ``workers``, only the time does.
+        ``workers``, only the time does. Every process runs one BLAS thread,
+        whatever the environment says (:mod:`dice_core.parallel`).
     label : str
         Name in log messages and errors.
 
@@ -499,16 +477,19 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     xc, yc = x - x.mean(), y - y.mean()
 
     lanes = stream.split(LANES) if hasattr(stream, "split") else [stream]
-    with _lane_executor(workers, len(lanes)) as executor:
+    with lane_executor(workers, len(lanes)) as executor:
         log.info("%s: each pass reads %d part(s) of the frames, in %d process(es)", label, len(lanes),
-                 max(1, _lane_workers(workers, len(lanes))))
+                 lane_workers(workers, len(lanes)))
         # Pass 1: perfect pixels; K free per frame, linearised about k0:
         # sin(theta + phi + dK.r) ~ sin(theta + phi) + (dK.r)(u1 alpha cos theta - u2 alpha sin theta).
         theta0 = k0[0] * xc + k0[1] * yc
         G = np.column_stack([np.ones(idx.size), np.sin(theta0), np.cos(theta0)])
         extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
-        coef, FtI, FtF, third, saturated = _pass(lanes, dark0, idx, G, extra=extra, reference=reference,
-                                                 centred=centred, executor=executor)
+        coef, FtI, FtF, third, saturated, lane_threads = _pass(lanes, dark0, idx, G, extra=extra,
+                                                               reference=reference, centred=centred,
+                                                               executor=executor)
+        log.info("%s: BLAS threads: %d in this process, %s in the processes that read the parts", label,
+                 blas_threads(), ", ".join(map(str, lane_threads)))
         u1, u2 = coef[:, 1], coef[:, 2]
         amp2 = u1**2 + u2**2
         if np.median(np.sqrt(amp2) / np.abs(coef[:, 0])) < min_contrast:
@@ -534,7 +515,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         for n_pass in range(1, max_passes + 1):
             fit_idx = idx[active]
             if n_pass > 1:
-                coef, FtI, FtF, third, _ = _pass(lanes, dark0, fit_idx, np.linalg.solve(FtF, FtI).T,
+                coef, FtI, FtF, third, _, _ = _pass(lanes, dark0, fit_idx, np.linalg.solve(FtF, FtI).T,
                                                  reference=reference, centred=centred, executor=executor)
             F = coef[:, :3]
             G_new = np.linalg.solve(FtF, FtI).T

@@ -7,7 +7,7 @@ import pytest
 import xarray as xr
 
 from dice_core import allan, fringes, simulation
-from dice_core.io import FrameStream, read_product
+from dice_core.io import Chunk, FrameStream, first_chunk, read_product
 from dice_core.manifest import load_manifest
 
 
@@ -137,3 +137,70 @@ def test_too_few_frames_for_two_batches(photon_limited, tmp_path):
     stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
     with pytest.raises(allan.AllanError, match="6000 frames, its solution"):
         allan.allan_of_baseline(stream, short, xr.Dataset(), manifest.detector)
+
+
+def synthetic_fringes(rng, *, n_frames=1200, shape=(12, 14), k=(2.6, 0.15), noise=1.0):
+    """Chunks of fringes I = B + A sin(theta_p + phi(t)) + noise, with their frame factors and pixel phases."""
+    rows, cols = (a.ravel() for a in np.indices(shape))
+    theta = k[0] * cols + k[1] * rows
+    phi = 2 * np.pi * np.arange(n_frames) / 97.0
+    level, amplitude = 1000.0, 600.0
+    frames = level + amplitude * np.sin(theta[None, :] + phi[:, None]) + noise * rng.standard_normal((n_frames,
+                                                                                                      theta.size))
+    frames = frames.reshape(n_frames, *shape)
+    chunks = [Chunk(start, frames[start:start + 100], np.zeros((min(100, n_frames - start), *shape), bool), False)
+              for start in range(0, n_frames, 100)]
+    factors = np.column_stack([np.full(n_frames, level), amplitude * np.cos(phi), amplitude * np.sin(phi)])
+    return chunks, factors, phi, theta, rows, cols
+
+
+@pytest.mark.parametrize("constant", [np.pi - 1e-3, np.pi + 1e-3, -np.pi + 2e-4, 0.4])
+def test_batch_offsets_ignore_the_constant_phase_the_gauge_leaves_free(rng, constant):
+    """The reference phases may differ from the batches' by any constant, near pi included (issue 10)."""
+    chunks, factors, phi, theta, rows, cols = synthetic_fringes(rng)
+    batches = allan.fringe_batches(phi)
+    k = (2.6, 0.15)
+    pattern = 2e-3 * np.where((rows + cols) % 2 == 0, 1.0, -1.0)  # rad: offsets the batches must show
+    reference_phase = theta + constant + pattern
+    offsets = allan.batch_offsets(chunks, batches, factors, np.zeros((12, 14)), reference_phase, k, rows, cols)
+    design = np.column_stack([np.ones(rows.size), cols, rows])
+    expected = -(pattern - design @ np.linalg.lstsq(design, pattern, rcond=None)[0]) / np.hypot(*k)
+    # noise: 1 adu on 600 adu of fringe over ~100 frames, about 1.4e-4 rad, 5e-5 pixel
+    assert np.max(np.abs(offsets - expected)) < 5e-4
+    assert np.sqrt(np.mean((offsets - expected) ** 2)) < 1e-4
+
+
+def test_allan_is_the_same_bit_for_bit_whatever_the_workers(tmp_path):
+    """Fixed lanes of whole files, summed in order; a batch cut between two lanes sums their parts."""
+    cfg = simulation.SimulationConfig.from_dict({
+        "name": "allan-lanes", "frames_per_file": 450,
+        "detector": {"shape": [40, 44], "science_rows": [2, 39], "science_cols": [3, 43]},
+        "dark": {"frames": 2}, "flats": {"frames": 2},
+        "stars": {"positions": 1, "frames": 1, "pattern_centre": [23.0, 20.0], "pattern_side": 16.0},
+        "metrology": {"frames": 1800, "sweep_frames": 300,
+                      "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
+    manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
+    truth = read_product(tmp_path / "truth.nc")
+    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
+    assert len(stream.split(2)) == 2
+    solution = fringes.fit_baseline(stream, truth["bias"].values, manifest.detector,
+                                    flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
+    metrology = fringes.solution_dataset(solution, manifest.detector)
+    dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
+                       "noise": (("row", "col"), truth["read_noise"].values)})
+    one, two = (allan.allan_of_baseline(stream, metrology, dark, manifest.detector, workers=n) for n in (1, 2))
+    xr.testing.assert_identical(one, two)
+    assert "the frames ended" not in str(one.attrs)
+    # lanes are a summation order, not a different estimate: the same batch fits from one list of chunks
+    phase = metrology["phase"].values
+    rows, cols = np.nonzero(np.isfinite(metrology["projected_offset"].values))
+    k = np.array([float(metrology["kx"]), float(metrology["ky"])])
+    reference_phase = k[0] * cols + k[1] * rows + np.hypot(*k) * metrology["projected_offset"].values[rows, cols]
+    factors = np.column_stack([metrology["level"].values, metrology["amplitude"].values * np.cos(phase),
+                               metrology["amplitude"].values * np.sin(phase)])
+    batches = allan.fringe_batches(phase)
+    assert any(start < 900 < stop for start, stop in batches)  # a batch cut between the two lanes
+    reference = first_chunk(stream).frames.mean(axis=0)  # as allan_of_baseline centres the float32 frames
+    whole = allan.batch_offsets(list(stream.centred(reference)), batches, factors, truth["bias"].values,
+                                reference_phase, k, rows, cols, reference=reference)
+    np.testing.assert_allclose(one["batch_offset"].values[:, rows, cols], whole, rtol=0, atol=1e-8)

@@ -122,7 +122,7 @@ def naive_offsets(manifest, truth, baseline):
     theta = kx * cols + ky * rows
     G = np.column_stack([np.ones(idx.size), np.sin(theta), np.cos(theta)])
     for _ in range(3):
-        _, FtI, FtF, _, _ = fringes._pass([stream], truth["bias"].values, idx, G)
+        _, FtI, FtF, _, _, _ = fringes._pass([stream], truth["bias"].values, idx, G)
         G = np.linalg.solve(FtF, FtI).T
     k, offsets = fringes.projected_offsets(np.arctan2(G[:, 1], G[:, 2]), cols.astype(float), rows.astype(float),
                                            np.array([kx, ky]))

@@ -123,6 +123,15 @@ def test_metrology_products_follow_the_contract_and_the_truth(out):
     assert float(difference["ddx_std"]) < 1.3 * float(difference["ddx_photon_noise_floor"])
 
 
+@pytest.mark.parametrize("step", ["fit_fringes_H1H4", "allan_deviation_H1H4"])
+def test_steps_run_one_blas_thread_per_worker_whatever_snakemake_sets(out, step):
+    """Snakemake sets the thread variables to a rule's threads (2); each process still runs one BLAS thread."""
+    log = (out / "logs" / f"{step}.log").read_text()
+    assert "OPENBLAS_NUM_THREADS=2" in log  # what Snakemake asked for
+    assert "BLAS threads: 1 in this process, 1, 1 in the processes that read the parts" in log
+    assert "in 2 process(es)" in log
+
+
 def test_allan_product_follows_the_contract(out):
     manifest = load_manifest(out / "raw" / "dataset.yaml")
     outside = ~manifest.detector.science_mask()

@@ -2,6 +2,7 @@
 # and each other pair's difference from the reference pair.
 
 
+# threads: worker processes reading parts of the frames, one BLAS thread each (dice_core.parallel).
 rule fit_fringes:
     threads: 2
     input:
@@ -12,7 +13,7 @@ rule fit_fringes:
     output:
         metrology=f"{OUT}/metrology/{{baseline}}.nc",
     params:
-        code=code_version("io", "manifest", "fringes", "polynomials"),
+        code=code_version("io", "manifest", "fringes", "parallel", "polynomials"),
     log:
         f"{OUT}/logs/fit_fringes_{{baseline}}.log",
     benchmark:
@@ -58,6 +59,7 @@ rule compare_pairs:
 
 
 rule allan_deviation:
+    threads: 2
     input:
         manifest=MANIFEST_FILE,
         metrology=rules.fit_fringes.output.metrology,
@@ -66,7 +68,7 @@ rule allan_deviation:
     output:
         allan=f"{OUT}/allan/{{baseline}}.nc",
     params:
-        code=code_version("io", "manifest", "allan", "fringes", "polynomials"),
+        code=code_version("io", "manifest", "allan", "fringes", "parallel", "polynomials"),
     log:
         f"{OUT}/logs/allan_deviation_{{baseline}}.log",
     benchmark:

@@ -1,25 +1,20 @@
 """Snakemake step: Allan deviations of one baseline's projected offsets (one more pass over its frames)."""
 
-import os
+import logging
 
-# Before numpy loads: one BLAS thread (products over cache-sized chunks; see fit_fringes.py).
-for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(variable, "1")
-
-import logging  # noqa: E402
-
-import dice_core  # noqa: E402
-from dice_core import allan, io  # noqa: E402
-from dice_core.manifest import load_manifest  # noqa: E402
+import dice_core
+from dice_core import allan, io
+from dice_core.manifest import load_manifest
 
 
-def allan_deviation(manifest_path, metrology_path, dark_path, baseline, output, config):
+def allan_deviation(manifest_path, metrology_path, dark_path, baseline, output, config, workers):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
                             purpose="Allan deviations", dtype="float32")
     product = allan.allan_of_baseline(stream, io.read_product(metrology_path), io.read_product(dark_path),
-                                      manifest.detector, label=f"baseline {baseline}")
+                                      manifest.detector, workers=workers,
+                                      label=f"baseline {baseline}")
     last = product.isel(n_frames=-1)
     log.info("baseline %s: slope %.3f; at %.0f frames per group, %.2e pixel (photon limit %.2e) for pixels, "
              "%.2e (limit %.2e) for blocks", baseline, float(product["slope"]), float(last["n_frames"]),
@@ -32,4 +27,5 @@ def allan_deviation(manifest_path, metrology_path, dark_path, baseline, output, 
 
 
 dice_core.run_logged(snakemake.log[0], allan_deviation, snakemake.input.manifest, snakemake.input.metrology,
-                     snakemake.input.dark, snakemake.wildcards.baseline, snakemake.output.allan, snakemake.config)
+                     snakemake.input.dark, snakemake.wildcards.baseline, snakemake.output.allan, snakemake.config,
+                     snakemake.threads)

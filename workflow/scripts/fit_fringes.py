@@ -1,18 +1,10 @@
 """Snakemake step: global fringe solution of one metrology baseline."""
 
-import os
+import logging
 
-# Before numpy loads: one BLAS thread. The products of the fit have 3 or 4 columns and a
-# cache-sized chunk, too small to share between threads (measured faster; BENCHMARKS.md);
-# the rule's threads go to worker processes, each reading its part of the files.
-for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(variable, "1")
-
-import logging  # noqa: E402
-
-import dice_core  # noqa: E402
-from dice_core import fringes, io  # noqa: E402
-from dice_core.manifest import load_manifest  # noqa: E402
+import dice_core
+from dice_core import fringes, io
+from dice_core.manifest import load_manifest
 
 
 def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config, workers):

@@ -1,0 +1,79 @@
+"""Worker processes and BLAS threads of the streaming reductions.
+
+The per-chunk products of a streaming pass are small (3 to 7 columns over a
+cache-sized chunk): one BLAS thread per process is fastest, and two or more
+threads per process on a machine whose cores are already busy with worker
+processes slow a pass down many times (measured: a fringe fit of 200,000
+frames in two workers took 3.9 s with one BLAS thread each and 34.9 s with
+two; BENCHMARKS.md). The thread count cannot be left to the environment:
+Snakemake sets ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` and
+``MKL_NUM_THREADS`` to a rule's ``threads`` before a step starts, and a user's
+shell may set anything. So the reductions set it themselves, at run time, with
+threadpoolctl (:func:`one_blas_thread`), in the calling process and in every
+worker; a rule's ``threads`` become worker processes instead.
+
+A reduction's stream is always cut into the same :data:`LANES` consecutive
+parts (groups of whole files) whose results are summed in lane order, so that
+a product does not depend on how many processes reduced it.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import functools
+import multiprocessing
+
+import threadpoolctl
+
+__all__ = ["LANES", "one_blas_thread", "blas_threads", "lane_executor", "lane_workers"]
+
+#: Consecutive parts a :class:`dice_core.io.FrameStream` is reduced in.
+LANES = 2
+
+
+def one_blas_thread(function):
+    """Decorator: ``function`` runs with one BLAS thread, whatever the environment says.
+
+    Applies to every BLAS library loaded in the process (numpy's and scipy's
+    OpenBLAS, MKL...); the previous setting is restored when it returns.
+    """
+    @functools.wraps(function)
+    def with_one_blas_thread(*args, **kwargs):
+        with threadpoolctl.threadpool_limits(limits=1, user_api="blas"):
+            return function(*args, **kwargs)
+
+    return with_one_blas_thread
+
+
+def blas_threads() -> int:
+    """Largest thread count of the BLAS libraries loaded in this process now (1 if none is loaded)."""
+    counts = [lib["num_threads"] for lib in threadpoolctl.threadpool_info() if lib["user_api"] == "blas"]
+    return max(counts, default=1)
+
+
+def lane_workers(workers: int, n_lanes: int) -> int:
+    """Worker processes used for ``n_lanes`` lanes: no more than lanes, and one where processes cannot fork."""
+    return max(1, min(workers, n_lanes)) if "fork" in multiprocessing.get_all_start_methods() else 1
+
+
+def _start_worker():
+    # A forked worker inherits its parent's BLAS setting, but set it again: the parent may
+    # not be inside one_blas_thread, and the setting must not depend on the caller.
+    threadpoolctl.threadpool_limits(limits=1, user_api="blas")
+
+
+def lane_executor(workers: int, n_lanes: int):
+    """Worker processes for the lanes of a pass, each with one BLAS thread; or a context holding None.
+
+    Processes, not threads: the per-chunk work is a series of numpy calls too
+    short for two threads to overlap under the interpreter lock (measured: two
+    threads 1.0-1.1x as fast as one, two processes 1.7-1.9x; BENCHMARKS.md).
+    Forked, so that the workers start in milliseconds with everything imported.
+    With one worker the lanes run in the calling process (None).
+    """
+    n = lane_workers(workers, n_lanes)
+    if n > 1:
+        return concurrent.futures.ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("fork"),
+                                                      initializer=_start_worker)
+    return contextlib.nullcontext(None)

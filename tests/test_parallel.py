@@ -1,0 +1,46 @@
+"""BLAS threads and worker processes: the reductions set their own, whatever the environment says."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+import threadpoolctl
+
+from dice_core import parallel
+
+
+def test_one_blas_thread_inside_and_the_setting_restored_after():
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        before = parallel.blas_threads()
+        inside = parallel.one_blas_thread(parallel.blas_threads)()
+        assert inside == 1
+        assert parallel.blas_threads() == before
+
+
+def _worker_threads(_):
+    return parallel.blas_threads()
+
+
+@pytest.mark.skipif(parallel.lane_workers(2, 2) < 2, reason="processes cannot be forked here")
+def test_worker_processes_run_one_blas_thread_when_the_parent_runs_two():
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        with parallel.lane_executor(2, parallel.LANES) as executor:
+            assert list(executor.map(_worker_threads, range(4))) == [1, 1, 1, 1]
+
+
+def test_lane_workers_never_exceed_lanes():
+    assert parallel.lane_workers(8, 2) <= 2
+    assert parallel.lane_workers(1, 2) == 1
+    assert parallel.lane_workers(0, 2) == 1
+    with parallel.lane_executor(1, 2) as executor:
+        assert executor is None
+
+
+def test_the_environment_does_not_set_the_threads_of_a_fit():
+    """As under Snakemake: OPENBLAS_NUM_THREADS=2 set before numpy loads; the decorated step runs one."""
+    code = ("import numpy, dice_core.parallel as p; "
+            "print(p.blas_threads(), p.one_blas_thread(p.blas_threads)())")
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "2", "OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["2", "1"]
