@@ -1,0 +1,160 @@
+"""The metrology stage on the path users take: ``snakemake --cores 2`` on one 200,000-frame baseline.
+
+Simulates (once, cached in --workdir) a dataset with a dark, two flats and one
+80x84 metrology baseline of N frames (default 200,000: 2.7 GB of uint16 in
+files of 20,000 frames; the paper preset's noise), then, in one run:
+
+1. one plain read pass of the baseline's files in a fresh single process: the
+   same chunks, converted to float32 as the reductions read them and summed
+   over frames (the time of the pass alone, imports excluded);
+2. the workflow's own command, ``python -m snakemake --cores 2`` with
+   ``--config dataset=<manifest>``, for the baseline's ``metrology/`` and
+   ``allan/`` products (``--forcerun`` makes the fit and the Allan step run
+   again each repeat): each job's time and peak memory come from the rule's
+   ``benchmark:`` file, which Snakemake writes around the whole job (process
+   start, imports, reading the inputs, the reduction, writing the product);
+3. the plain pass again, after the workflow, to bracket the machine's noise.
+
+Usage::
+
+    python benchmarks/workflow_metrology.py --frames 200000 --workdir /tmp/dice-workflow-bench
+
+Prints a Markdown table for BENCHMARKS.md; ratios are taken within the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import csv
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+BASELINE = "H1H4"
+
+
+def config(frames):
+    from dice_core import simulation
+
+    return simulation.SimulationConfig.from_dict({
+        "name": "workflow-bench", "seed": 20150926, "frames_per_file": 20000,
+        "detector": {"shape": [80, 84], "science_rows": [2, 79], "science_cols": [10, 83],
+                     "gain": 10.0, "read_noise": 4.0},
+        "dark": {"frames": 400}, "flats": {"frames": 400, "level": 20000.0},
+        "stars": {"positions": 1, "frames": 1},
+        "metrology": {"frames": frames, "sweep_frames": 1000, "mean_level": 10000.0, "amplitude": 6000.0,
+                      "baselines": {BASELINE: {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}},
+    })
+
+
+def _write(frames, relpath, outdir):
+    from dice_core import simulation
+    from dice_core.io import read_product
+
+    cfg = config(frames)
+    simulation.write_file(cfg, read_product(Path(outdir) / "truth.nc"), relpath, outdir)
+
+
+def prepare(frames, data):
+    """Simulate the dataset into ``data`` (two processes, one file each at a time), unless already there."""
+    from dice_core import simulation
+    from dice_core.io import write_product
+
+    manifest = data / "dataset.yaml"
+    if manifest.exists():
+        return manifest
+    cfg = config(frames)
+    write_product(simulation.make_truth(cfg), data / "truth.nc", title="benchmark truth")
+    start = time.perf_counter()
+    with concurrent.futures.ProcessPoolExecutor(2) as pool:
+        list(pool.map(_write, *zip(*[(frames, relpath, data) for relpath in simulation.file_jobs(cfg)])))
+    simulation.write_manifest(cfg, data)
+    print(f"simulated {frames} frames in {time.perf_counter() - start:.0f} s", file=sys.stderr)
+    return manifest
+
+
+PLAIN_PASS = """
+import json, sys, time
+import numpy as np
+from dice_core.io import FrameStream
+from dice_core.manifest import load_manifest
+manifest = load_manifest(sys.argv[1])
+stream = FrameStream(manifest.baselines[sys.argv[2]], manifest.detector, dtype="float32")
+start = time.perf_counter()
+total = 0.0
+for chunk in stream:
+    total = total + chunk.frames.sum(axis=0)
+print(json.dumps({"seconds": time.perf_counter() - start, "frames": stream.n_frames}))
+"""
+
+
+def plain_pass(manifest):
+    """Seconds of one plain read pass of the baseline in a fresh process (pass alone, imports excluded)."""
+    out = subprocess.run([sys.executable, "-c", PLAIN_PASS, str(manifest), BASELINE], check=True,
+                         capture_output=True, text=True).stdout
+    return json.loads(out)["seconds"]
+
+
+def read_benchmark(path):
+    """(seconds, peak RSS MiB) of a Snakemake benchmark file."""
+    with open(path, newline="") as f:
+        row = next(csv.DictReader(f, delimiter="\t"))
+    return float(row["s"]), float(row["max_rss"])
+
+
+def run_workflow(manifest, results, name):
+    targets = [f"{results}/{name}/metrology/{BASELINE}.nc", f"{results}/{name}/allan/{BASELINE}.nc"]
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--config", f"dataset={manifest}",
+           f"results={results}", "--forcerun", "fit_fringes", "allan_deviation", "--", *targets]
+    start = time.perf_counter()
+    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    wall = time.perf_counter() - start
+    if done.returncode:
+        sys.exit(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
+    bench = Path(results) / name / "benchmarks"
+    fit = read_benchmark(bench / f"fit_fringes_{BASELINE}.tsv")
+    allan = read_benchmark(bench / f"allan_deviation_{BASELINE}.tsv")
+    return wall, fit, allan
+
+
+def machine():
+    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.processor())
+    import numpy
+
+    return f"{os.cpu_count()} cores ({cpu}), Python {platform.python_version()}, numpy {numpy.__version__}"
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=200000)
+    parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "out" / "workflow")
+    parser.add_argument("--repeat", type=int, default=2, help="workflow runs (each after a plain pass)")
+    args = parser.parse_args()
+    data = (args.workdir / f"n{args.frames}").resolve()
+    manifest = prepare(args.frames, data)
+    results = data / "results"
+    print(f"machine: {machine()}")
+    print(f"{args.frames} frames of 80x84 in {len(list((data / 'metrology').glob('**/*.fits')))} files\n")
+    plain_pass(manifest)  # warm the page cache: every timing reads from memory
+    print("| run | plain pass before (s) | fit_fringes job (s) | / plain | allan_deviation job (s) | / plain "
+          "| fit peak RSS (MiB) | Allan peak RSS (MiB) | snakemake command (s) | plain pass after (s) |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for run in range(1, args.repeat + 1):
+        before = plain_pass(manifest)
+        wall, (fit_s, fit_rss), (allan_s, allan_rss) = run_workflow(manifest, results, "workflow-bench")
+        after = plain_pass(manifest)
+        plain = min(before, after)
+        print(f"| {run} | {before:.2f} | {fit_s:.2f} | {fit_s / plain:.2f} | {allan_s:.2f} | {allan_s / plain:.2f} "
+              f"| {fit_rss:.0f} | {allan_rss:.0f} | {wall:.1f} | {after:.2f} |", flush=True)
+    print("\nRatios are against the faster of the two plain passes around each workflow run.")
+
+
+if __name__ == "__main__":
+    main()
