@@ -42,7 +42,9 @@ __all__ = [
     "MODES",
     "METHODS",
     "mode_corrections",
-    "position_frames",
+    "PositionStack",
+    "batch_edges",
+    "stack_position",
     "PositionCentroids",
     "measure_positions",
     "centroids_dataset",
@@ -317,11 +319,66 @@ def mode_corrections(mode: str) -> tuple[bool, bool]:
     return "flat" in mode, "metrology" in mode
 
 
-def position_frames(chunks, n_frames: int, n_batches: int, *, label: str = "position"):
+@dataclass(frozen=True)
+class PositionStack:
+    """One detector position's frames reduced to what the centroids need: the ``stars/<index>.nc`` product.
+
+    Attributes
+    ----------
+    mean : ndarray (row, col)
+        Mean of all the position's frames, adu (dark not subtracted).
+    batch_means : ndarray (batch, row, col)
+        Means of consecutive batches of its frames, adu (see :func:`stack_position`).
+    n_saturated : ndarray (row, col) of int
+        Saturated samples of each pixel over all the frames.
+    n_frames : int
+        Frames averaged.
+    """
+
+    mean: np.ndarray
+    batch_means: np.ndarray
+    n_saturated: np.ndarray
+    n_frames: int
+
+    @property
+    def n_batches(self) -> int:
+        return self.batch_means.shape[0]
+
+    def to_dataset(self, position) -> xr.Dataset:
+        """The ``stars/<index>.nc`` product of this stack (position ``position``)."""
+        rc = ("row", "col")
+        edges = batch_edges(self.n_frames, self.n_batches)
+        return xr.Dataset(
+            {
+                "mean": (rc, self.mean, {"units": "adu", "long_name": "mean of the position's frames"}),
+                "batch_mean": (("batch", *rc), self.batch_means,
+                               {"units": "adu", "long_name": "mean of each batch of consecutive frames"}),
+                "n_saturated": (rc, self.n_saturated, {"units": "1", "long_name": "saturated samples of the pixel"}),
+                "batch_frames": (("batch",), np.diff(edges), {"units": "1", "long_name": "frames in the batch"}),
+                "n_frames": ((), self.n_frames, {"units": "1", "long_name": "frames averaged"}),
+            },
+            coords={"row": np.arange(self.mean.shape[0]), "col": np.arange(self.mean.shape[1]),
+                    "batch": np.arange(self.n_batches)},
+            attrs={"position": position},
+        )
+
+    @classmethod
+    def from_dataset(cls, ds: xr.Dataset) -> "PositionStack":
+        """The stack held by a ``stars/<index>.nc`` product."""
+        return cls(ds["mean"].values, ds["batch_mean"].values, ds["n_saturated"].values.astype(np.int64),
+                   int(ds["n_frames"]))
+
+
+def batch_edges(n_frames: int, n_batches: int) -> np.ndarray:
+    """Frame indices [edge_b, edge_b+1) of ``n_batches`` consecutive batches splitting ``n_frames`` evenly."""
+    return np.linspace(0, n_frames, n_batches + 1).round().astype(int)
+
+
+def stack_position(chunks, n_frames: int, n_batches: int, *, label: str = "position") -> PositionStack:
     """Mean frame, the mean frames of ``n_batches`` consecutive batches, and saturated-sample counts.
 
     One pass over a position's frames; memory is a few frames whatever their
-    number. Batches split the frames as evenly as possible.
+    number. Batches split the frames as evenly as possible (:func:`batch_edges`).
 
     Raises
     ------
@@ -330,7 +387,7 @@ def position_frames(chunks, n_frames: int, n_batches: int, *, label: str = "posi
     """
     if n_frames < n_batches:
         raise ValueError(f"{label}: {n_frames} frame(s) for {n_batches} batches; each batch needs one at least")
-    edges = np.linspace(0, n_frames, n_batches + 1).round().astype(int)
+    edges = batch_edges(n_frames, n_batches)
     sums = saturated = None
     for chunk in chunks:
         frames = np.asarray(chunk.frames, dtype=np.float64)
@@ -343,7 +400,7 @@ def position_frames(chunks, n_frames: int, n_batches: int, *, label: str = "posi
         if chunk.any_saturated:
             saturated += chunk.saturated.sum(axis=0)
     counts = np.diff(edges).astype(float)
-    return sums.sum(axis=0) / n_frames, sums / counts[:, None, None], saturated
+    return PositionStack(sums.sum(axis=0) / n_frames, sums / counts[:, None, None], saturated, int(n_frames))
 
 
 @dataclass
@@ -366,17 +423,17 @@ def _noise_weights(window_image, n_frames, gain, read_noise):
     return 1.0 / np.sqrt((np.clip(window_image, 0, None) / gain + read_noise**2) / n_frames)
 
 
-def measure_positions(frames_of, n_frames_of, positions, approx, detector, dark, *, read_noise, prnu=None,
-                      dx=None, dy=None, method: str = "fourier", half_size: int = 7, n_batches: int = 4,
-                      label: str = "stars", log=None) -> PositionCentroids:
+def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, prnu=None, dx=None, dy=None,
+                      method: str = "fourier", half_size: int = 7, label: str = "stars",
+                      log=None) -> PositionCentroids:
     """Centroids of the stars at every detector position, with their precision and photon-noise limit.
 
     Parameters
     ----------
-    frames_of : callable
-        ``frames_of(position)`` gives the position's chunks (a fresh iterable).
-    n_frames_of : callable
-        ``n_frames_of(position)``: its number of frames.
+    stacks : iterable of PositionStack
+        Each position's mean and batch-mean frames (:func:`stack_position`),
+        in the order of ``positions``; consumed one at a time, so that a
+        generator reading them from their products keeps one in memory.
     positions : sequence
         Position labels (indices), in acquisition order.
     approx : sequence of (row, col)
@@ -398,16 +455,13 @@ def measure_positions(frames_of, n_frames_of, positions, approx, detector, dark,
         Both weight pixels by their photon and read noise.
     half_size : int
         Windows are 2 half_size + 1 pixels square.
-    n_batches : int
-        Consecutive batches of each position's frames measured separately:
-        their scatter over sqrt(n_batches) is the precision of the position.
 
     Returns
     -------
     PositionCentroids
         x, y: centroids of the mean of all frames; precision_x, precision_y:
-        the standard deviation of the batches' centroids over sqrt(n_batches),
-        the standard error of x and y; limit_x, limit_y: the Cramer-Rao bound
+        the standard deviation of the stacks' batch centroids over
+        sqrt(batches), the standard error of x and y; limit_x, limit_y: the Cramer-Rao bound
         of the mean of all frames. A star with a saturated sample in its
         window at a position is NaN there (logged).
 
@@ -416,9 +470,9 @@ def measure_positions(frames_of, n_frames_of, positions, approx, detector, dark,
     WindowError
         A star's window leaves the detector or the calibrated area.
     ValueError
-        Unknown method; a position with fewer frames than batches; with the
-        Fourier method, a saturated star at the first position (its window is
-        every later one's reference).
+        Unknown method; fewer stacks than positions, or a stack of one batch;
+        with the Fourier method, a saturated star at the first position (its
+        window is every later one's reference).
     """
     if method not in METHODS:
         raise ValueError(f"unknown centroid method {method!r}; methods are {', '.join(METHODS)}")
@@ -431,10 +485,16 @@ def measure_positions(frames_of, n_frames_of, positions, approx, detector, dark,
     size = 2 * half_size + 1
     central = int(np.argmin([np.hypot(r - np.mean([a[0] for a in approx]), c - np.mean([a[1] for a in approx]))
                              for r, c in approx]))
+    stacks = iter(stacks)
     for i, position in enumerate(positions):
         where = f"position {position}"
-        n = n_frames_of(position)
-        mean, batch_means, saturated = position_frames(frames_of(position), n, n_batches, label=where)
+        stack = next(stacks, None)
+        if stack is None:
+            raise ValueError(f"{label}: no frames given for {where} ({i} stack(s) for {n_pos} positions)")
+        if stack.n_batches < 2:
+            raise ValueError(f"{label}: {where} has {stack.n_batches} batch; a precision needs two at least")
+        n, n_batches = stack.n_frames, stack.n_batches
+        mean, batch_means, saturated = stack.mean, stack.batch_means, stack.n_saturated
         n_frames[i] = n
         windows = [star_window(r, c, half_size, detector.shape, label=f"star {s} at {where}")
                    for s, (r, c) in enumerate(centres)]

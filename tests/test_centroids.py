@@ -191,16 +191,23 @@ def star_dataset(tmp_path_factory):
     return simulate_stars(tmp_path_factory.mktemp("stars"), prf_width_spread=0.0)
 
 
-def measure(manifest, truth, *, flat, metrology, method="fourier", n_batches=2):
+def stacks_of(manifest, n_batches=2, chunks_of=None):
+    """Each position's PositionStack, as the workflow's stack_position step makes it."""
     from dice_core.io import FrameStream
 
     streams = {p.index: FrameStream(p.acquisition, manifest.detector) for p in manifest.positions}
+    chunks_of = chunks_of or (lambda index: streams[index])
+    return [centroids.stack_position(chunks_of(i), stream.n_frames, n_batches, label=f"position {i}")
+            for i, stream in streams.items()]
+
+
+def measure(manifest, truth, *, flat, metrology, method="fourier", n_batches=2, stacks=None):
     result = centroids.measure_positions(
-        lambda i: streams[i], lambda i: streams[i].n_frames, list(streams), manifest.star_approx, manifest.detector,
-        truth["bias"].values, read_noise=np.ones(manifest.detector.shape),
+        stacks or stacks_of(manifest, n_batches), [p.index for p in manifest.positions], manifest.star_approx,
+        manifest.detector, truth["bias"].values, read_noise=np.ones(manifest.detector.shape),
         prnu=truth["sensitivity"].values if flat else None,
         dx=truth["dx"].values if metrology else None, dy=truth["dy"].values if metrology else None,
-        method=method, n_batches=n_batches)
+        method=method)
     return result
 
 
@@ -241,6 +248,26 @@ def test_positions_report_precision_saturation_and_bad_input(star_dataset, caplo
         measure(manifest, truth, flat=True, metrology=True, n_batches=5)
     with pytest.raises(ValueError, match="unknown centroid method"):
         measure(manifest, truth, flat=True, metrology=True, method="barycentre")
+    stacks = stacks_of(manifest)
+    with pytest.raises(ValueError, match="no frames given for position 5 \\(4 stack\\(s\\) for 5 positions\\)"):
+        measure(manifest, truth, flat=True, metrology=True, stacks=stacks[:-1])
+    with pytest.raises(ValueError, match="position 1 has 1 batch; a precision needs two"):
+        measure(manifest, truth, flat=True, metrology=True, stacks=stacks_of(manifest, n_batches=1))
+
+
+def test_a_position_stack_survives_its_product(star_dataset, tmp_path):
+    from dice_core.io import read_product, write_product
+
+    manifest, _ = star_dataset
+    stack = stacks_of(manifest, n_batches=3)[0]
+    write_product(stack.to_dataset(1), tmp_path / "1.nc", title="stack")
+    ds = read_product(tmp_path / "1.nc")
+    assert ds["batch_frames"].values.tolist() == [1, 2, 1] and ds.attrs["position"] == 1
+    back = centroids.PositionStack.from_dataset(ds)
+    for name in ("mean", "batch_means", "n_saturated"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(stack, name))
+    assert back.n_frames == stack.n_frames == 4
+    np.testing.assert_allclose(stack.batch_means.mean(axis=0), stack.mean, rtol=0.2)  # uneven batches
 
 
 def test_a_saturated_window_is_refused_counted_and_logged(star_dataset, caplog):
@@ -262,10 +289,11 @@ def test_a_saturated_window_is_refused_counted_and_logged(star_dataset, caplog):
             yield Chunk(chunk.start, chunk.frames, saturated, True)
 
     log = logging.getLogger("test-centroids")
+    positions = list(streams)
     with caplog.at_level("WARNING", logger="test-centroids"):
         result = centroids.measure_positions(
-            frames_of, lambda i: streams[i].n_frames, list(streams), manifest.star_approx, manifest.detector,
-            truth["bias"].values, read_noise=np.ones(manifest.detector.shape), n_batches=2, log=log)
+            stacks_of(manifest, chunks_of=frames_of), positions, manifest.star_approx, manifest.detector,
+            truth["bias"].values, read_noise=np.ones(manifest.detector.shape), log=log)
     assert result.n_saturated[2, 2] == 1 and result.n_saturated.sum() == 1
     assert np.isnan(result.x[2, 2]) and np.isfinite(np.delete(result.x.ravel(), 2 * 5 + 2)).all()
     assert "star 2 at position 3 has 1 saturated sample(s) in its window: not measured" in caplog.text
@@ -273,6 +301,5 @@ def test_a_saturated_window_is_refused_counted_and_logged(star_dataset, caplog):
     first = next(iter(streams))
     with pytest.raises(ValueError, match="star 2 at position 1: saturated samples in the window every later"):
         centroids.measure_positions(
-            lambda i: frames_of(3) if i == first else streams[i], lambda i: streams[i].n_frames, list(streams),
-            manifest.star_approx, manifest.detector, truth["bias"].values, read_noise=np.ones(manifest.detector.shape),
-            n_batches=2)
+            stacks_of(manifest, chunks_of=lambda i: frames_of(3) if i == first else streams[i]), positions,
+            manifest.star_approx, manifest.detector, truth["bias"].values, read_noise=np.ones(manifest.detector.shape))

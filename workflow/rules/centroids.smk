@@ -1,4 +1,23 @@
-# Pseudo-star centroids, one product per calibration mode (config centroids.modes).
+# Pseudo stars: each position's frames read once into its mean and batch means
+# (stars/<index>.nc), then centroids from those, one product per calibration mode
+# (config centroids.modes) and method (centroids.methods).
+
+
+rule stack_position:
+    input:
+        manifest=MANIFEST_FILE,
+        cubes=position_files,
+    output:
+        stack=f"{OUT}/stars/{{position}}.nc",
+    params:
+        batches=config["centroids"]["batches"],
+        code=code_version("io", "manifest", "centroids"),
+    log:
+        f"{OUT}/logs/stack_position_{{position}}.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/stack_position.py"
 
 
 rule measure_centroids:
@@ -6,7 +25,7 @@ rule measure_centroids:
         unpack(centroid_calibrations),
         manifest=MANIFEST_FILE,
         dark=rules.measure_dark.output.dark,
-        cubes=position_files,
+        stacks=position_stacks,
     output:
         centroids=f"{OUT}/centroids/{{mode}}.nc",
     params:

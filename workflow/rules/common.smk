@@ -62,6 +62,7 @@ wildcard_constraints:
     flat="|".join(map(re.escape, MANIFEST.flats)) or "(?!)",
     baseline="|".join(map(re.escape, MANIFEST.baselines)) or "(?!)",
     pair="|".join(map(re.escape, MANIFEST.pairs)) or "(?!)",
+    position="|".join(str(p.index) for p in MANIFEST.positions) or "(?!)",
     mode="raw|flat|metrology|flat\\+metrology",
     method="fourier|gaussian",
 
@@ -164,8 +165,18 @@ def centroid_pair():
     return pair
 
 
+def manifest_position(wildcards):
+    """The manifest's star position of the {position} wildcard (its index)."""
+    return next(p for p in MANIFEST.positions if str(p.index) == wildcards.position)
+
+
 def position_files(wildcards):
-    return [local_path(f) for p in MANIFEST.positions for f in p.acquisition.files]
+    return acquisition_files(manifest_position(wildcards).acquisition)
+
+
+def position_stacks(wildcards):
+    """Every position's stars/<index>.nc, in acquisition order."""
+    return [f"{OUT}/stars/{p.index}.nc" for p in MANIFEST.positions]
 
 
 def centroid_calibrations(wildcards):
@@ -180,8 +191,8 @@ def centroid_calibrations(wildcards):
 
 def centroid_options(wildcards):
     """What a product depends on: the method and the window options, not the list of modes or methods,
-    so that adding an entry to either list runs only the new jobs."""
-    options = {k: v for k, v in config["centroids"].items() if k not in ("modes", "methods")}
+    so that adding an entry to either list runs only the new jobs (the batches are the stacks')."""
+    options = {k: v for k, v in config["centroids"].items() if k not in ("modes", "methods", "batches")}
     return {**options, "method": getattr(wildcards, "method", config["centroids"]["methods"][0])}
 
 

@@ -7,7 +7,14 @@ from dice_core import centroids, io
 from dice_core.manifest import load_manifest
 
 
-def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, mode, output, config, options):
+def read_stacks(paths):
+    """Each position's stack, read when the centroids reach it: one in memory at a time."""
+    for path in paths:
+        yield centroids.PositionStack.from_dataset(io.read_product(path))
+
+
+def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, stack_paths, mode, output, config,
+                      options):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     use_flat, use_metrology = centroids.mode_corrections(mode)
@@ -17,25 +24,22 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, mode, o
     if use_metrology:
         offsets = io.read_product(offsets_path)
         dx, dy = offsets["dx"].values, offsets["dy"].values
-    streams = {p.index: io.FrameStream(p.acquisition, manifest.detector, chunk_frames=config["chunk_frames"],
-                                       min_frames=options["batches"],
-                                       purpose=f"{options['batches']} batches of a position")
-               for p in manifest.positions}
+    positions = [p.index for p in manifest.positions]
     log.info("mode %s (flat %s, pixel offsets %s), method %s, %d positions, %d stars, %dx%d windows", mode,
-             use_flat, use_metrology, options["method"], len(streams), len(manifest.star_approx),
+             use_flat, use_metrology, options["method"], len(positions), len(manifest.star_approx),
              2 * options["half_size"] + 1, 2 * options["half_size"] + 1)
     result = centroids.measure_positions(
-        lambda index: streams[index], lambda index: streams[index].n_frames, list(streams),
-        manifest.star_approx, manifest.detector, dark["dark"].values, read_noise=dark["noise"].values,
-        prnu=prnu, dx=dx, dy=dy, method=options["method"], half_size=options["half_size"],
-        n_batches=options["batches"], label=f"mode {mode}", log=log)
-    product = centroids.centroids_dataset(result, list(streams), mode=mode, method=options["method"])
+        read_stacks(stack_paths), positions, manifest.star_approx, manifest.detector, dark["dark"].values,
+        read_noise=dark["noise"].values, prnu=prnu, dx=dx, dy=dy, method=options["method"],
+        half_size=options["half_size"], label=f"mode {mode}", log=log)
+    product = centroids.centroids_dataset(result, positions, mode=mode, method=options["method"])
     inputs = [manifest.path, dark_path, *([prnu_path] if use_flat else []), *([offsets_path] if use_metrology else []),
-              *[f for p in manifest.positions for f in p.acquisition.files]]
+              *stack_paths]
     io.write_product(product, output, title=f"pseudo-star centroids of {manifest.name}, mode {mode}",
                      config=config, inputs=inputs)
 
 
 dice_core.run_logged(snakemake.log[0], measure_centroids, snakemake.input.manifest, snakemake.input.dark,
-                     snakemake.input.get("prnu"), snakemake.input.get("offsets"), snakemake.wildcards.mode,
+                     snakemake.input.get("prnu"), snakemake.input.get("offsets"), list(snakemake.input.stacks),
+                     snakemake.wildcards.mode,
                      snakemake.output.centroids, snakemake.config, snakemake.params.options)
