@@ -159,16 +159,17 @@ def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
                 break
             lo, hi = max(lo_frame, start), min(hi_frame, stop)
             F = frame_factors[lo:hi].astype(X.dtype)
+            if b not in sums:
+                sums[b] = np.zeros((3, X.shape[1]))
             # F'X on whole frames (a chunk is never copied), summed in float64
-            part = (F.T @ X[lo - lo_frame:hi - lo_frame]).astype(np.float64)[:, fit.idx]
-            sums[b] = part if b not in sums else sums[b] + part
+            np.add(sums[b], F.T @ X[lo - lo_frame:hi - lo_frame], out=sums[b])
             covered[b] = covered.get(b, 0) + hi - lo
             if covered[b] == lengths[b]:
-                done[b] = fit.offsets(frame_factors[start:stop], sums.pop(b))
+                done[b] = fit.offsets(frame_factors[start:stop], sums.pop(b)[:, fit.idx])
                 del covered[b]
                 if len(done) % 100 == 0:
                     log.info("%s: %d batches fitted in one part of the frames", label, len(done))
-    return done, {b: (part, covered[b]) for b, part in sums.items()}, blas_threads()
+    return done, {b: (part[:, fit.idx], covered[b]) for b, part in sums.items()}, blas_threads()
 
 
 @one_blas_thread

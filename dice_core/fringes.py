@@ -379,15 +379,18 @@ def photon_floor(G_phys, FtF, third, gain, read_noise, k_norm):
     Sample variance (adu^2) of pixel p at frame t: F_t.G_p / g + sigma_r^2; so
     cov(G_p) = (F'F)^-1 [sum_k G_pk/g M_k + sigma_r^2 F'F] (F'F)^-1 with
     M_k = sum_t F_tk F_t F_t'. Then theta = atan2(g2, g3) and
-    delta = theta / |K| propagate it linearly.
+    delta = theta / |K| propagate it linearly: var(theta) = u' [...] u with
+    u = (F'F)^-1 d theta / dG, formed without the per-pixel 3x3 covariances.
     """
     inv = np.linalg.inv(FtF)
-    meat = np.einsum("pk,kij->pij", G_phys / gain, third) + (read_noise**2)[:, None, None] * FtF
-    cov = inv @ meat @ inv
     a, b = G_phys[:, 1], G_phys[:, 2]  # alpha sin theta, alpha cos theta
-    d_a, d_b = b / (a**2 + b**2), -a / (a**2 + b**2)  # d theta / d a, d theta / d b
-    var = d_a**2 * cov[:, 1, 1] + d_b**2 * cov[:, 2, 2] + 2 * d_a * d_b * cov[:, 1, 2]
-    return np.sqrt(var) / k_norm
+    r2 = a**2 + b**2
+    gradient = np.column_stack([np.zeros_like(a), b / r2, -a / r2])  # d theta / d G
+    u = gradient @ inv  # (F'F)^-1 is symmetric
+    outer = (u[:, :, None] * u[:, None, :]).reshape(-1, 9)
+    photon = np.sum(G_phys / gain * (outer @ third.reshape(3, 9).T), axis=1)  # sum_k G_pk/g u'M_k u
+    read = np.asarray(read_noise) ** 2 * (outer @ FtF.ravel())
+    return np.sqrt(photon + read) / k_norm
 
 
 def _phase_coverage(phase, bins=16):

@@ -105,6 +105,12 @@ class DetectorConfig:
     frame_rate: float = 108.0            # Hz
     dtype: str = "uint16"                # storage type of the cubes (float32 avoids quantisation)
     photon_noise: bool = True            # False gives noiseless frames (with read_noise 0, float32)
+    # A sample whose mean holds at least this many electrons gets its photon noise from the normal
+    # law of the Poisson mean and variance (drawn with the read noise, several times faster than
+    # Poisson draws); a fainter one from Poisson. The normal law misses only the Poisson skewness
+    # 1/sqrt(N): under 3% here, under 0.5% for the metrology's 4e4-1.6e5 e-. None: Poisson for all
+    # (docs/simulation.md).
+    gaussian_photons_above: float | None = 1000.0
 
     def __post_init__(self):
         rows, cols = self.shape
@@ -569,18 +575,39 @@ def pixel_response(truth: xr.Dataset) -> PixelResponse:
 
 # --------------------------------------------------------------------------- frames
 
-def _read_out(signal: np.ndarray, truth: xr.Dataset, cfg: SimulationConfig, photon_rng, read_rng) -> np.ndarray:
+def _read_out(signal: np.ndarray, truth: xr.Dataset, cfg: SimulationConfig, photon_rngs, read_rng) -> np.ndarray:
     """Photon noise through the gain, then bias and read noise: signal (adu) -> raw samples (adu).
 
-    Each noise has its own generator, drawn strictly in frame order, so the
-    frames do not depend on how they are chunked.
+    A sample whose mean holds at least ``DetectorConfig.gaussian_photons_above``
+    electrons gets one normal draw of the photon and read noises' summed
+    variance, signal / gain + read_noise^2 (adu^2), from the first of
+    ``photon_rngs``; a fainter one a Poisson draw of its electrons from the
+    second, plus a normal read noise from ``read_rng``. Each generator is
+    drawn strictly in frame order, so the frames do not depend on how they
+    are chunked.
     """
-    gain = cfg.detector.gain
-    if cfg.detector.photon_noise:
-        photo = photon_rng.poisson(np.maximum(signal, 0) * gain) / gain
-    else:
-        photo = signal
-    return photo + truth["bias"].values + truth["read_noise"].values * read_rng.standard_normal(photo.shape)
+    d = cfg.detector
+    bias, read_noise = truth["bias"].values, truth["read_noise"].values
+    if not d.photon_noise:
+        return signal + bias + read_noise * read_rng.standard_normal(signal.shape, dtype=np.float32)
+    normal_rng, poisson_rng = photon_rngs
+    electrons = np.maximum(signal, 0) * d.gain
+    if d.gaussian_photons_above is None:
+        return (poisson_rng.poisson(electrons) / d.gain + bias
+                + read_noise * read_rng.standard_normal(signal.shape, dtype=np.float32))
+    # one draw for both noises: the costliest step of a simulation is drawing random numbers
+    sigma = electrons / d.gain**2 + read_noise**2
+    np.sqrt(sigma, out=sigma)
+    sigma *= normal_rng.standard_normal(signal.shape, dtype=np.float32)
+    sigma += signal
+    sigma += bias
+    faint = electrons < d.gaussian_photons_above
+    if faint.any():
+        n_faint = int(np.count_nonzero(faint))
+        sigma[faint] = (poisson_rng.poisson(electrons[faint]) / d.gain + np.broadcast_to(bias, faint.shape)[faint]
+                        + np.broadcast_to(read_noise, faint.shape)[faint]
+                        * read_rng.standard_normal(n_faint, dtype=np.float32))
+    return sigma
 
 
 def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name, start: int, stop: int):
@@ -598,7 +625,8 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name
     ------
     ndarray (frame, row, col), adu (not yet quantised).
     """
-    photon_rng, read_rng = _rng(cfg, "photons", kind, name, start), _rng(cfg, "read", kind, name, start)
+    photon_rngs = _rng(cfg, "photons", kind, name, start), _rng(cfg, "poisson photons", kind, name, start)
+    read_rng = _rng(cfg, "read", kind, name, start)
     shape = cfg.detector.shape
     prf = pixel_response(truth)
     if kind == "flat":
@@ -642,7 +670,7 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name
                                                       + np.cos(stray_phase[t])[:, None, None] * stray.imag)
         else:
             signal = flux[first:last, None, None] * image
-        yield _read_out(signal, truth, cfg, photon_rng, read_rng)
+        yield _read_out(signal, truth, cfg, photon_rngs, read_rng)
 
 
 def write_file(cfg: SimulationConfig, truth: xr.Dataset, relpath: str, outdir) -> Path:

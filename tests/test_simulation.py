@@ -66,10 +66,33 @@ def test_frames_do_not_depend_on_chunk_size(dataset):
 
     cfg, _, truth = dataset
     small = dataclasses.replace(cfg, chunk_frames=7)
-    for kind, name in [("baseline", "V1V4"), ("flat", "fiber_b"), ("dark", "dark")]:
+    for kind, name in [("baseline", "V1V4"), ("flat", "fiber_b"), ("dark", "dark"), ("position", 1)]:
         a = np.concatenate(list(simulation.acquisition_chunks(cfg, truth, kind, name, 0, 50)))
         b = np.concatenate(list(simulation.acquisition_chunks(small, truth, kind, name, 0, 50)))
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("threshold", [1000.0, None])
+@pytest.mark.parametrize("level", [3.0, 40.0, 8000.0])  # adu: 30 and 400 e- are Poisson, 8e4 e- normal
+def test_photon_and_read_noise_have_the_poisson_mean_and_variance(level, threshold):
+    cfg = small_config(detector={"gaussian_photons_above": threshold})
+    gain = cfg.detector.gain
+    shape = (4000, 2, 3)
+
+    def read_out(read_noise):
+        truth = xr.Dataset({"bias": (("row", "col"), np.full(shape[1:], 500.0)),
+                            "read_noise": (("row", "col"), np.full(shape[1:], read_noise))})
+        rngs = (np.random.default_rng(1), np.random.default_rng(2))
+        return simulation._read_out(np.full(shape, level), truth, cfg, rngs, np.random.default_rng(3)) - 500.0
+
+    samples = read_out(4.0)
+    variance = level / gain + 16.0
+    assert samples.mean() == pytest.approx(level, abs=4 * np.sqrt(variance / samples.size))
+    assert samples.var() == pytest.approx(variance, rel=4 * np.sqrt(2 / samples.size))
+    # which law: Poisson counts are whole electrons, normal draws are not
+    electrons = read_out(0.0) * gain
+    whole = np.allclose(electrons, np.round(electrons), rtol=0, atol=1e-6)
+    assert whole == (threshold is None or level * gain < threshold)
 
 
 def test_dark_is_bias_plus_read_noise(dataset):
