@@ -37,6 +37,7 @@ __all__ = [
     "GaussianFit",
     "gaussian_fit",
     "cramer_rao",
+    "isolated_half_size",
     "fourier_displacement",
     "offset_corrected",
     "MODES",
@@ -184,6 +185,31 @@ def cramer_rao(fit: GaussianFit, window: Window, *, gain: float, read_noise) -> 
     variance = np.clip(model, 0, None) / gain + np.ravel(np.broadcast_to(read_noise, (window.size,) * 2)) ** 2
     fisher = jac.T @ (jac / variance[:, None])
     return np.sqrt(np.diag(np.linalg.inv(fisher))[2:4])
+
+
+def isolated_half_size(approx, half_size: int, width: float, *, contrast: float = 1e-3) -> int:
+    """The largest half-size up to ``half_size`` whose windows keep every other star's light out.
+
+    Fourier resampling takes a window for one period of a band-limited image,
+    so its edges must be at background: a neighbour's light cut by the edge
+    neither leaves through it nor wraps around as a shift of the star would
+    have it, and pulls every displacement measured in that window (and every
+    tie between stars) towards the window's frame. A star of Gaussian width
+    ``width`` (pixel) is below ``contrast`` of its peak beyond
+    width sqrt(2 ln(1 / contrast)); the window on the pixel nearest each star
+    (``approx``: (row, col) of every star) keeps its pixel centres that far
+    from every other star.
+    """
+    clearance = width * np.sqrt(2 * np.log(1 / contrast))
+    xy = np.array([(c, r) for r, c in approx], dtype=float)
+    centres = np.round(xy)
+    half = half_size
+    for s in range(len(xy)):
+        for k in range(len(xy)):
+            distance = np.abs(xy[k] - centres[s])
+            while k != s and half > 0 and np.hypot(*np.clip(distance - half, 0, None)) < clearance:
+                half -= 1
+    return half
 
 
 def _frequencies(shape):
@@ -454,7 +480,9 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
         another by Fourier resampling too); or a Gaussian fit per star.
         Both weight pixels by their photon and read noise.
     half_size : int
-        Windows are 2 half_size + 1 pixels square.
+        Windows are 2 half_size + 1 pixels square, or smaller where other
+        stars' light would reach them (:func:`isolated_half_size`, with the
+        widest Gaussian fit at the first position; logged).
 
     Returns
     -------
@@ -496,6 +524,19 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
         n, n_batches = stack.n_frames, stack.n_batches
         mean, batch_means, saturated = stack.mean, stack.batch_means, stack.n_saturated
         n_frames[i] = n
+        if references is None:
+            width = max(max(f.width_x, f.width_y) for f in (
+                gaussian_fit(mean[w.slices] - dark[w.slices], w) for w in
+                (star_window(r, c, half_size, detector.shape, label=f"star {s} at {where}")
+                 for s, (r, c) in enumerate(centres))))
+            isolated = isolated_half_size(centres, half_size, width)
+            if isolated < 2:
+                raise WindowError(f"{label}: at {where} the stars are too close for windows holding one star's light "
+                                  f"alone (PSF width {width:.2f} pixel; 5x5 windows at least)")
+            if isolated < half_size and log is not None:
+                log.warning("%s: %dx%d windows would hold other stars' light (PSF width %.2f pixel): %dx%d windows",
+                            label, size, size, width, 2 * isolated + 1, 2 * isolated + 1)
+            half_size, size = isolated, 2 * isolated + 1
         windows = [star_window(r, c, half_size, detector.shape, label=f"star {s} at {where}")
                    for s, (r, c) in enumerate(centres)]
 
@@ -521,9 +562,10 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
             references = [(w, image) for w, image in zip(windows, images)]
             first_windows = np.array(images)
             anchor = gaussian_fit(images[central], windows[central], weights=noise[central])
-            # each star's reference tied to the central one's, by the method itself
+            # each star's reference tied to the central one's, by the method itself, with the weights
+            # its reference is measured with later: that window's noise then cancels between tie and shift
             ties = [np.zeros(2) if s == central or method == "gaussian" else
-                    fourier_displacement(images[central], images[s]) + np.array(
+                    fourier_displacement(images[central], images[s], weights=noise[s]) + np.array(
                         [windows[s].col0 - windows[central].col0, windows[s].row0 - windows[central].row0])
                     for s in range(n_star)]
 
