@@ -89,12 +89,19 @@ def fringe_batches(phase, *, span: float = 2 * np.pi) -> np.ndarray:
     """
     unwrapped = np.unwrap(np.asarray(phase, dtype=float))
     edges = []
-    start, low, high = 0, np.inf, -np.inf
-    for t, value in enumerate(unwrapped):
-        low, high = min(low, value), max(high, value)
-        if high - low >= span:
-            edges.append((start, t + 1))
-            start, low, high = t + 1, np.inf, -np.inf
+    start, window = 0, 1024
+    while start < unwrapped.size:
+        # the running range of the phase from ``start``, over a window that grows until it spans ``span``
+        ahead = unwrapped[start:start + window]
+        spanned = np.maximum.accumulate(ahead) - np.minimum.accumulate(ahead) >= span
+        if spanned.any():
+            stop = start + int(np.argmax(spanned)) + 1
+            edges.append((start, stop))
+            start = stop
+        elif start + window >= unwrapped.size:
+            break
+        else:
+            window *= 2
     if len(edges) < 2:
         raise AllanError(f"{len(unwrapped)} frames hold {len(edges)} batch(es) of a full fringe period; "
                          "at least two are needed for an Allan deviation")
@@ -327,6 +334,20 @@ def photon_limit(n_frames, level, amplitude, iota, alpha, gain, read_noise, k_no
     return per_frame[None, :] / np.sqrt(np.asarray(n_frames, dtype=float)[:, None] / 2)
 
 
+def _deviations(series, sizes):
+    """:func:`group_deviation` and :func:`allan_deviation` of ``series`` (sample, ...) at each size (size, ...).
+
+    Each size's group means are formed once, for both statistics.
+    """
+    series = np.asarray(series, dtype=float)
+    deviation, allan = [], []
+    for m in sizes:
+        means = _group_means(series, m)
+        deviation.append(means.std(axis=0, ddof=1))
+        allan.append(np.sqrt(np.mean(np.diff(means, axis=0) ** 2, axis=0) / 2))
+    return np.stack(deviation), np.stack(allan)
+
+
 def _mean_variance_root(deviations, axis=-1):
     """Root of the mean variance over ``axis``: a mean of deviations is biased low with few groups."""
     return np.sqrt(np.nanmean(np.square(deviations), axis=axis))
@@ -383,19 +404,19 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
     white = rng.standard_normal(offsets.shape) * np.std(offsets, axis=0, ddof=1)
     white_blocks = rng.standard_normal(blocks.shape) * np.std(blocks, axis=0, ddof=1)
 
-    per_pixel = np.stack([group_deviation(offsets, m) for m in sizes])
-    per_pixel_allan = np.stack([allan_deviation(offsets, m) for m in sizes])
-    per_block = np.stack([group_deviation(blocks, m) for m in sizes])
-    per_block_allan = np.stack([allan_deviation(blocks, m) for m in sizes])
-    white_pixel = np.stack([group_deviation(white, m) for m in sizes])
-    white_block = np.stack([group_deviation(white_blocks, m) for m in sizes])
+    per_pixel, per_pixel_allan = _deviations(offsets, sizes)
+    per_block, per_block_allan = _deviations(blocks, sizes)
+    white_pixel, _ = _deviations(white, sizes)
+    white_block, _ = _deviations(white_blocks, sizes)
     # The limits: the variance of a group mean is the sum of its batches' variances over m^2,
-    # averaged over groups (as the deviation between group means is), then over pixels or blocks.
+    # averaged over groups (as the deviation between group means is), then over pixels or blocks:
+    # the mean batch variance over the batches the groups use, over m.
     variance = np.where(good, floors, 0.0) ** 2
-    block_variance = variance @ weights**2  # independent pixels in a block
-    limit_pixel = np.array([np.sqrt(np.mean(_group_means(variance, m)) / m * good.size / good.sum())
-                            for m in sizes])
-    limit_block = np.array([np.sqrt(np.mean(_group_means(block_variance, m)) / m) for m in sizes])
+    pixel_variance = variance.mean(axis=1) * good.size / good.sum()  # (batch,): mean over good pixels
+    block_variance = (variance @ weights**2).mean(axis=1)  # independent pixels in a block
+    used = (n_batches // sizes) * sizes
+    limit_pixel = np.sqrt(np.array([pixel_variance[:n].mean() for n in used]) / sizes)
+    limit_block = np.sqrt(np.array([block_variance[:n].mean() for n in used]) / sizes)
     k_norm = float(np.hypot(*k))
     paper = np.where(good, photon_limit(n_frames, level, amplitude, iota, alpha, detector.gain, read_noise, k_norm),
                      0.0)
