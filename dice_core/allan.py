@@ -293,7 +293,7 @@ def group_deviation(series, m: int) -> np.ndarray:
 
     ``series`` is (sample, ...); samples after the last whole group are left out.
     """
-    return _group_means(np.asarray(series, dtype=float), m).std(axis=0, ddof=1)
+    return _deviation_of_means(_group_means(np.asarray(series, dtype=float), m))
 
 
 def allan_deviation(series, m: int) -> np.ndarray:
@@ -302,7 +302,14 @@ def allan_deviation(series, m: int) -> np.ndarray:
     sqrt(sum_j (g_{j+1} - g_j)^2 / (2 (n_groups - 1))) over the group means g_j;
     equal to allantools' ``adev(series, rate=1, data_type="freq", taus=[m])``.
     """
-    means = _group_means(np.asarray(series, dtype=float), m)
+    return _allan_of_means(_group_means(np.asarray(series, dtype=float), m))
+
+
+def _deviation_of_means(means):
+    return means.std(axis=0, ddof=1)
+
+
+def _allan_of_means(means):
     return np.sqrt(np.mean(np.diff(means, axis=0) ** 2, axis=0) / 2)
 
 
@@ -341,10 +348,10 @@ def _deviations(series, sizes):
     """
     series = np.asarray(series, dtype=float)
     deviation, allan = [], []
-    for m in sizes:
+    for m in sizes:  # one size's means in memory at a time
         means = _group_means(series, m)
-        deviation.append(means.std(axis=0, ddof=1))
-        allan.append(np.sqrt(np.mean(np.diff(means, axis=0) ** 2, axis=0) / 2))
+        deviation.append(_deviation_of_means(means))
+        allan.append(_allan_of_means(means))
     return np.stack(deviation), np.stack(allan)
 
 

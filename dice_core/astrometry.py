@@ -12,8 +12,9 @@ Configurations are arrays (position, star, 2) of (x, y) centroids.
   each position is modelled as X_p = S_p R_p M + t_p, with S_p = diag(sx, sy)
   along the detector axes (tip-tilt of the stage changes the plate scale per
   axis), R_p a rotation (roll), M the mean configuration; M and the
-  transforms are fitted alternately, M's gauge fixed by zero mean
-  translation, rotation and isotropic scale. Residuals are in detector
+  transforms are fitted together (Gauss-Newton on the Schur complement of
+  the transforms), M's gauge fixed by zero mean translation, rotation and
+  isotropic scale. Residuals are in detector
   pixels.
 - :func:`correction_factor`: the superimposition absorbs part of any random
   error (5 parameters per position fit 10 coordinates, and M is fitted too):
@@ -31,7 +32,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import xarray as xr
-from scipy.optimize import least_squares
 
 __all__ = [
     "AstrometryError",
@@ -121,7 +121,9 @@ class ProcrustesResult:
 
 def _model(mean, params):
     """Configurations (position, star, 2) of the transforms ``params`` (position, 5) of ``mean`` (star, 2)."""
-    return np.array([_transform(q, mean) for q in params])
+    cos, sin = np.cos(params[:, 4]), np.sin(params[:, 4])
+    rotation = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
+    return np.exp(params[:, None, 2:4]) * np.einsum("pij,sj->psi", rotation, mean) + params[:, None, :2]
 
 
 def _jacobian(mean, params) -> np.ndarray:
@@ -142,44 +144,114 @@ def _jacobian(mean, params) -> np.ndarray:
     return jac.reshape(n_pos * n_star * 2, -1)
 
 
-def procrustes(configurations) -> ProcrustesResult:
+def _normal_equations(c, mean, params):
+    """Residuals and the Gauss-Newton blocks of the Procrustes model at (mean, params).
+
+    Returns r (position, star, 2) = model - c; per position the 5x5 blocks
+    B_p = J_qp'J_qp and g_qp = J_qp'r_p of its transform; the mean shape's
+    block A (2, 2), the same for every star, and g_m (star, 2); and the
+    couplings C (position, 2 star, 5) between the mean shape and each
+    transform.
+    """
+    n_pos, n_star = c.shape[:2]
+    theta = params[:, 4]
+    cos, sin = np.cos(theta), np.sin(theta)
+    rotation = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)  # (P, 2, 2)
+    d_rotation = np.stack([np.stack([-sin, -cos], -1), np.stack([cos, -sin], -1)], -2)
+    scale = np.exp(params[:, 2:4])  # (P, 2)
+    rotated = np.einsum("pij,sj->psi", rotation, mean)  # R_p m_s
+    r = scale[:, None, :] * rotated + params[:, None, :2] - c
+    jq = np.zeros((n_pos, n_star, 2, 5))  # d model / d (tx, ty, log sx, log sy, theta)
+    jq[:, :, 0, 0] = jq[:, :, 1, 1] = 1.0
+    jq[:, :, 0, 2] = scale[:, None, 0] * rotated[..., 0]
+    jq[:, :, 1, 3] = scale[:, None, 1] * rotated[..., 1]
+    jq[:, :, :, 4] = scale[:, None, :] * np.einsum("pij,sj->psi", d_rotation, mean)
+    jm = scale[:, :, None] * rotation  # d model / d m_s = S_p R_p, the same for every star
+    B = np.einsum("psik,psil->pkl", jq, jq)
+    g_q = np.einsum("psik,psi->pk", jq, r)
+    A = np.einsum("pik,pil->kl", jm, jm)
+    g_m = np.einsum("pik,psi->sk", jm, r)
+    C = np.einsum("pik,psil->pskl", jm, jq).reshape(n_pos, 2 * n_star, 5)
+    return r, B, g_q, A, g_m, C
+
+
+def _fix_procrustes_gauge(mean, params):
+    """The same model with zero mean rotation, isotropic log-scale and translation of the transforms.
+
+    The mean shape M' = l R(phi) M + tau and transforms theta - phi,
+    log s - log l, t - (S_p / l) R(theta_p - phi) tau give every position the
+    same model: the gauge, fixed exactly.
+    """
+    phi = params[:, 4].mean()
+    log_l = params[:, 2:4].mean()
+    params = params.copy()
+    params[:, 4] -= phi
+    params[:, 2:4] -= log_l
+    cos, sin = np.cos(params[:, 4]), np.sin(params[:, 4])
+    rotation = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
+    maps = np.exp(params[:, 2:4])[:, :, None] * rotation  # (S_p / l) R(theta_p - phi)
+    tau = np.linalg.solve(maps.mean(axis=0), params[:, :2].mean(axis=0))
+    params[:, :2] -= maps @ tau
+    mean = np.exp(log_l) * mean @ _rotation(phi).T + tau
+    return mean, params
+
+
+def procrustes(configurations, *, max_iterations: int = 500) -> ProcrustesResult:
     """Generalised Procrustes superimposition with translation, two scales and a rotation per position.
 
-    All transforms and the mean configuration are fitted together (Levenberg-
-    Marquardt, analytic Jacobian). The model is unchanged if the mean
-    configuration is translated, rotated or scaled isotropically and every
-    transform compensates: that gauge is fixed by zero mean translation,
-    rotation and isotropic log-scale of the transforms, so that the mean
-    configuration lies where the data are.
+    All transforms and the mean configuration are fitted together by
+    Levenberg-Marquardt, the way bundle adjustments are solved: each
+    iteration eliminates every position's 5 parameters from the normal
+    equations (a 5x5 block each) and solves the mean configuration's
+    2S-dimensional Schur complement, so an iteration costs
+    O(positions x stars) instead of a dense (2SN x (2S + 5N)) factorisation. The model is
+    unchanged if the mean configuration is translated, rotated or scaled
+    isotropically and every transform compensates: that gauge (the Schur
+    complement's 4-dimensional null space) is fixed after each step, exactly,
+    by zero mean translation, rotation and isotropic log-scale of the
+    transforms, so that the mean configuration lies where the data are.
 
     Raises
     ------
     AstrometryError
-        Fewer than 3 stars or 2 positions, NaN centroids.
+        Fewer than 3 stars or 2 positions, NaN centroids, no convergence.
     """
     c = _check(configurations)
     n_pos, n_star = c.shape[:2]
     centres = c.mean(axis=1)
-    x0 = np.concatenate([(c - centres[:, None, :]).mean(axis=0).ravel() + np.tile(centres.mean(axis=0), n_star),
-                         np.column_stack([centres - centres.mean(axis=0), np.zeros((n_pos, 3))]).ravel()])
-    gauge = np.zeros((4, x0.size))
-    offset = 2 * n_star
-    gauge[0, offset + 0::5] = gauge[1, offset + 1::5] = gauge[2, offset + 4::5] = 1.0 / n_pos
-    gauge[3, offset + 2::5] = gauge[3, offset + 3::5] = 0.5 / n_pos
-
-    def unpack(x):
-        return x[:offset].reshape(n_star, 2), x[offset:].reshape(n_pos, 5)
-
-    def residual(x):
-        mean, params = unpack(x)
-        return np.concatenate([(_model(mean, params) - c).ravel(), gauge @ x])
-
-    def jacobian(x):
-        return np.vstack([_jacobian(*unpack(x)), gauge])
-
-    fit = least_squares(residual, x0, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                        max_nfev=200 * x0.size)
-    mean, params = unpack(fit.x)
+    mean = (c - centres[:, None, :]).mean(axis=0) + centres.mean(axis=0)
+    params = np.column_stack([centres - centres.mean(axis=0), np.zeros((n_pos, 3))])
+    cost = float(np.sum((_model(mean, params) - c) ** 2))
+    damping = 1e-3
+    for _ in range(max_iterations):
+        r, B, g_q, A, g_m, C = _normal_equations(c, mean, params)
+        A_full = np.kron(np.eye(n_star), A)
+        while True:
+            # Levenberg-Marquardt: each block's diagonal raised by the damping (Marquardt's scaling), then
+            # the transforms eliminated. Far from the solution a full Gauss-Newton step overshoots: a mean
+            # shape stretched along one axis, with the scales compensating, is constrained only weakly
+            # (by the rolls), and the model is curved along it.
+            B_damped = B + damping * np.einsum("pkk->pk", B)[:, :, None] * np.eye(5)
+            B_inv = np.linalg.inv(B_damped)
+            CB = np.einsum("pak,pkl->pal", C, B_inv)
+            schur = A_full + damping * np.diag(np.diag(A_full)) - np.einsum("pal,pbl->ab", CB, C)
+            rhs = -g_m.ravel() + np.einsum("pal,pl->a", CB, g_q)
+            d_mean = np.linalg.lstsq(schur, rhs, rcond=1e-14)[0]
+            d_params = -np.einsum("pkl,pl->pk", B_inv, g_q + np.einsum("pak,a->pk", C, d_mean))
+            trial_mean, trial_params = _fix_procrustes_gauge(mean + d_mean.reshape(n_star, 2), params + d_params)
+            trial_cost = float(np.sum((_model(trial_mean, trial_params) - c) ** 2))
+            if trial_cost <= cost or damping > 1e12:
+                break
+            damping *= 10
+        if trial_cost > cost:  # no step lowers the cost: at the minimum, to rounding
+            break
+        converged = cost - trial_cost <= 1e-14 * cost
+        mean, params, cost = trial_mean, trial_params, trial_cost
+        damping = max(damping / 10, 1e-12)
+        if converged:
+            break
+    else:
+        raise AstrometryError(f"the superimposition did not converge in {max_iterations} iterations")
     return ProcrustesResult(mean, params, c - _model(mean, params))
 
 
