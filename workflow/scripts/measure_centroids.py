@@ -3,14 +3,14 @@
 import logging
 
 import dice_core
-from dice_core import centroids, io
+from dice_core import centroids, io, stacks
 from dice_core.manifest import load_manifest
 
 
 def read_stacks(paths):
     """Each position's stack, read when the centroids reach it: one in memory at a time."""
     for path in paths:
-        yield centroids.PositionStack.from_dataset(io.read_product(path))
+        yield stacks.PositionStack.from_dataset(io.read_product(path))
 
 
 def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, stack_paths, mode, output, config,
