@@ -97,7 +97,7 @@ def fringe_batches(phase, *, span: float = 2 * np.pi) -> np.ndarray:
         if spanned.any():
             stop = start + int(np.argmax(spanned)) + 1
             edges.append((start, stop))
-            start = stop
+            start, window = stop, max(1024, 2 * (stop - edges[-1][0]))
         elif start + window >= unwrapped.size:
             break
         else:
@@ -239,21 +239,24 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
         args = ([batches] * n, [frame_factors] * n, [fit] * n, [label] * n)
         results = list(map(_lane_batch_offsets, lanes, *args) if executor is None
                        else executor.map(_lane_batch_offsets, lanes, *args))
-    log.info("%s: BLAS threads: %d in this process, %s in the processes that read the parts", label,
-             blas_threads(), ", ".join(str(threads) for _, _, threads in results))
+    if executor is None:
+        log.info("%s: BLAS threads: %d in this process, which reads the parts itself", label, blas_threads())
+    else:
+        log.info("%s: BLAS threads: %d in this process, %s in the processes that read the parts", label,
+                 blas_threads(), ", ".join(str(threads) for _, _, threads in results))
     out = np.full((len(batches), idx.size), np.nan)
+    fitted = np.zeros(len(batches), bool)
     partial, covered = {}, {}
     for done, sums, _ in results:  # in lane order, so that a batch cut between parts sums the same way always
         for b, offsets in done.items():
-            out[b] = offsets
+            out[b], fitted[b] = offsets, True
         for b, (part, n_frames) in sums.items():
             partial[b] = part if b not in partial else partial[b] + part
             covered[b] = covered.get(b, 0) + n_frames
     for b, part in partial.items():
         start, stop = batches[b]
         if covered[b] == stop - start:
-            out[b] = fit.offsets(frame_factors[start:stop], part)
-    fitted = np.isfinite(out).any(axis=1)
+            out[b], fitted[b] = fit.offsets(frame_factors[start:stop], part), True
     if not fitted.all():
         raise AllanError(f"{label}: the frames ended in batch {np.flatnonzero(~fitted)[0]} of {len(batches)}")
     return out
@@ -489,6 +492,7 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
     )
 
 
+@one_blas_thread
 def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector, *, block: int = 10,
                       workers: int = 1, label: str = "baseline") -> xr.Dataset:
     """Allan deviations of one baseline from its raw frames and its global solution.

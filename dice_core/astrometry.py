@@ -12,8 +12,8 @@ Configurations are arrays (position, star, 2) of (x, y) centroids.
   each position is modelled as X_p = S_p R_p M + t_p, with S_p = diag(sx, sy)
   along the detector axes (tip-tilt of the stage changes the plate scale per
   axis), R_p a rotation (roll), M the mean configuration; M and the
-  transforms are fitted together (Gauss-Newton on the Schur complement of
-  the transforms), M's gauge fixed by zero mean translation, rotation and
+  transforms are fitted together (Levenberg-Marquardt on the Schur complement
+  of the transforms), M's gauge fixed by zero mean translation, rotation and
   isotropic scale. Residuals are in detector
   pixels.
 - :func:`correction_factor`: the superimposition absorbs part of any random
@@ -28,6 +28,7 @@ Configurations are arrays (position, star, 2) of (x, y) centroids.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,6 +52,9 @@ __all__ = [
     "accuracy_csv",
     "residuals_dataset",
 ]
+
+
+log = logging.getLogger(__name__)
 
 
 class AstrometryError(ValueError):
@@ -91,11 +95,6 @@ def _transform(params, mean):
     return (mean @ _rotation(theta).T) * np.exp([lsx, lsy]) + [tx, ty]
 
 
-def _inverse(params, configuration):
-    tx, ty, lsx, lsy, theta = params
-    return ((configuration - [tx, ty]) / np.exp([lsx, lsy])) @ _rotation(theta)
-
-
 @dataclass
 class ProcrustesResult:
     """Result of :func:`procrustes`.
@@ -120,10 +119,17 @@ class ProcrustesResult:
         return float(np.sqrt(np.mean(self.residuals**2)))
 
 
+def _rotations(theta):
+    """Rotation matrices (position, 2, 2) and their derivatives d/dtheta, for angles ``theta`` (position,), rad."""
+    cos, sin = np.cos(theta), np.sin(theta)
+    rotation = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
+    derivative = np.stack([np.stack([-sin, -cos], -1), np.stack([cos, -sin], -1)], -2)
+    return rotation, derivative
+
+
 def _model(mean, params):
     """Configurations (position, star, 2) of the transforms ``params`` (position, 5) of ``mean`` (star, 2)."""
-    cos, sin = np.cos(params[:, 4]), np.sin(params[:, 4])
-    rotation = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
+    rotation, _ = _rotations(params[:, 4])
     return np.exp(params[:, None, 2:4]) * np.einsum("pij,sj->psi", rotation, mean) + params[:, None, :2]
 
 
@@ -155,10 +161,7 @@ def _normal_equations(c, mean, params):
     transform.
     """
     n_pos, n_star = c.shape[:2]
-    theta = params[:, 4]
-    cos, sin = np.cos(theta), np.sin(theta)
-    rotation = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)  # (P, 2, 2)
-    d_rotation = np.stack([np.stack([-sin, -cos], -1), np.stack([cos, -sin], -1)], -2)
+    rotation, d_rotation = _rotations(params[:, 4])  # (P, 2, 2)
     scale = np.exp(params[:, 2:4])  # (P, 2)
     rotated = np.einsum("pij,sj->psi", rotation, mean)  # R_p m_s
     r = scale[:, None, :] * rotated + params[:, None, :2] - c
@@ -188,8 +191,7 @@ def _fix_procrustes_gauge(mean, params):
     params = params.copy()
     params[:, 4] -= phi
     params[:, 2:4] -= log_l
-    cos, sin = np.cos(params[:, 4]), np.sin(params[:, 4])
-    rotation = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)
+    rotation, _ = _rotations(params[:, 4])
     maps = np.exp(params[:, 2:4])[:, :, None] * rotation  # (S_p / l) R(theta_p - phi)
     tau = np.linalg.solve(maps.mean(axis=0), params[:, :2].mean(axis=0))
     params[:, :2] -= maps @ tau
@@ -217,7 +219,16 @@ def procrustes(configurations, *, max_iterations: int = 200) -> ProcrustesResult
     spread of the rolls: with few positions (a few group means) the data
     barely constrain it, the cost keeps falling slowly along it, and the fit
     ends where MINPACK's Levenberg-Marquardt tolerances stop it (after
-    ``max_iterations`` of the fast solver), as it always did.
+    ``max_iterations`` of the fast solver, logged), as it always did; the
+    stretch it stops at, and the residual there (0.2-0.8% in rms on 3 group
+    means), depend on where that is.
+
+    Parameters
+    ----------
+    configurations : ndarray (position, star, 2)
+        (x, y) of every star at every position, pixel.
+    max_iterations : int
+        Of the fast solver, before the dense fit takes over.
 
     Raises
     ------
@@ -267,6 +278,8 @@ def procrustes(configurations, *, max_iterations: int = 200) -> ProcrustesResult
         # Still creeping along the stretch valley: few positions, or rolls too alike, leave the mean
         # shape's anisotropic stretch barely constrained. MINPACK's dense Levenberg-Marquardt, from here,
         # ends the fit with its own tolerances, as this function always did before the fast solver.
+        log.warning("Procrustes: the mean shape's x/y stretch is barely constrained by these %d configurations "
+                    "(alike rolls); dense Levenberg-Marquardt ends the fit", n_pos)
         mean, params = _dense_procrustes(c, mean, params)
     return ProcrustesResult(mean, params, c - _model(mean, params))
 

@@ -195,15 +195,18 @@ def isolated_half_size(approx, half_size: int, width: float, *, contrast: float 
     ``width`` (pixel) is below ``contrast`` of its peak beyond
     width sqrt(2 ln(1 / contrast)); the window on the pixel nearest each star
     (``approx``: (row, col) of every star) keeps its pixel centres that far
-    from every other star.
+    from every other star, for any sub-pixel phase of the stars (they move
+    together with the stage). The contrast is relative to the neighbour's own
+    peak (stars of very different fluxes need a smaller one).
     """
     clearance = width * np.sqrt(2 * np.log(1 / contrast))
     xy = np.array([(c, r) for r, c in approx], dtype=float)
-    centres = np.round(xy)
     half = half_size
     for s in range(len(xy)):
         for k in range(len(xy)):
-            distance = np.abs(xy[k] - centres[s])
+            # windows sit on the pixel nearest the star, up to 0.5 pixel off it along each axis
+            # whatever the position: the worst case
+            distance = np.abs(xy[k] - xy[s]) - 0.5
             while k != s and half > 0 and np.hypot(*np.clip(distance - half, 0, None)) < clearance:
                 half -= 1
     return half
@@ -409,9 +412,11 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
     Raises
     ------
     WindowError
-        A star's window leaves the detector or the calibrated area.
+        A star's window leaves the detector or the calibrated area; stars
+        too close for 5x5 windows holding one star's light.
     ValueError
-        Unknown method; fewer stacks than positions, or a stack of one batch;
+        Unknown method; fewer stacks than positions, a stack of another
+        position, or a stack of one batch;
         with the Fourier method, a saturated star at the first position (its
         window is every later one's reference).
     """
@@ -432,6 +437,8 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
         stack = next(stacks, None)
         if stack is None:
             raise ValueError(f"{label}: no frames given for {where} ({i} stack(s) for {n_pos} positions)")
+        if stack.position is not None and stack.position != position:
+            raise ValueError(f"{label}: the stack given for {where} is that of position {stack.position}")
         if stack.n_batches < 2:
             raise ValueError(f"{label}: {where} has {stack.n_batches} batch; a precision needs two at least")
         n, n_batches = stack.n_frames, stack.n_batches

@@ -491,8 +491,11 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         coef, FtI, FtF, third, saturated, lane_threads = _pass(lanes, dark0, idx, G, extra=extra,
                                                                reference=reference, centred=centred,
                                                                executor=executor)
-        log.info("%s: BLAS threads: %d in this process, %s in the processes that read the parts", label,
-                 blas_threads(), ", ".join(map(str, lane_threads)))
+        if executor is None:
+            log.info("%s: BLAS threads: %d in this process, which reads the parts itself", label, blas_threads())
+        else:
+            log.info("%s: BLAS threads: %d in this process, %s in the processes that read the parts", label,
+                     blas_threads(), ", ".join(map(str, lane_threads)))
         u1, u2 = coef[:, 1], coef[:, 2]
         amp2 = u1**2 + u2**2
         if np.median(np.sqrt(amp2) / np.abs(coef[:, 0])) < min_contrast:
@@ -519,7 +522,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
             fit_idx = idx[active]
             if n_pass > 1:
                 coef, FtI, FtF, third, _, _ = _pass(lanes, dark0, fit_idx, np.linalg.solve(FtF, FtI).T,
-                                                 reference=reference, centred=centred, executor=executor)
+                                                    reference=reference, centred=centred, executor=executor)
             F = coef[:, :3]
             G_new = np.linalg.solve(FtF, FtI).T
             fx, fy = x[active], y[active]

@@ -3,9 +3,10 @@
 The per-chunk products of a streaming pass are small (3 to 7 columns over a
 cache-sized chunk): one BLAS thread per process is fastest, and two or more
 threads per process on a machine whose cores are already busy with worker
-processes slow a pass down many times (measured: a fringe fit of 200,000
-frames in two workers took 3.9 s with one BLAS thread each and 34.9 s with
-two; BENCHMARKS.md). The thread count cannot be left to the environment:
+processes slow a pass down many times (issue 10's measurement: a fringe fit
+of 200,000 frames in two workers took 3.9 s with one BLAS thread each and
+34.9 s with two; through Snakemake, which set two, the job took 27.5 s, and
+3.3-3.5 s once the library set one: BENCHMARKS.md). The thread count cannot be left to the environment:
 Snakemake sets ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS`` and
 ``MKL_NUM_THREADS`` to a rule's ``threads`` before a step starts, and a user's
 shell may set anything. So the reductions set it themselves, at run time, with

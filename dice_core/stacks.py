@@ -31,19 +31,22 @@ class PositionStack:
         Saturated samples of each pixel over all the frames.
     n_frames : int
         Frames averaged.
+    position : int, optional
+        The position's index, checked by :func:`dice_core.centroids.measure_positions`.
     """
 
     mean: np.ndarray
     batch_means: np.ndarray
     n_saturated: np.ndarray
     n_frames: int
+    position: int | None = None
 
     @property
     def n_batches(self) -> int:
         return self.batch_means.shape[0]
 
-    def to_dataset(self, position) -> xr.Dataset:
-        """The ``stars/<index>.nc`` product of this stack (position ``position``)."""
+    def to_dataset(self) -> xr.Dataset:
+        """The ``stars/<index>.nc`` product of this stack."""
         rc = ("row", "col")
         edges = batch_edges(self.n_frames, self.n_batches)
         return xr.Dataset(
@@ -57,14 +60,14 @@ class PositionStack:
             },
             coords={"row": np.arange(self.mean.shape[0]), "col": np.arange(self.mean.shape[1]),
                     "batch": np.arange(self.n_batches)},
-            attrs={"position": position},
+            attrs={} if self.position is None else {"position": int(self.position)},
         )
 
     @classmethod
     def from_dataset(cls, ds: xr.Dataset) -> "PositionStack":
         """The stack held by a ``stars/<index>.nc`` product."""
         return cls(ds["mean"].values, ds["batch_mean"].values, ds["n_saturated"].values.astype(np.int64),
-                   int(ds["n_frames"]))
+                   int(ds["n_frames"]), ds.attrs.get("position"))
 
 
 def batch_edges(n_frames: int, n_batches: int) -> np.ndarray:
@@ -72,23 +75,28 @@ def batch_edges(n_frames: int, n_batches: int) -> np.ndarray:
     return np.linspace(0, n_frames, n_batches + 1).round().astype(int)
 
 
-def stack_position(chunks, n_frames: int, n_batches: int, *, label: str = "position") -> PositionStack:
+def stack_position(chunks, n_frames: int, n_batches: int, *, position: int | None = None,
+                   label: str = "position") -> PositionStack:
     """Mean frame, the mean frames of ``n_batches`` consecutive batches, and saturated-sample counts.
 
-    One pass over a position's frames; memory is a few frames whatever their
+    One pass over a position's frames (``chunks``: :class:`dice_core.io.Chunk`
+    in order, ``n_frames`` in all); memory is a few frames whatever their
     number. Batches split the frames as evenly as possible (:func:`batch_edges`).
 
     Raises
     ------
     ValueError
-        Fewer frames than batches.
+        Fewer frames than batches; chunks that do not hold ``n_frames`` frames.
     """
     if n_frames < n_batches:
         raise ValueError(f"{label}: {n_frames} frame(s) for {n_batches} batches; each batch needs one at least")
     edges = batch_edges(n_frames, n_batches)
     sums = saturated = None
+    seen = 0
     for chunk in chunks:
         frames = np.asarray(chunk.frames, dtype=np.float64)
+        if chunk.start + frames.shape[0] > n_frames:
+            raise ValueError(f"{label}: frames beyond the {n_frames} announced (chunk at frame {chunk.start})")
         if sums is None:
             sums = np.zeros((n_batches, *frames.shape[1:]))
             saturated = np.zeros(frames.shape[1:], dtype=np.int64)
@@ -97,5 +105,9 @@ def stack_position(chunks, n_frames: int, n_batches: int, *, label: str = "posit
             sums[b] += frames[batch == b].sum(axis=0)
         if chunk.any_saturated:
             saturated += chunk.saturated.sum(axis=0)
+        seen += frames.shape[0]
+    if seen != n_frames:
+        raise ValueError(f"{label}: {seen} frame(s) read, {n_frames} announced")
     counts = np.diff(edges).astype(float)
-    return PositionStack(sums.sum(axis=0) / n_frames, sums / counts[:, None, None], saturated, int(n_frames))
+    return PositionStack(sums.sum(axis=0) / n_frames, sums / counts[:, None, None], saturated, int(n_frames),
+                         position)

@@ -197,7 +197,7 @@ def stacks_of(manifest, n_batches=2, chunks_of=None):
 
     streams = {p.index: FrameStream(p.acquisition, manifest.detector) for p in manifest.positions}
     chunks_of = chunks_of or (lambda index: streams[index])
-    return [stacks.stack_position(chunks_of(i), stream.n_frames, n_batches, label=f"position {i}")
+    return [stacks.stack_position(chunks_of(i), stream.n_frames, n_batches, position=i, label=f"position {i}")
             for i, stream in streams.items()]
 
 
@@ -253,21 +253,8 @@ def test_positions_report_precision_saturation_and_bad_input(star_dataset, caplo
         measure(manifest, truth, flat=True, metrology=True, stacks=stacks[:-1])
     with pytest.raises(ValueError, match="position 1 has 1 batch; a precision needs two"):
         measure(manifest, truth, flat=True, metrology=True, stacks=stacks_of(manifest, n_batches=1))
-
-
-def test_a_position_stack_survives_its_product(star_dataset, tmp_path):
-    from dice_core.io import read_product, write_product
-
-    manifest, _ = star_dataset
-    stack = stacks_of(manifest, n_batches=3)[0]
-    write_product(stack.to_dataset(1), tmp_path / "1.nc", title="stack")
-    ds = read_product(tmp_path / "1.nc")
-    assert ds["batch_frames"].values.tolist() == [1, 2, 1] and ds.attrs["position"] == 1
-    back = stacks.PositionStack.from_dataset(ds)
-    for name in ("mean", "batch_means", "n_saturated"):
-        np.testing.assert_array_equal(getattr(back, name), getattr(stack, name))
-    assert back.n_frames == stack.n_frames == 4
-    np.testing.assert_allclose(stack.batch_means.mean(axis=0), stack.mean, rtol=0.2)  # uneven batches
+    with pytest.raises(ValueError, match="the stack given for position 1 is that of position 2"):
+        measure(manifest, truth, flat=True, metrology=True, stacks=[stacks[1], stacks[0], *stacks[2:]])
 
 
 def test_a_saturated_window_is_refused_counted_and_logged(star_dataset, caplog):

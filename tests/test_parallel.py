@@ -10,9 +10,19 @@ import threadpoolctl
 from dice_core import parallel
 
 
+def two_blas_threads():
+    """BLAS at two threads, or a skip where the library runs one only (a single-core machine)."""
+    limits = threadpoolctl.threadpool_limits(limits=2, user_api="blas")
+    if parallel.blas_threads() < 2:
+        limits.restore_original_limits()
+        pytest.skip("BLAS cannot run two threads here")
+    return limits
+
+
 def test_one_blas_thread_inside_and_the_setting_restored_after():
-    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+    with two_blas_threads():
         before = parallel.blas_threads()
+        assert before == 2
         inside = parallel.one_blas_thread(parallel.blas_threads)()
         assert inside == 1
         assert parallel.blas_threads() == before
@@ -24,7 +34,7 @@ def _worker_threads(_):
 
 @pytest.mark.skipif(parallel.lane_workers(2, 2) < 2, reason="processes cannot be forked here")
 def test_worker_processes_run_one_blas_thread_when_the_parent_runs_two():
-    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+    with two_blas_threads():
         with parallel.lane_executor(2, parallel.LANES) as executor:
             assert list(executor.map(_worker_threads, range(4))) == [1, 1, 1, 1]
 
@@ -43,4 +53,7 @@ def test_the_environment_does_not_set_the_threads_of_a_fit():
             "print(p.blas_threads(), p.one_blas_thread(p.blas_threads)())")
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "2", "OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
-    assert out.split() == ["2", "1"]
+    environment_threads, step_threads = out.split()
+    if environment_threads != "2":
+        pytest.skip("BLAS cannot run two threads here")
+    assert step_threads == "1"

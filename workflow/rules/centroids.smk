@@ -14,6 +14,8 @@ rule stack_position:
         code=code_version("io", "manifest", "stacks"),
     log:
         f"{OUT}/logs/stack_position_{{position}}.log",
+    benchmark:
+        f"{OUT}/benchmarks/stack_position_{{position}}.tsv"
     conda:
         "../envs/dice.yaml"
     script:
