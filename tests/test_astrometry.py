@@ -80,3 +80,31 @@ def test_the_central_star_is_barely_absorbed_the_corners_much(rng):
     """Per-star factors (docs/astrometry.md): the transforms have little leverage on the centre."""
     factors = astrometry.star_factors(astrometry.procrustes(transformed(rng, 33)))
     assert factors[0] < 1.25 and np.all(factors[1:] > 1.45)
+
+
+def test_the_fast_superimposition_agrees_with_the_dense_fit(rng):
+    """The Schur-complement Levenberg-Marquardt against MINPACK's dense one on the same jittered data."""
+    configurations = transformed(rng, 33) + 1e-4 * rng.standard_normal((33, 5, 2))
+    fast = astrometry.procrustes(configurations)
+    c = astrometry._check(configurations)
+    centres = c.mean(axis=1)
+    start = ((c - centres[:, None, :]).mean(axis=0) + centres.mean(axis=0),
+             np.column_stack([centres - centres.mean(axis=0), np.zeros((33, 3))]))
+    dense_mean, dense_params = astrometry._dense_procrustes(c, *start)
+    dense = c - astrometry._model(dense_mean, dense_params)
+    np.testing.assert_allclose(fast.residuals, dense, rtol=0, atol=1e-9)
+    # the gauge: zero mean translation, rotation and isotropic log-scale of the transforms
+    np.testing.assert_allclose(fast.params[:, [0, 1, 4]].mean(axis=0), 0, atol=1e-12)
+    assert abs(fast.params[:, 2:4].mean()) < 1e-12
+
+
+def test_a_barely_constrained_stretch_ends_with_the_dense_fit_logged(rng, caplog):
+    """Three configurations whose rolls are all but equal: the x/y stretch of the mean shape is nearly free."""
+    params = np.column_stack([rng.normal(0, 1, 3), rng.normal(0, 1, 3), rng.normal(0, 2e-4, 3),
+                              rng.normal(0, 2e-4, 3), np.full(3, 1e-7)])
+    configurations = np.array([astrometry._transform(q, LAYOUT) for q in params])
+    configurations += 1e-4 * rng.standard_normal(configurations.shape)
+    with caplog.at_level("WARNING", logger="dice_core.astrometry"):
+        result = astrometry.procrustes(configurations, max_iterations=20)
+    assert "dense Levenberg-Marquardt ends the fit" in caplog.text
+    assert np.all(np.isfinite(result.residuals)) and result.rms < 1e-4
