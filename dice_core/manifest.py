@@ -23,6 +23,7 @@ from dice_core import DatasetError
 
 __all__ = [
     "Acquisition",
+    "BenchGeometry",
     "Detector",
     "Manifest",
     "StarPosition",
@@ -95,6 +96,30 @@ class StarPosition:
 
 
 @dataclass(frozen=True)
+class BenchGeometry:
+    """The metrology bench of a format-1.1 manifest (``metrology.geometry``), for spherical-wave fringes.
+
+    Attributes
+    ----------
+    wavelength : float
+        Of the metrology laser, m.
+    pixel_pitch : float
+        m.
+    fibers : dict of str to (float, float, float)
+        Nominal fiber-tip positions, m, in the detector frame: origin at the
+        nominal centre of pixel (row 0, col 0), x along cols, y along rows, z
+        along the normal towards the fibers.
+    baseline_fibers : dict of str to (str, str)
+        The two fibers of each baseline, in phase order.
+    """
+
+    wavelength: float
+    pixel_pitch: float
+    fibers: dict[str, tuple[float, float, float]]
+    baseline_fibers: dict[str, tuple[str, str]]
+
+
+@dataclass(frozen=True)
 class Manifest:
     """A validated raw dataset. Paths are absolute (resolved from the manifest's folder)."""
 
@@ -107,6 +132,7 @@ class Manifest:
     pairs: dict[str, tuple[str, str]] = field(default_factory=dict)
     star_approx: tuple[tuple[float, float], ...] = ()
     positions: tuple[StarPosition, ...] = ()
+    geometry: BenchGeometry | None = None
 
     @property
     def reference_flat(self) -> str | None:
@@ -217,6 +243,26 @@ def parse_manifest(document, path) -> Manifest:
             _fail(path, f"metrology pair {pair} uses baseline {members[0]} twice")
         pairs[pair] = tuple(members)
 
+    geometry = None
+    if "geometry" in metrology:
+        g = metrology["geometry"]
+        fibers = {name: tuple(float(v) for v in xyz) for name, xyz in g["fibers"].items()}
+        for baseline, members in g["baseline_fibers"].items():
+            if baseline not in baselines:
+                _fail(path, f"metrology.geometry.baseline_fibers names unknown baseline {baseline}")
+            unknown = [f for f in members if f not in fibers]
+            if unknown:
+                _fail(path, f"metrology.geometry.baseline_fibers.{baseline} names unknown fiber(s) {unknown}")
+            if members[0] == members[1]:
+                _fail(path, f"metrology.geometry.baseline_fibers.{baseline} uses fiber {members[0]} twice")
+        missing = [b for b in baselines if b not in g["baseline_fibers"]]
+        if missing:
+            # a baseline without its fibers would have to be reduced as plane waves, which the
+            # geometry says it is not
+            _fail(path, f"metrology.geometry gives no fibers for baseline(s) {missing}")
+        geometry = BenchGeometry(float(g["wavelength"]), float(g["pixel_pitch"]), fibers,
+                                 {b: tuple(m) for b, m in g["baseline_fibers"].items()})
+
     stars = document.get("stars")
     approx, positions = (), ()
     if stars:
@@ -231,4 +277,4 @@ def parse_manifest(document, path) -> Manifest:
                 _fail(path, f"stars.approx [{r}, {c}] lies outside the detector {list(shape)}")
 
     return Manifest(path, document["name"], detector, dark, flats, baselines, pairs,
-                    approx, positions)
+                    approx, positions, geometry)

@@ -96,3 +96,34 @@ def test_missing_fits_file_is_named(layout, tmp_path):
     with pytest.raises(DatasetError, match="not found") as info:
         load_manifest(path)
     assert "dark_000.fits" in str(info.value)
+
+
+GEOMETRY = {"wavelength": 633.0e-9, "pixel_pitch": 24.0e-6,
+            "fibers": {"F1": [0.0153, 0.0201, 0.6], "F4": [0.0087, 0.0201, 0.6], "F2": [0.0120, 0.0260, 0.6]},
+            "baseline_fibers": {"H1H4": ["F1", "F4"], "V1V4": ["F2", "F4"], "H2H4": ["F2", "F1"],
+                                "V2V4": ["F4", "F2"]}}
+
+
+def test_the_bench_geometry_of_format_1_1_is_read(layout, tmp_path):
+    document = copy.deepcopy(layout)
+    document["metrology"]["geometry"] = copy.deepcopy(GEOMETRY)
+    geometry = parse_manifest(document, tmp_path / "dataset.yaml").geometry
+    assert geometry.wavelength == 633.0e-9 and geometry.pixel_pitch == 24.0e-6
+    assert geometry.fibers["F1"] == (0.0153, 0.0201, 0.6) and geometry.baseline_fibers["H1H4"] == ("F1", "F4")
+    assert parse_manifest(layout, tmp_path / "dataset.yaml").geometry is None
+
+
+@pytest.mark.parametrize("edit, expected", [
+    (lambda g: g["baseline_fibers"].update(H1H4=["F1", "F9"]), r"baseline_fibers.H1H4 names unknown fiber\(s\) \['F9'\]"),
+    (lambda g: g["baseline_fibers"].update(X1X2=["F1", "F4"]), "names unknown baseline X1X2"),
+    (lambda g: g["baseline_fibers"].pop("V2V4"), r"gives no fibers for baseline\(s\) \['V2V4'\]"),
+    (lambda g: g["baseline_fibers"].update(H1H4=["F1", "F1"]), "uses fiber F1 twice"),
+    (lambda g: g["fibers"].update(F1=[0.0, 0.0]), "at metrology.geometry.fibers.F1"),
+    (lambda g: g.pop("wavelength"), "'wavelength' is a required property"),
+])
+def test_a_bad_bench_geometry_names_the_problem(layout, tmp_path, edit, expected):
+    document = copy.deepcopy(layout)
+    document["metrology"]["geometry"] = copy.deepcopy(GEOMETRY)
+    edit(document["metrology"]["geometry"])
+    with pytest.raises(DatasetError, match=expected):
+        parse_manifest(document, tmp_path / "dataset.yaml")

@@ -287,6 +287,31 @@ def test_modes_without_their_calibration_are_skipped_or_refused(workdir, out, tm
     assert "centroids.pair 'P99' is not a pair of" in result.stdout + result.stderr
 
 
+def test_spherical_wave_fringes_are_never_reduced_as_plane_waves(workdir, out, tmp_path):
+    """A format-1.1 manifest (metrology.geometry): the metrology is skipped, saying why, until the
+    spherical-wave reduction exists; the stages that do not need it still run."""
+    document = yaml.safe_load((out / "raw" / "dataset.yaml").read_text())
+    document["name"] = "bench-spherical"
+    raw = out / "raw"
+    for entry in [document["dark"], *document["flats"].values(), *document["metrology"]["baselines"].values(),
+                  *document["stars"]["positions"]]:
+        entry["files"] = [str(raw / f) for f in entry["files"]]
+    document["metrology"]["geometry"] = {
+        "wavelength": 633.0e-9, "pixel_pitch": 24.0e-6,
+        "fibers": {"F1": [0.0153, 0.0201, 0.6], "F2": [0.0120, 0.0260, 0.6], "F4": [0.0087, 0.0201, 0.6]},
+        "baseline_fibers": {b: ["F1", "F4"] if b.startswith("H") else ["F2", "F4"]
+                            for b in document["metrology"]["baselines"]}}
+    manifest = tmp_path / "dataset.yaml"
+    manifest.write_text(yaml.safe_dump(document))
+    result = snakemake(workdir, "-n", "--config", f"dataset={manifest}")
+    said = result.stdout + result.stderr
+    assert "describes spherical-wave fringes (metrology.geometry)" in said
+    assert "does not reduce them as plane waves" in said
+    assert "rule fit_fringes" not in said and "rule allan_deviation" not in said
+    assert "skipping centroid mode metrology: the metrology is not reduced" in said
+    assert "centroids/raw.nc" in said and "centroids/flat.nc" in said and "centroids/metrology.nc" not in said
+
+
 @pytest.mark.slow
 def test_default_preset_against_truth(tmp_path):
     """The README's main job (about 30 s): dark noise and PRNU of the 80x84 testbed against truth."""

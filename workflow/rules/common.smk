@@ -134,13 +134,25 @@ def pair_baselines(wildcards):
     return list(MANIFEST.pairs[wildcards.pair])
 
 
+def metrology_unavailable():
+    """Why this dataset's metrology cannot be reduced, or None."""
+    if not MANIFEST.baselines:
+        return f"{MANIFEST.path} has no metrology section"
+    if MANIFEST.dark is None:
+        return f"{MANIFEST.path} has no dark to subtract"
+    if MANIFEST.geometry is not None:
+        # the format's rule: a reader without the spherical-wave reduction refuses such fringes
+        # rather than reduce them as plane waves (a smooth error of up to 1e-3 pixel in the offsets)
+        return (f"{MANIFEST.path} describes spherical-wave fringes (metrology.geometry), which this "
+                "version cannot reduce yet; it does not reduce them as plane waves")
+    return None
+
+
 def metrology_targets():
     """Products and figures of the metrology stage that this dataset allows."""
-    if not MANIFEST.baselines:
-        skipped("metrology", f"{MANIFEST.path} has no metrology section")
-        return []
-    if MANIFEST.dark is None:
-        skipped("metrology", f"{MANIFEST.path} has no dark to subtract")
+    why = metrology_unavailable()
+    if why is not None:
+        skipped("metrology", why)
         return []
     targets = []
     for baseline in MANIFEST.baselines:
@@ -211,6 +223,9 @@ def centroid_targets():
             continue
         if "metrology" in mode and centroid_pair() is None:
             skipped(f"centroid mode {mode}", "the dataset names no pair of metrology baselines")
+            continue
+        if "metrology" in mode and metrology_unavailable() is not None:
+            skipped(f"centroid mode {mode}", "the metrology is not reduced")
             continue
         targets += [f"{OUT}/centroids/{mode}.nc", *figure_pair(f"centroids_{mode}").values()]
         targets += [f"{OUT}/centroids/{method}/{mode}.nc" for method in config["centroids"]["methods"][1:]]
