@@ -91,21 +91,31 @@ class PixelResponse:
         return hyper_gaussian_std(self.sigma_y, order=self.order, half_width=self.half_width)
 
     def _transfer(self, k, sigma):
-        """Real characteristic function of the normalised 1-D kernel at wavenumber k (rad/pixel)."""
+        """Real characteristic function of the normalised 1-D kernel at wavenumber k (rad/pixel; scalar or map)."""
         u, w = _quadrature(self.half_width)
         kern = _kernel(u, sigma[..., None], self.order)
-        return (w * kern * np.cos(k * u)).sum(-1) / (w * kern).sum(-1)
+        return (w * kern * np.cos(np.asarray(k, dtype=float)[..., None] * u)).sum(-1) / (w * kern).sum(-1)
 
-    def fringe_response(self, kx: float, ky: float) -> np.ndarray:
-        """Complex response R to the fringe exp(i(kx x + ky y)); (row, col).
+    def fringe_response(self, kx, ky, phase=None) -> np.ndarray:
+        """Complex response R to the fringe exp(i Phi(r)); (row, col).
 
-        The signal of a pixel under illumination ``1 + v sin(K.r + phi)`` is
+        The signal of a pixel under illumination ``1 + v sin(Phi(r) + phi)`` is
         ``sensitivity + v * Im(R * exp(i phi))``, with
-        ``R = s h_x(kx) h_y(ky) exp(i K.r0)``.
+        ``R = s h_x(kx) h_y(ky) exp(i Phi(r0))``: over a pixel the fringe is
+        the plane wave of its local wavevector (kx, ky) = grad Phi at the
+        pixel's true centre r0.
+
+        Parameters
+        ----------
+        kx, ky : float or ndarray (row, col)
+            Wavevector, rad/pixel: one for plane waves, or each pixel's local one.
+        phase : ndarray (row, col), optional
+            Phi(r0) at each pixel's true centre, rad; ``kx x0 + ky y0`` (plane
+            waves) if omitted.
         """
         x0, y0 = self.centres()
         gain = self.sensitivity * self._transfer(kx, self.sigma_x) * self._transfer(ky, self.sigma_y)
-        return gain * np.exp(1j * (kx * x0 + ky * y0))
+        return gain * np.exp(1j * (kx * x0 + ky * y0 if phase is None else phase))
 
     def gaussian_response(self, x, y, sigma, *, rows=None, cols=None) -> np.ndarray:
         """Fraction of a unit-flux circular Gaussian PSF collected by each pixel.

@@ -58,6 +58,8 @@ __all__ = [
     "write_manifest",
     "simulate_dataset",
     "project_stars",
+    "fiber_tips",
+    "two_source_phase",
 ]
 
 log = logging.getLogger(__name__)
@@ -153,6 +155,9 @@ class FlatConfig:
 class BaselineConfig:
     period: float        # fringe period, pixel
     angle_deg: float     # direction of the wavevector from +x towards +y, degrees
+    # With metrology.spherical: the midpoint of the baseline's two fiber tips, m, in the detector
+    # plane from the detector centre (its offset from the detector normal)
+    midpoint: tuple = (0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -179,6 +184,16 @@ class MetrologyConfig:
     envelope_sigma: float = 300.0      # pixel, Gaussian beam radius of the fringe envelope
     envelope_centre: tuple = (25.0, -15.0)  # pixel, beam centre from the detector centre (x, y)
     visibility_gradient: tuple = (0.03, -0.02)  # relative change of visibility across x and y
+    # Spherical-wave fringes from two fiber tips (point sources) per baseline, fiber_distance from
+    # the detector, baselines of the length that gives each baseline's period at the centre. False:
+    # plane waves, the fibers at infinity (the idealisation of the paper's simulations).
+    spherical: bool = False
+    fiber_distance: float = 0.6        # m, tips to detector (the paper's design: 600 mm)
+    wavelength: float = 633.0e-9       # m, of the metrology laser
+    pixel_pitch: float = 24.0e-6       # m
+    # The manifest's nominal tips are off the true ones by a random vector of this length range, m
+    # (a bench measures them to about 1 mm); the truth holds the true ones.
+    tip_error: tuple = (0.5e-3, 1.0e-3)
     baselines: dict = field(default_factory=lambda: {
         "H1H4": {"period": 2.4, "angle_deg": 2.0},
         "V1V4": {"period": 2.4, "angle_deg": 93.0},
@@ -298,6 +313,14 @@ def file_jobs(cfg: SimulationConfig) -> dict[str, tuple[str, object, int, int]]:
     return jobs
 
 
+def _manifest_geometry(cfg: SimulationConfig) -> dict:
+    """The manifest's ``metrology.geometry`` (format 1.1): the nominal tips, as measured on a bench."""
+    _, nominal = fiber_tips(cfg)
+    return {"wavelength": cfg.metrology.wavelength, "pixel_pitch": cfg.metrology.pixel_pitch,
+            "fibers": {f: [float(v) for v in xyz] for f, xyz in nominal.items()},
+            "baseline_fibers": {b: [b + "a", b + "b"] for b in cfg.metrology.baselines}}
+
+
 def dataset_layout(cfg: SimulationConfig) -> dict:
     """The manifest the simulator writes for ``cfg`` (a dict in the dice-dataset/1 format).
 
@@ -322,6 +345,7 @@ def dataset_layout(cfg: SimulationConfig) -> dict:
         "metrology": {
             "baselines": {b: {"files": acquisition_files(cfg, "baseline", b)} for b in cfg.metrology.baselines},
             "pairs": {p: list(m) for p, m in cfg.metrology.pairs.items()},
+            **({} if not cfg.metrology.spherical else {"geometry": _manifest_geometry(cfg)}),
         },
         "stars": {
             "approx": [[round(float(y), 1), round(float(x), 1)] for x, y in first],
@@ -454,6 +478,50 @@ def _phase_history(cfg: SimulationConfig, name: str, rng) -> np.ndarray:
     return phase
 
 
+def fiber_tips(cfg: SimulationConfig) -> tuple[dict, dict]:
+    """True and nominal fiber-tip positions (name -> (x, y, z), m, detector frame) of spherical-wave baselines.
+
+    Two tips per baseline ``b``, named ``b + "a"`` and ``b + "b"`` in phase
+    order, ``metrology.fiber_distance`` from the detector, centred on the
+    baseline's ``midpoint`` (from the detector centre), along its wavevector's
+    direction and as far apart as the baseline's period at the centre asks
+    (wavelength x distance / (period x pitch)). The nominal tips, written to the
+    manifest as a bench would measure them, are off by ``tip_error``.
+    """
+    m, (rows, cols) = cfg.metrology, cfg.detector.shape
+    centre = np.array([(cols - 1) / 2 * m.pixel_pitch, (rows - 1) / 2 * m.pixel_pitch])
+    rng = _rng(cfg, "fiber tips")
+    true, nominal = {}, {}
+    for name, b in m.baselines.items():
+        b = _build(BaselineConfig, b, f"metrology.baselines.{name}")
+        length = m.wavelength * m.fiber_distance / (b.period * m.pixel_pitch)
+        direction = np.array([math.cos(math.radians(b.angle_deg)), math.sin(math.radians(b.angle_deg))])
+        mid = centre + np.asarray(b.midpoint, float)
+        for suffix, sign in (("a", -0.5), ("b", 0.5)):
+            tip = np.array([*(mid + sign * length * direction), m.fiber_distance])
+            error = rng.standard_normal(3)
+            error *= rng.uniform(*m.tip_error) / np.linalg.norm(error)
+            true[name + suffix], nominal[name + suffix] = tip, tip + error
+    return true, nominal
+
+
+def two_source_phase(x, y, tip_a, tip_b, *, wavelength, pixel_pitch):
+    """Phase (rad) and its gradient (rad/pixel) of the fringes of two point sources at pixel coordinates x, y.
+
+    Phi = (2 pi / wavelength) (|r - a| - |r - b|) with r = (x, y, 0) pixel_pitch
+    (the dataset format's definition); the gradient is taken along x and y in
+    pixel units. For tips far from the detector, grad Phi is about
+    2 pi (b - a)_xy / (wavelength distance) pixel_pitch.
+    """
+    r = np.stack([np.asarray(x, float) * pixel_pitch, np.asarray(y, float) * pixel_pitch,
+                  np.zeros(np.shape(x))], axis=-1)
+    to_a, to_b = r - np.asarray(tip_a), r - np.asarray(tip_b)
+    da, db = np.linalg.norm(to_a, axis=-1), np.linalg.norm(to_b, axis=-1)
+    wavenumber = 2 * np.pi / wavelength
+    gradient = wavenumber * pixel_pitch * (to_a[..., :2] / da[..., None] - to_b[..., :2] / db[..., None])
+    return wavenumber * (da - db), gradient[..., 0], gradient[..., 1]
+
+
 def make_truth(cfg: SimulationConfig) -> xr.Dataset:
     """Everything the simulation knows, before any frame is drawn (the ``truth.nc`` content).
 
@@ -492,6 +560,16 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
     kvec = np.array([[2 * np.pi / b["period"] * math.cos(math.radians(b["angle_deg"])),
                       2 * np.pi / b["period"] * math.sin(math.radians(b["angle_deg"]))]
                      for b in m.baselines.values()]).reshape(-1, 2)
+    spherical = {}
+    if m.spherical:
+        tips, _ = fiber_tips(cfg)
+        design = np.column_stack([np.ones(mask.sum()), x0[mask], y0[mask]])  # coefficients in rad/pixel
+        for i, name in enumerate(names):
+            surface = two_source_phase(x0, y0, tips[name + "a"], tips[name + "b"], wavelength=m.wavelength,
+                                       pixel_pitch=m.pixel_pitch)
+            spherical[name] = surface
+            # the contract's kx, ky: the best plane of the phase over the science area
+            kvec[i] = np.linalg.lstsq(design, surface[0][mask], rcond=None)[0][1:]
     phase = np.empty((len(names), m.frames))
     level = np.empty_like(phase)
     amplitude = np.empty_like(phase)
@@ -557,11 +635,19 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
                                {"units": "rad", "long_name": "detector tip (about x), tilt (about y), roll (about z)"}),
             "star_x": (("position", "star"), stars[..., 0], {"units": "pixel", "long_name": "true PSF centre x"}),
             "star_y": (("position", "star"), stars[..., 1], {"units": "pixel", "long_name": "true PSF centre y"}),
+            **({} if not m.spherical else {
+                "fringe_phase_surface": (("baseline", "row", "col"), np.stack([spherical[b][0] for b in names]),
+                                         {"units": "rad", "long_name": "fringe phase Phi_b at each pixel's true "
+                                                                      "centre (two point sources)"}),
+                "fiber_position": (("fiber", "xyz"), np.array([tips[f] for f in tips]),
+                                   {"units": "m", "long_name": "true fiber-tip position, detector frame"}),
+            }),
         },
         coords={
             "row": np.arange(rows), "col": np.arange(cols), "baseline": names, "frame": np.arange(m.frames),
             "flat": fibers, "position": np.arange(1, st.positions + 1), "star": np.arange(5),
             "axis": ["x", "y", "z"], "angle": ["tip", "tilt", "roll"],
+            **({} if not m.spherical else {"fiber": list(tips), "xyz": ["x", "y", "z"]}),
         },
     )
     ds.attrs.update({"prf_order": d.prf_order, "prf_half_width": d.prf_half_width,
@@ -639,7 +725,16 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name
         b = truth.sel(baseline=name)
         envelope = truth["envelope"].values
         base = prf.sensitivity * envelope
-        response = prf.fringe_response(float(b["kx"]), float(b["ky"])) * envelope * truth["visibility"].values
+        if cfg.metrology.spherical:  # each pixel under the plane wave of its local wavevector
+            tips, _ = fiber_tips(cfg)
+            x0, y0 = prf.centres()
+            phase_map, kx_map, ky_map = two_source_phase(x0, y0, tips[name + "a"], tips[name + "b"],
+                                                         wavelength=cfg.metrology.wavelength,
+                                                         pixel_pitch=cfg.metrology.pixel_pitch)
+            fringe = prf.fringe_response(kx_map, ky_map, phase=phase_map)
+        else:
+            fringe = prf.fringe_response(float(b["kx"]), float(b["ky"]))
+        response = fringe * envelope * truth["visibility"].values
         level, amplitude, phase = (b[v].values for v in ("fringe_level", "fringe_amplitude", "phase"))
         m = cfg.metrology
         if m.stray_light:

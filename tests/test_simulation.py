@@ -208,3 +208,38 @@ def test_presets_load_and_lay_out_a_valid_manifest(preset, tmp_path):
     stars = simulation.project_stars(simulation._nominal_pattern(cfg.stars), truth_poses, cfg)
     assert stars[..., 1].min() > cfg.detector.science_rows[0] + 5
     assert stars[..., 1].max() < cfg.detector.science_rows[1] - 5
+
+
+def test_spherical_fringes_are_those_of_two_point_sources(tmp_path):
+    cfg = small_config(metrology={"spherical": True, "frames": 200, "sweep_frames": 100,
+                                  "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0, "midpoint": [0.012, 0.0]}},
+                                  "pairs": {}})
+    path = simulation.simulate_dataset(cfg, tmp_path / "raw")
+    manifest, truth = load_manifest(path), read_product(path.parent / "truth.nc")
+    true_tips, nominal = simulation.fiber_tips(cfg)
+    np.testing.assert_allclose(truth["fiber_position"].values, np.array(list(true_tips.values())))
+    # the manifest's tips are the bench's nominal ones, 0.5-1 mm off the true ones
+    off = [np.linalg.norm(np.array(manifest.geometry.fibers[f]) - true_tips[f]) for f in true_tips]
+    assert all(0.5e-3 <= d <= 1e-3 for d in off)
+    # the phase surface is the format's (2 pi / wavelength)(|r - a| - |r - b|), its best plane the contract's K
+    rows, cols = np.indices(cfg.detector.shape)
+    x0, y0 = cols + truth["dx"].values, rows + truth["dy"].values
+    a, b = true_tips["H1H4a"], true_tips["H1H4b"]
+    r = np.stack([x0 * 24e-6, y0 * 24e-6, np.zeros_like(x0)], -1)
+    phi = 2 * np.pi / 633e-9 * (np.linalg.norm(r - a, axis=-1) - np.linalg.norm(r - b, axis=-1))
+    np.testing.assert_allclose(truth["fringe_phase_surface"].values[0], phi, rtol=0, atol=1e-6)
+    assert 2 * np.pi / np.hypot(float(truth["kx"][0]), float(truth["ky"][0])) == pytest.approx(2.4, rel=2e-3)
+    # the frames follow it: what is left is photon and read noise
+    frames = np.concatenate([c.frames for c in FrameStream(manifest.baselines["H1H4"], manifest.detector)])
+    bl = truth.sel(baseline="H1H4")
+    prf = simulation.pixel_response(truth)
+    _, kx, ky = simulation.two_source_phase(x0, y0, a, b, wavelength=633e-9, pixel_pitch=24e-6)
+    response = prf.fringe_response(kx, ky, phase=phi) * truth["envelope"].values * truth["visibility"].values
+    phase = bl["phase"].values[:, None, None]
+    model = (bl["fringe_level"].values[:, None, None] * prf.sensitivity * truth["envelope"].values
+             + bl["fringe_amplitude"].values[:, None, None] * np.imag(response * np.exp(1j * phase))
+             + truth["bias"].values)
+    sl = (slice(None), slice(2, 39), slice(3, 43))
+    expected = np.sqrt((model - truth["bias"].values)[sl] / cfg.detector.gain
+                       + truth["read_noise"].values[2:39, 3:43] ** 2 + 1 / 12)
+    assert np.std((frames - model)[sl] / expected) == pytest.approx(1.0, abs=0.02)
