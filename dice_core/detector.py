@@ -63,6 +63,13 @@ class PixelResponse:
         Hyper-Gaussian order n (2 is a Gaussian; larger is flatter-topped).
     half_width : float
         Truncation half-width a, pixel.
+    slope_x, slope_y : ndarray, optional
+        Linear sensitivity slope across each pixel, 1/pixel: the PRF is the
+        hyper-Gaussian times (1 + slope_x u)(1 + slope_y v), u, v from its
+        centre (|slope| < 2). An asymmetric response: its barycentre is off
+        its centre by slope x width^2, and the phase of its response to a
+        fringe is not that of its barycentre (it depends on the period).
+        None: symmetric.
     """
 
     sensitivity: np.ndarray
@@ -72,6 +79,8 @@ class PixelResponse:
     sigma_y: np.ndarray
     order: float = 4.0
     half_width: float = 0.5
+    slope_x: np.ndarray | None = None
+    slope_y: np.ndarray | None = None
 
     @property
     def shape(self):
@@ -90,11 +99,29 @@ class PixelResponse:
         """Standard deviation of each PRF along y, pixel."""
         return hyper_gaussian_std(self.sigma_y, order=self.order, half_width=self.half_width)
 
-    def _transfer(self, k, sigma):
-        """Real characteristic function of the normalised 1-D kernel at wavenumber k (rad/pixel; scalar or map)."""
+    def _transfer(self, k, sigma, slope=None):
+        """Characteristic function of the normalised 1-D PRF at wavenumber k (rad/pixel; scalar or map).
+
+        Real for a symmetric PRF; with a ``slope``, the kernel times (1 + slope u)
+        adds i slope int(u sin(k u) kernel) / int(kernel).
+        """
         u, w = _quadrature(self.half_width)
         kern = _kernel(u, sigma[..., None], self.order)
-        return (w * kern * np.cos(np.asarray(k, dtype=float)[..., None] * u)).sum(-1) / (w * kern).sum(-1)
+        ku = np.asarray(k, dtype=float)[..., None] * u
+        norm = (w * kern).sum(-1)
+        real = (w * kern * np.cos(ku)).sum(-1) / norm
+        if slope is None:
+            return real
+        return real + 1j * slope * (w * kern * u * np.sin(ku)).sum(-1) / norm
+
+    def barycentres(self):
+        """Barycentres (x, y) of the PRFs, pixel, each (row, col): the centres, moved by slope x width^2."""
+        x0, y0 = self.centres()
+        if self.slope_x is not None:
+            x0 = x0 + self.slope_x * self.width_x() ** 2
+        if self.slope_y is not None:
+            y0 = y0 + self.slope_y * self.width_y() ** 2
+        return x0, y0
 
     def fringe_response(self, kx, ky, phase=None) -> np.ndarray:
         """Complex response R to the fringe exp(i Phi(r)); (row, col).
@@ -114,7 +141,8 @@ class PixelResponse:
             waves) if omitted.
         """
         x0, y0 = self.centres()
-        gain = self.sensitivity * self._transfer(kx, self.sigma_x) * self._transfer(ky, self.sigma_y)
+        gain = (self.sensitivity * self._transfer(kx, self.sigma_x, self.slope_x)
+                * self._transfer(ky, self.sigma_y, self.slope_y))
         return gain * np.exp(1j * (kx * x0 + ky * y0 if phase is None else phase))
 
     def gaussian_response(self, x, y, sigma, *, rows=None, cols=None) -> np.ndarray:
@@ -137,9 +165,15 @@ class PixelResponse:
         x0, y0 = (c[sl] for c in self.centres())
         u, w = _quadrature(self.half_width)
 
-        def factor(centre, scale, star):
+        def factor(centre, scale, slope, star):
             kern = _kernel(u, scale[..., None], self.order)
+            norm = (w * kern).sum(-1)  # the slope's odd term integrates to zero: the sensitivity stays
+            if slope is not None:
+                kern = kern * (1 + slope[..., None] * u)
             psf = np.exp(-0.5 * ((centre[..., None] + u - star) / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma)
-            return (w * kern * psf).sum(-1) / (w * kern).sum(-1)
+            return (w * kern * psf).sum(-1) / norm
 
-        return self.sensitivity[sl] * factor(x0, self.sigma_x[sl], x) * factor(y0, self.sigma_y[sl], y)
+        slope_x = None if self.slope_x is None else self.slope_x[sl]
+        slope_y = None if self.slope_y is None else self.slope_y[sl]
+        return (self.sensitivity[sl] * factor(x0, self.sigma_x[sl], slope_x, x)
+                * factor(y0, self.sigma_y[sl], slope_y, y))

@@ -104,6 +104,9 @@ class DetectorConfig:
     prf_sigma: float = 0.3               # pixel, hyper-Gaussian scale parameter
     prf_width_spread: float = 0.01       # relative pixel-to-pixel spread of the PRF scale
     prf_half_width: float = 0.5          # pixel, truncation half-width
+    # Asymmetric pixel responses: each PRF times (1 + sx u)(1 + sy v), slopes drawn with this rms,
+    # 1/pixel. 0 (the default) keeps them symmetric, the idealisation of the paper's simulations.
+    prf_slope_rms: float = 0.0
     frame_rate: float = 108.0            # Hz
     dtype: str = "uint16"                # storage type of the cubes (float32 avoids quantisation)
     photon_noise: bool = True            # False gives noiseless frames (with read_noise 0, float32)
@@ -542,7 +545,12 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
     rng = _rng(cfg, "widths")
     sigma_x = d.prf_sigma * (1 + d.prf_width_spread * rng.standard_normal(d.shape))
     sigma_y = d.prf_sigma * (1 + d.prf_width_spread * rng.standard_normal(d.shape))
-    prf = PixelResponse(_sensitivity(cfg, mask), dx, dy, sigma_x, sigma_y, d.prf_order, d.prf_half_width)
+    slope_x = slope_y = None
+    if d.prf_slope_rms:
+        rng = _rng(cfg, "prf slopes")
+        slope_x, slope_y = d.prf_slope_rms * rng.standard_normal((2, *d.shape))
+    prf = PixelResponse(_sensitivity(cfg, mask), dx, dy, sigma_x, sigma_y, d.prf_order, d.prf_half_width,
+                        slope_x, slope_y)
 
     rng = _rng(cfg, "bias")
     bias = (d.bias + d.bias_column_rms * rng.standard_normal(cols)[None, :]
@@ -642,6 +650,14 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
                 "fiber_position": (("fiber", "xyz"), np.array([tips[f] for f in tips]),
                                    {"units": "m", "long_name": "true fiber-tip position, detector frame"}),
             }),
+            **({} if slope_x is None else {
+                "prf_slope_x": (rc, slope_x, {"units": "1/pixel", "long_name": "PRF sensitivity slope along x"}),
+                "prf_slope_y": (rc, slope_y, {"units": "1/pixel", "long_name": "PRF sensitivity slope along y"}),
+                "barycentre_dx": (rc, prf.barycentres()[0] - np.indices(d.shape)[1],
+                                  {"units": "pixel", "long_name": "offset of the PRF barycentre along x"}),
+                "barycentre_dy": (rc, prf.barycentres()[1] - np.indices(d.shape)[0],
+                                  {"units": "pixel", "long_name": "offset of the PRF barycentre along y"}),
+            }),
         },
         coords={
             "row": np.arange(rows), "col": np.arange(cols), "baseline": names, "frame": np.arange(m.frames),
@@ -657,9 +673,10 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
 
 def pixel_response(truth: xr.Dataset) -> PixelResponse:
     """The detector's :class:`PixelResponse` from a truth dataset."""
+    slopes = [truth[v].values if v in truth else None for v in ("prf_slope_x", "prf_slope_y")]
     return PixelResponse(truth["sensitivity"].values, truth["dx"].values, truth["dy"].values,
                          truth["prf_sigma_x"].values, truth["prf_sigma_y"].values,
-                         float(truth.attrs["prf_order"]), float(truth.attrs["prf_half_width"]))
+                         float(truth.attrs["prf_order"]), float(truth.attrs["prf_half_width"]), *slopes)
 
 
 # --------------------------------------------------------------------------- frames

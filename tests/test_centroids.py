@@ -169,7 +169,7 @@ def test_flat_correction_removes_the_error_of_prnu(rng):
     assert np.abs(flat_errors).max() < 1e-6
 
 
-def simulate_stars(path, *, prf_width_spread):
+def simulate_stars(path, *, prf_width_spread, prf_slope_rms=0.0):
     """Simulated positions without noise: the default detector (PRNU 2e-3, offsets 1e-3 pixel)."""
     from dice_core import simulation
     from dice_core.io import read_product
@@ -178,7 +178,7 @@ def simulate_stars(path, *, prf_width_spread):
     cfg = simulation.SimulationConfig.from_dict({
         "name": "stars-test", "dark": {"frames": 2}, "flats": {"frames": 2},
         "detector": {"photon_noise": False, "read_noise": 0.0, "dtype": "float32",
-                     "prf_width_spread": prf_width_spread},
+                     "prf_width_spread": prf_width_spread, "prf_slope_rms": prf_slope_rms},
         "metrology": {"frames": 2, "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}},
         "stars": {"positions": 5, "frames": 4, "flux_rsd": 0.0}})
     manifest = load_manifest(simulation.simulate_dataset(cfg, path))
@@ -339,3 +339,20 @@ def test_stars_tied_with_their_references_weights_agree_with_the_gaussian_fits(t
     fourier, gaussian = (measure(manifest, truth, flat=True, metrology=True, method=m) for m in ("fourier", "gaussian"))
     difference = np.stack([fourier.x - gaussian.x, fourier.y - gaussian.y])
     assert np.abs(difference - difference.mean(axis=2, keepdims=True)).max() < 1e-5
+
+
+def test_asymmetric_pixels_are_corrected_at_their_barycentres_not_their_centres(tmp_path):
+    """PRFs with a sensitivity slope (rms 0.05 per pixel) move each pixel's barycentre by slope x width^2
+    (2e-3 pixel rms): a star sees the barycentres, so the offset correction must use those, which the
+    metrology measures to within a few percent (the period-dependent lag, tests/test_fringes.py)."""
+    manifest, truth = simulate_stars(tmp_path, prf_width_spread=0.0, prf_slope_rms=0.05)
+    rows, cols = np.indices(manifest.detector.shape)
+    centre = measure(manifest, truth, flat=True, metrology=True)  # truth dx, dy: the PRF centres
+    truth_bary = truth.copy()
+    truth_bary["dx"], truth_bary["dy"] = truth["barycentre_dx"], truth["barycentre_dy"]
+    barycentre = measure(manifest, truth_bary, flat=True, metrology=True)
+    error_centre, error_barycentre = (differential_error(r, truth) for r in (centre, barycentre))
+    shift = float(np.sqrt(np.mean((truth["barycentre_dx"] - truth["dx"]).values ** 2)))
+    assert 1e-3 < shift < 3e-3
+    assert error_centre > 10 * error_barycentre
+    assert error_barycentre < 5e-5
