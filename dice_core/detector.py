@@ -140,6 +140,8 @@ class PixelResponse:
             Phi(r0) at each pixel's true centre, rad; ``kx x0 + ky y0`` (plane
             waves) if omitted.
         """
+        if phase is None and (np.ndim(kx) or np.ndim(ky)):
+            raise ValueError("a map of local wavevectors needs the phase map that goes with it")
         x0, y0 = self.centres()
         gain = (self.sensitivity * self._transfer(kx, self.sigma_x, self.slope_x)
                 * self._transfer(ky, self.sigma_y, self.slope_y))

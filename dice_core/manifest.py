@@ -119,6 +119,34 @@ class BenchGeometry:
     baseline_fibers: dict[str, tuple[str, str]]
 
 
+def _check_geometry(path, g, baselines) -> BenchGeometry:
+    """The manifest's ``metrology.geometry``, its values checked beyond what the schema can."""
+    for key, low, high in (("wavelength", 1e-7, 1e-5), ("pixel_pitch", 1e-6, 1e-4)):
+        if not low < g[key] < high:
+            _fail(path, f"metrology.geometry.{key} {g[key]!r} is not in metres ({low:g} to {high:g} m expected)")
+    fibers = {}
+    for name, xyz in g["fibers"].items():
+        if not all(np.isfinite(xyz)) or not xyz[2] > 0:
+            _fail(path, f"metrology.geometry.fibers.{name} {xyz} is not a finite position with z > 0 "
+                        "(z runs from the detector towards the fibers)")
+        fibers[name] = tuple(float(v) for v in xyz)
+    for baseline, members in g["baseline_fibers"].items():
+        if baseline not in baselines:
+            _fail(path, f"metrology.geometry.baseline_fibers names unknown baseline {baseline}")
+        unknown = [f for f in members if f not in fibers]
+        if unknown:
+            _fail(path, f"metrology.geometry.baseline_fibers.{baseline} names unknown fiber(s) {unknown}")
+        if fibers[members[0]] == fibers[members[1]]:
+            _fail(path, f"metrology.geometry.baseline_fibers.{baseline}: its two fibers are at one position")
+    missing = [b for b in baselines if b not in g["baseline_fibers"]]
+    if missing:
+        # a baseline without its fibers would have to be reduced as plane waves, which the
+        # geometry says it is not
+        _fail(path, f"metrology.geometry gives no fibers for baseline(s) {missing}")
+    return BenchGeometry(float(g["wavelength"]), float(g["pixel_pitch"]), fibers,
+                         {b: tuple(m) for b, m in g["baseline_fibers"].items()})
+
+
 @dataclass(frozen=True)
 class Manifest:
     """A validated raw dataset. Paths are absolute (resolved from the manifest's folder)."""
@@ -133,6 +161,17 @@ class Manifest:
     star_approx: tuple[tuple[float, float], ...] = ()
     positions: tuple[StarPosition, ...] = ()
     geometry: BenchGeometry | None = None
+
+    def require_plane_waves(self):
+        """Raise :class:`DatasetError` if the metrology fringes are spherical waves (``metrology.geometry``).
+
+        The reduction models plane waves only; the dataset format asks a reader
+        without the spherical-wave reduction to refuse such fringes rather than
+        reduce them as plane waves (an error of up to 1e-3 pixel in the offsets).
+        """
+        if self.geometry is not None:
+            _fail(self.path, "spherical-wave fringes (metrology.geometry) cannot be reduced by this version, "
+                             "and are not reduced as plane waves")
 
     @property
     def reference_flat(self) -> str | None:
@@ -243,25 +282,7 @@ def parse_manifest(document, path) -> Manifest:
             _fail(path, f"metrology pair {pair} uses baseline {members[0]} twice")
         pairs[pair] = tuple(members)
 
-    geometry = None
-    if "geometry" in metrology:
-        g = metrology["geometry"]
-        fibers = {name: tuple(float(v) for v in xyz) for name, xyz in g["fibers"].items()}
-        for baseline, members in g["baseline_fibers"].items():
-            if baseline not in baselines:
-                _fail(path, f"metrology.geometry.baseline_fibers names unknown baseline {baseline}")
-            unknown = [f for f in members if f not in fibers]
-            if unknown:
-                _fail(path, f"metrology.geometry.baseline_fibers.{baseline} names unknown fiber(s) {unknown}")
-            if members[0] == members[1]:
-                _fail(path, f"metrology.geometry.baseline_fibers.{baseline} uses fiber {members[0]} twice")
-        missing = [b for b in baselines if b not in g["baseline_fibers"]]
-        if missing:
-            # a baseline without its fibers would have to be reduced as plane waves, which the
-            # geometry says it is not
-            _fail(path, f"metrology.geometry gives no fibers for baseline(s) {missing}")
-        geometry = BenchGeometry(float(g["wavelength"]), float(g["pixel_pitch"]), fibers,
-                                 {b: tuple(m) for b, m in g["baseline_fibers"].items()})
+    geometry = _check_geometry(path, metrology["geometry"], baselines) if "geometry" in metrology else None
 
     stars = document.get("stars")
     approx, positions = (), ()

@@ -247,7 +247,10 @@ class SimulationConfig:
         top = _build(cls, values, "(top level)")
         cfg = dataclasses.replace(top, **built)
         for name, b in cfg.metrology.baselines.items():
-            _build(BaselineConfig, b, f"metrology.baselines.{name}")
+            baseline = _build(BaselineConfig, b, f"metrology.baselines.{name}")
+            if any(baseline.midpoint) and not cfg.metrology.spherical:
+                raise ValueError(f"simulation config metrology.baselines.{name}: a midpoint places fiber tips, "
+                                 "which only spherical-wave fringes have (metrology.spherical: true)")
         for name, f in cfg.flats.fibers.items():
             _build(FiberConfig, f, f"flats.fibers.{name}")
         for pair, members in cfg.metrology.pairs.items():
@@ -487,21 +490,31 @@ def fiber_tips(cfg: SimulationConfig) -> tuple[dict, dict]:
     Two tips per baseline ``b``, named ``b + "a"`` and ``b + "b"`` in phase
     order, ``metrology.fiber_distance`` from the detector, centred on the
     baseline's ``midpoint`` (from the detector centre), along its wavevector's
-    direction and as far apart as the baseline's period at the centre asks
-    (wavelength x distance / (period x pitch)). The nominal tips, written to the
-    manifest as a bench would measure them, are off by ``tip_error``.
+    direction and as far apart as gives the baseline's period at the detector
+    centre (about wavelength x distance / (period x pitch), corrected for the
+    obliquity). The nominal tips, written to the manifest as a bench would
+    measure them, are off by ``tip_error`` (a random direction, one stream
+    per baseline).
     """
     m, (rows, cols) = cfg.metrology, cfg.detector.shape
-    centre = np.array([(cols - 1) / 2 * m.pixel_pitch, (rows - 1) / 2 * m.pixel_pitch])
-    rng = _rng(cfg, "fiber tips")
+    centre_px = np.array([(cols - 1) / 2, (rows - 1) / 2])
+    centre = centre_px * m.pixel_pitch
     true, nominal = {}, {}
     for name, b in m.baselines.items():
         b = _build(BaselineConfig, b, f"metrology.baselines.{name}")
-        length = m.wavelength * m.fiber_distance / (b.period * m.pixel_pitch)
         direction = np.array([math.cos(math.radians(b.angle_deg)), math.sin(math.radians(b.angle_deg))])
         mid = centre + np.asarray(b.midpoint, float)
-        for suffix, sign in (("a", -0.5), ("b", 0.5)):
-            tip = np.array([*(mid + sign * length * direction), m.fiber_distance])
+
+        def tips(length):
+            return [np.array([*(mid + sign * length * direction), m.fiber_distance]) for sign in (-0.5, 0.5)]
+
+        # on the normal the period is wavelength x distance / (length x pitch); off it, the obliquity
+        # shortens the projected baseline: rescale once so that the period at the centre is the asked one
+        length = m.wavelength * m.fiber_distance / (b.period * m.pixel_pitch)
+        _, kx, ky = two_source_phase(*centre_px, *tips(length), wavelength=m.wavelength, pixel_pitch=m.pixel_pitch)
+        length *= (2 * np.pi / b.period) / float(np.hypot(kx, ky))
+        rng = _rng(cfg, "fiber tips", name)
+        for suffix, tip in zip("ab", tips(length)):
             error = rng.standard_normal(3)
             error *= rng.uniform(*m.tip_error) / np.linalg.norm(error)
             true[name + suffix], nominal[name + suffix] = tip, tip + error
@@ -516,8 +529,8 @@ def two_source_phase(x, y, tip_a, tip_b, *, wavelength, pixel_pitch):
     pixel units. For tips far from the detector, grad Phi is about
     2 pi (b - a)_xy / (wavelength distance) pixel_pitch.
     """
-    r = np.stack([np.asarray(x, float) * pixel_pitch, np.asarray(y, float) * pixel_pitch,
-                  np.zeros(np.shape(x))], axis=-1)
+    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+    r = np.stack([x * pixel_pitch, y * pixel_pitch, np.zeros(x.shape)], axis=-1)
     to_a, to_b = r - np.asarray(tip_a), r - np.asarray(tip_b)
     da, db = np.linalg.norm(to_a, axis=-1), np.linalg.norm(to_b, axis=-1)
     wavenumber = 2 * np.pi / wavelength
@@ -743,7 +756,7 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name
         envelope = truth["envelope"].values
         base = prf.sensitivity * envelope
         if cfg.metrology.spherical:  # each pixel under the plane wave of its local wavevector
-            tips, _ = fiber_tips(cfg)
+            tips = dict(zip(truth["fiber"].values, truth["fiber_position"].values))
             x0, y0 = prf.centres()
             phase_map, kx_map, ky_map = two_source_phase(x0, y0, tips[name + "a"], tips[name + "b"],
                                                          wavelength=cfg.metrology.wavelength,

@@ -111,15 +111,21 @@ def test_the_bench_geometry_of_format_1_1_is_read(layout, tmp_path):
     assert geometry.wavelength == 633.0e-9 and geometry.pixel_pitch == 24.0e-6
     assert geometry.fibers["F1"] == (0.0153, 0.0201, 0.6) and geometry.baseline_fibers["H1H4"] == ("F1", "F4")
     assert parse_manifest(layout, tmp_path / "dataset.yaml").geometry is None
+    parse_manifest(layout, tmp_path / "dataset.yaml").require_plane_waves()
+    with pytest.raises(DatasetError, match="spherical-wave fringes .* not reduced as plane waves"):
+        parse_manifest(document, tmp_path / "dataset.yaml").require_plane_waves()
 
 
 @pytest.mark.parametrize("edit, expected", [
     (lambda g: g["baseline_fibers"].update(H1H4=["F1", "F9"]), r"baseline_fibers.H1H4 names unknown fiber\(s\) \['F9'\]"),
     (lambda g: g["baseline_fibers"].update(X1X2=["F1", "F4"]), "names unknown baseline X1X2"),
     (lambda g: g["baseline_fibers"].pop("V2V4"), r"gives no fibers for baseline\(s\) \['V2V4'\]"),
-    (lambda g: g["baseline_fibers"].update(H1H4=["F1", "F1"]), "uses fiber F1 twice"),
+    (lambda g: g["baseline_fibers"].update(H1H4=["F1", "F1"]), "H1H4: its two fibers are at one position"),
     (lambda g: g["fibers"].update(F1=[0.0, 0.0]), "at metrology.geometry.fibers.F1"),
     (lambda g: g.pop("wavelength"), "'wavelength' is a required property"),
+    (lambda g: g.update(pixel_pitch=24.0), "pixel_pitch 24.0 is not in metres"),
+    (lambda g: g["fibers"].update(F1=[0.0153, 0.0201, -0.6]), "F1 .* is not a finite position with z > 0"),
+    (lambda g: g["fibers"].update(F1=[0.0087, 0.0201, 0.6]), "H1H4: its two fibers are at one position"),
 ])
 def test_a_bad_bench_geometry_names_the_problem(layout, tmp_path, edit, expected):
     document = copy.deepcopy(layout)

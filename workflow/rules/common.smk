@@ -225,7 +225,7 @@ def centroid_targets():
             skipped(f"centroid mode {mode}", "the dataset names no pair of metrology baselines")
             continue
         if "metrology" in mode and metrology_unavailable() is not None:
-            skipped(f"centroid mode {mode}", "the metrology is not reduced")
+            skipped(f"centroid mode {mode}", f"the metrology is not reduced ({metrology_unavailable()})")
             continue
         targets += [f"{OUT}/centroids/{mode}.nc", *figure_pair(f"centroids_{mode}").values()]
         targets += [f"{OUT}/centroids/{method}/{mode}.nc" for method in config["centroids"]["methods"][1:]]

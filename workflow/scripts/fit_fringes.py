@@ -10,9 +10,7 @@ from dice_core.manifest import load_manifest
 def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config, workers):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
-    if manifest.geometry is not None:  # the workflow skips such datasets; never fit them as plane waves
-        raise dice_core.DatasetError(manifest.path, "spherical-wave fringes (metrology.geometry) cannot be "
-                                                    "reduced by this version, and are not reduced as plane waves")
+    manifest.require_plane_waves()  # the workflow skips such datasets; never fit them as plane waves
     dark = io.read_product(dark_path)
     flat = io.read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
