@@ -260,6 +260,10 @@ class FringeSolution:
         Pixels left without an offset (saturated samples, no contrast, not converged).
     masked_by_reason : dict
         Number of masked pixels by reason: ``saturated``, ``no_contrast``, ``unconverged``.
+    offsets_prnu_free : ndarray (pixel,) or None
+        With a flat: the offsets under the PRNU-free gauge instead (pixel), the
+        diagnostic of a flat that is not the laser's response; their difference
+        from ``offsets`` is what the flat's gauge adds.
     """
 
     rows: np.ndarray
@@ -276,6 +280,7 @@ class FringeSolution:
     history: list = field(default_factory=list)
     masked: np.ndarray = None
     masked_by_reason: dict = field(default_factory=dict)
+    offsets_prnu_free: np.ndarray | None = None
 
 
 def _accumulate(chunks: Iterable[Chunk], projector, offset, centre, subtract_centre):
@@ -590,10 +595,22 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
             out[active] = values
             return out
 
+        offsets_prnu_free = None
+        if flat is not None:
+            # The diagnostic of a flat that is not the laser's response (chromatic PRNU, speckle): the
+            # same factorisation under the PRNU-free gauge (the pixel contrast's smoothness), which the
+            # flat does not enter. The passes do not depend on the gauge, so this costs no pass.
+            ax, ay = x[active], y[active]
+            M_free = fix_gauge(F_phys, G_phys, flat=None, x=ax, y=ay, smooth_degree=smooth_degree)
+            G_free = G_phys @ np.linalg.inv(M_free).T
+            k_free, free = projected_offsets(np.arctan2(G_free[:, 1], G_free[:, 2]), ax, ay, k)
+            offsets_prnu_free = full(free if k_free @ k > 0 else -free)
+
         reasons = {"saturated": int(saturated.sum()), "no_contrast": int(faint.sum()),
                    "unconverged": int(unconverged.sum())}
         return FringeSolution(rows, cols, offsets, full(iota / iota.mean()), full(alpha / alpha.mean()),
-                              full(floor), k, k_frame, level, amplitude, phase, history, ~active, reasons)
+                              full(floor), k, k_frame, level, amplitude, phase, history, ~active, reasons,
+                              offsets_prnu_free)
 
 
 def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:
@@ -639,6 +656,14 @@ def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:
             "photon_noise_floor_rms": ((), float(np.sqrt(np.nanmean(floor**2))),
                                        {"units": "pixel", "long_name": "rms photon-noise floor of the offsets"}),
             "n_masked": ((), int(solution.masked.sum()), {"units": "1", "long_name": "pixels without an offset"}),
+            **({} if solution.offsets_prnu_free is None else {
+                "projected_offset_prnu_free_gauge": (
+                    rc, as_map(solution.offsets_prnu_free),
+                    {"units": "pixel", "long_name": "projected offset with the PRNU-free gauge (the flat unused)"}),
+                "gauge_difference_rms": (
+                    (), float(np.sqrt(np.nanmean((solution.offsets - solution.offsets_prnu_free) ** 2))),
+                    {"units": "pixel", "long_name": "rms of the flat gauge's offsets minus the PRNU-free gauge's"}),
+            }),
             **{f"n_masked_{reason}": ((), count, {"units": "1", "long_name": f"pixels masked: {reason.replace('_', ' ')}"})
                for reason, count in solution.masked_by_reason.items()},
         },

@@ -181,6 +181,13 @@ class MetrologyConfig:
     stray_light_period: float = 7.0    # pixel
     stray_light_angle_deg: float = 40.0
     stray_light_phase_walk: float = 0.0  # rad per sqrt(frame), of the extra path
+    # The flat is a white LED's, the metrology a 633 nm laser's: the pixels' sensitivities differ
+    # between the two by a chromatic PRNU of this rms (a real bench's: about 5e-4), relative.
+    chromatic_prnu_rms: float = 0.0
+    # Speckle in the laser illumination: a random multiplicative pattern of this rms contrast and
+    # correlation length (pixel), one per baseline, on both the fringe level and amplitude.
+    speckle_rms: float = 0.0
+    speckle_grain: float = 3.0
     sweep_cycles: float = 4.0          # fringe periods swept in one direction
     sweep_frames: int = 500            # frames of one one-way sweep
     sweep_time_constant: float = 0.3   # of the exponential segments, in sweeps
@@ -607,6 +614,19 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
         stray_phase[i] = phase[i] + rng.uniform(0, 2 * np.pi) + m.stray_light_phase_walk * np.cumsum(
             rng.standard_normal(m.frames))
 
+    # what the laser sees beyond the flat: a chromatic PRNU, and each baseline's speckle
+    chromatic = np.ones(d.shape)
+    if m.chromatic_prnu_rms:
+        chromatic += m.chromatic_prnu_rms * _rng(cfg, "chromatic prnu").standard_normal(d.shape)
+    speckle = np.ones((len(names), rows, cols))
+    if m.speckle_rms:
+        from scipy.ndimage import gaussian_filter
+
+        for i, name in enumerate(names):
+            field_ = gaussian_filter(_rng(cfg, "speckle", name).standard_normal(d.shape), m.speckle_grain,
+                                     mode="wrap")
+            speckle[i] = 1 + m.speckle_rms * field_ / field_.std()
+
     fibers = list(cfg.flats.fibers)
     illumination = np.empty((len(fibers), rows, cols))
     for i, f in enumerate(fibers):
@@ -638,6 +658,10 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
             "bias": (rc, bias, {"units": "adu", "long_name": "bias level"}),
             "read_noise": (rc, read_noise, {"units": "adu", "long_name": "read noise rms"}),
             "envelope": (rc, envelope, {"units": "1", "long_name": "metrology fringe envelope (mean 1)"}),
+            "chromatic_sensitivity": (rc, chromatic, {"units": "1", "long_name": "the laser's sensitivity over "
+                                                      "the flat's (chromatic PRNU)"}),
+            "speckle": (("baseline", "row", "col"), speckle,
+                        {"units": "1", "long_name": "speckle of each baseline's laser illumination"}),
             "visibility": (rc, visibility, {"units": "1", "long_name": "fringe visibility relative to amplitude/level"}),
             "kx": (("baseline",), kvec[:, 0], {"units": "rad/pixel", "long_name": "fringe wavevector along x"}),
             "ky": (("baseline",), kvec[:, 1], {"units": "rad/pixel", "long_name": "fringe wavevector along y"}),
@@ -754,6 +778,8 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name
     elif kind == "baseline":
         b = truth.sel(baseline=name)
         envelope = truth["envelope"].values
+        if "chromatic_sensitivity" in truth:  # the laser's own sensitivities, and its speckle
+            envelope = envelope * truth["chromatic_sensitivity"].values * b["speckle"].values
         base = prf.sensitivity * envelope
         if cfg.metrology.spherical:  # each pixel under the plane wave of its local wavevector
             tips = dict(zip(truth["fiber"].values, truth["fiber_position"].values))

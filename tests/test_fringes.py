@@ -341,3 +341,22 @@ def test_an_asymmetric_pixel_response_moves_the_fringe_phase_off_the_barycentre_
     assert lag["H1H4"] == pytest.approx(expected_lag["H1H4"], rel=0.1)
     assert lag["H2H4"] == pytest.approx(expected_lag["H2H4"], rel=0.1)
     assert lag["H1H4"] > 2 * lag["H2H4"]
+
+
+@pytest.mark.parametrize("laser", [{"chromatic_prnu_rms": 5e-4}, {"speckle_rms": 1e-2, "speckle_grain": 10.0}])
+def test_a_flat_that_is_not_the_lasers_response_biases_the_flat_gauge_only(tmp_path, laser):
+    """Noiseless, 2000 frames: the flat's gauge is exact when the flat is the laser's response (1e-8 pixel),
+    and takes 1e-5 pixel of bias from a 5e-4 chromatic PRNU or a 1% speckle; the PRNU-free gauge is blind to
+    both (its 7.5e-6 is the PRF width spread's). The product's diagnostic is their difference."""
+    manifest, truth = simulate(tmp_path, detector=NOISELESS, metrology={**STEADY, **laser})
+    solution = fit(manifest, truth, "H1H4", noisy=False)
+    flat_gauge = rms(solution.offsets - true_projection(truth, solution))
+    free_gauge = rms(solution.offsets_prnu_free - true_projection(truth, solution))
+    clean_manifest, clean_truth = simulate(tmp_path / "clean", detector=NOISELESS, metrology=STEADY)
+    clean = fit(clean_manifest, clean_truth, "H1H4", noisy=False)
+    assert rms(clean.offsets - true_projection(clean_truth, clean)) < 1e-7
+    assert 5e-6 < flat_gauge < 2e-5
+    assert free_gauge == pytest.approx(rms(clean.offsets_prnu_free - true_projection(clean_truth, clean)), rel=0.05)
+    product = fringes.solution_dataset(solution, manifest.detector)
+    assert float(product["gauge_difference_rms"]) == pytest.approx(rms(solution.offsets - solution.offsets_prnu_free))
+    assert product["projected_offset_prnu_free_gauge"].attrs["units"] == "pixel"
