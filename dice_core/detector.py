@@ -16,6 +16,11 @@ pixel's width is the standard deviation of :math:`g`, derived from
 fringe :math:`\\sin(K\\cdot r + \\phi)` gives a pixel signal of phase exactly
 :math:`K\\cdot(r_0) + \\phi`: the simulated truth is the offset metrology sees.
 
+With sensitivity slopes (``slope_x``, ``slope_y``) each factor is multiplied by
+:math:`1 + s u`: :math:`(x_0, y_0)` is then the kernel's centre, not its
+barycentre (off by :math:`s w^2`, see :meth:`PixelResponse.barycentres`), and the
+fringe phase is neither.
+
 Integrals over the PRF use Gauss-Legendre quadrature on :math:`[-a, a]`, exact
 to far below 1e-9 for these smooth kernels.
 """
@@ -66,11 +71,17 @@ class PixelResponse:
     slope_x, slope_y : ndarray, optional
         Linear sensitivity slope across each pixel, 1/pixel: the PRF is the
         hyper-Gaussian times (1 + slope_x u)(1 + slope_y v), u, v from its
-        centre (|slope| < 2). An asymmetric response: its barycentre is off
-        its centre by slope x width^2, and the phase of its response to a
-        fringe is not that of its barycentre (it depends on the period).
-        None: symmetric.
+        centre (|slope| x half_width < 1, checked). An asymmetric response: its
+        barycentre is off its centre by slope x width^2, and the phase of its
+        response to a fringe is not that of its barycentre (it depends on the
+        period). None: symmetric.
     """
+
+    def __post_init__(self):
+        for slope in (self.slope_x, self.slope_y):
+            if slope is not None and np.any(np.abs(slope) * self.half_width >= 1):
+                raise ValueError(f"PRF slopes of {np.max(np.abs(slope)):.2f} per pixel make a response negative "
+                                 f"within the {self.half_width} pixel half-width")
 
     sensitivity: np.ndarray
     dx: np.ndarray
@@ -130,7 +141,8 @@ class PixelResponse:
         ``sensitivity + v * Im(R * exp(i phi))``, with
         ``R = s h_x(kx) h_y(ky) exp(i Phi(r0))``: over a pixel the fringe is
         the plane wave of its local wavevector (kx, ky) = grad Phi at the
-        pixel's true centre r0.
+        kernel's centre r0, and h is the PRF's characteristic function
+        int g(u) (1 + s u) exp(i k u) du (real without a slope).
 
         Parameters
         ----------

@@ -601,10 +601,14 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
             # same factorisation under the PRNU-free gauge (the pixel contrast's smoothness), which the
             # flat does not enter. The passes do not depend on the gauge, so this costs no pass.
             ax, ay = x[active], y[active]
-            M_free = fix_gauge(F_phys, G_phys, flat=None, x=ax, y=ay, smooth_degree=smooth_degree)
-            G_free = G_phys @ np.linalg.inv(M_free).T
-            k_free, free = projected_offsets(np.arctan2(G_free[:, 1], G_free[:, 2]), ax, ay, k)
-            offsets_prnu_free = full(free if k_free @ k > 0 else -free)
+            try:
+                M_free = fix_gauge(F_phys, G_phys, flat=None, x=ax, y=ay, smooth_degree=smooth_degree)
+            except FringeError as exc:  # a diagnostic must not fail a fit the flat's gauge made
+                log.warning("%s: no PRNU-free gauge for the diagnostic (%s)", label, exc)
+            else:
+                G_free = G_phys @ np.linalg.inv(M_free).T
+                k_free, free = projected_offsets(np.arctan2(G_free[:, 1], G_free[:, 2]), ax, ay, k)
+                offsets_prnu_free = full(free if k_free @ k > 0 else -free)
 
         reasons = {"saturated": int(saturated.sum()), "no_contrast": int(faint.sum()),
                    "unconverged": int(unconverged.sum())}
@@ -618,7 +622,10 @@ def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:
 
     Contract variables: projected_offset (pixel), iota and alpha (1), kx and ky
     (the mean wavevector, rad/pixel), phase (frame, rad). Also the photon-noise
-    floor of the offsets, K(t), B(t), A(t), the mask and the convergence history.
+    floor of the offsets, K(t), B(t), A(t), the mask and the convergence history;
+    with a flat, the offsets under the PRNU-free gauge
+    (projected_offset_prnu_free_gauge, pixel) and the rms of their difference
+    from projected_offset (gauge_difference_rms, pixel).
     """
     def as_map(values, fill=np.nan):
         out = np.full(detector.shape, fill, dtype=np.result_type(values, type(fill)))

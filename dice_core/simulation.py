@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 import yaml
+from scipy.ndimage import gaussian_filter
 
 from dice_core.detector import PixelResponse
 from dice_core.io import write_cube, write_product
@@ -123,6 +124,8 @@ class DetectorConfig:
                 and 0 <= self.science_cols[0] < self.science_cols[1] <= cols):
             raise ValueError(f"simulation config detector: science area {self.science_rows}, "
                              f"{self.science_cols} does not fit in {self.shape}")
+        if not self.prf_slope_rms >= 0:
+            raise ValueError(f"simulation config detector: prf_slope_rms must be >= 0, got {self.prf_slope_rms!r}")
         if self.gaussian_photons_above is not None and not self.gaussian_photons_above >= 0:
             raise ValueError("simulation config detector: gaussian_photons_above must be >= 0 (electrons) or null, "
                              f"got {self.gaussian_photons_above!r}")
@@ -184,8 +187,9 @@ class MetrologyConfig:
     # The flat is a white LED's, the metrology a 633 nm laser's: the pixels' sensitivities differ
     # between the two by a chromatic PRNU of this rms (a real bench's: about 5e-4), relative.
     chromatic_prnu_rms: float = 0.0
-    # Speckle in the laser illumination: a random multiplicative pattern of this rms contrast and
-    # correlation length (pixel), one per baseline, on both the fringe level and amplitude.
+    # Speckle in the laser illumination: a random multiplicative pattern of this rms contrast, white
+    # noise smoothed by a Gaussian of standard deviation speckle_grain (pixel), one per baseline,
+    # common to the fringe level and amplitude (intensity speckle only: no phase or visibility speckle).
     speckle_rms: float = 0.0
     speckle_grain: float = 3.0
     sweep_cycles: float = 4.0          # fringe periods swept in one direction
@@ -620,12 +624,10 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
         chromatic += m.chromatic_prnu_rms * _rng(cfg, "chromatic prnu").standard_normal(d.shape)
     speckle = np.ones((len(names), rows, cols))
     if m.speckle_rms:
-        from scipy.ndimage import gaussian_filter
-
         for i, name in enumerate(names):
-            field_ = gaussian_filter(_rng(cfg, "speckle", name).standard_normal(d.shape), m.speckle_grain,
+            grains = gaussian_filter(_rng(cfg, "speckle", name).standard_normal(d.shape), m.speckle_grain,
                                      mode="wrap")
-            speckle[i] = 1 + m.speckle_rms * field_ / field_.std()
+            speckle[i] = 1 + m.speckle_rms * (grains - grains.mean()) / grains.std()
 
     fibers = list(cfg.flats.fibers)
     illumination = np.empty((len(fibers), rows, cols))
@@ -648,8 +650,10 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
     rc = ("row", "col")
     ds = xr.Dataset(
         {
-            "dx": (rc, dx, {"units": "pixel", "long_name": "true pixel offset along x"}),
-            "dy": (rc, dy, {"units": "pixel", "long_name": "true pixel offset along y"}),
+            "dx": (rc, dx, {"units": "pixel", "long_name": "true pixel offset along x (the PRF kernel's centre; "
+                                                             "its barycentre unless prf_slope_rms)"}),
+            "dy": (rc, dy, {"units": "pixel", "long_name": "true pixel offset along y (the PRF kernel's centre; "
+                                                             "its barycentre unless prf_slope_rms)"}),
             "sensitivity": (rc, prf.sensitivity, {"units": "1", "long_name": "relative quantum efficiency (PRF integral)"}),
             "prf_sigma_x": (rc, sigma_x, {"units": "pixel", "long_name": "hyper-Gaussian scale of the PRF along x"}),
             "prf_sigma_y": (rc, sigma_y, {"units": "pixel", "long_name": "hyper-Gaussian scale of the PRF along y"}),
