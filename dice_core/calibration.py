@@ -29,6 +29,8 @@ __all__ = [
     "prnu_difference",
     "remove_gradient",
     "area_rms",
+    "BAD_PIXEL_FLAGS",
+    "bad_pixel_mask",
 ]
 
 log = logging.getLogger(__name__)
@@ -328,6 +330,97 @@ def prnu_difference(reference: xr.Dataset, other: xr.Dataset, detector: Detector
                                {"units": "1", "long_name": "rms of the difference over the science area"}),
             "photon_noise_limit_rms": ((), float(np.sqrt(np.nanmean(limit[sl] ** 2))),
                                        {"units": "1", "long_name": "rms photon-noise limit of the difference"}),
+        },
+        coords=_coords(detector),
+    )
+
+
+#: Bits of the bad-pixel mask: what each flag means (a pixel may carry several).
+BAD_PIXEL_FLAGS = {"dead": 1, "hot": 2, "dust": 4, "column": 8}
+
+
+def _local_median(image, size=5):
+    """Median of the valid (finite) pixels of each pixel's size x size neighbourhood (NaN: left out)."""
+    import warnings
+
+    from scipy.ndimage import generic_filter
+
+    with warnings.catch_warnings():  # windows wholly outside the science area: NaN, as wanted
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return generic_filter(image, np.nanmedian, size=size, mode="constant", cval=np.nan)
+
+
+def bad_pixel_mask(dark: xr.Dataset, prnu: np.ndarray, detector: Detector, *, dead_below: float = 0.5,
+                   dust_below: float = 0.99, hot_sigma: float = 10.0, column_fraction: float = 0.5) -> xr.Dataset:
+    """Dead, hot, dust and column defects of the science area, from the dark and a PRNU map.
+
+    Parameters
+    ----------
+    dark : xarray.Dataset
+        ``calibration/dark.nc``: mean dark ``dark`` and temporal noise ``noise``, adu.
+    prnu : ndarray (row, col)
+        A PRNU map (mean 1 over the science area), e.g. the reference flat's.
+    detector : Detector
+    dead_below : float
+        A pixel whose PRNU is below this responds to less than this fraction of
+        the light: dead.
+    dust_below : float
+        One responding to less than this fraction of its 5x5 neighbourhood's
+        median (but more than ``dead_below``): dust (a 1% loss is 5 sigma of a
+        2e-3 PRNU).
+    hot_sigma : float
+        A pixel whose dark stands above its 5x5 neighbourhood's median, or whose
+        noise above the median noise, by more than this many robust standard
+        deviations (1.4826 MAD) of the whole area: hot.
+    column_fraction : float
+        A column with more than this fraction of its science pixels dead or
+        hot is flagged whole: a column defect.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``bad_pixel`` (row, col), int8 bits of :data:`BAD_PIXEL_FLAGS` (0 good;
+        with CF ``flag_masks`` and ``flag_meanings``); ``n_<kind>`` counts; and
+        ``bad_columns``, the flagged columns.
+    """
+    mask = detector.science_mask()
+    flags = np.zeros(detector.shape, np.int8)
+    with np.errstate(invalid="ignore"):
+        dead = mask & (prnu < dead_below)
+        flags[dead] |= BAD_PIXEL_FLAGS["dead"]
+        # dust against the pixel's neighbourhood of responding pixels: the map's own normalisation and
+        # gradient took the dead pixels in, and are off by their share
+        responding = np.where(mask & ~dead, prnu, np.nan)
+        flags[mask & ~dead & (responding / _local_median(responding) < dust_below)] |= BAD_PIXEL_FLAGS["dust"]
+
+    def robust_outliers(values):
+        inside = values[mask]
+        spread = 1.4826 * np.median(np.abs(inside - np.median(inside)))
+        return mask & (values - np.median(inside) > hot_sigma * max(spread, 1e-12))
+
+    dark_map, noise = np.where(mask, dark["dark"].values, np.nan), np.where(mask, dark["noise"].values, np.nan)
+    # (a hot pixel's neighbourhood median is its neighbours': the bias has column structure, not pixel)
+    hot = robust_outliers(np.nan_to_num(dark_map - _local_median(dark_map))) | robust_outliers(np.nan_to_num(noise))
+    flags[hot] |= BAD_PIXEL_FLAGS["hot"]
+    rows = slice(*detector.science_rows)
+    dead_or_hot = (flags & (BAD_PIXEL_FLAGS["dead"] | BAD_PIXEL_FLAGS["hot"])) > 0
+    columns = [c for c in range(*detector.science_cols) if dead_or_hot[rows, c].mean() > column_fraction]
+    for c in columns:
+        flags[rows, c] |= BAD_PIXEL_FLAGS["column"]
+    counts = {kind: int(((flags & bit) > 0).sum()) for kind, bit in BAD_PIXEL_FLAGS.items()}
+    for kind, n in counts.items():
+        if n:
+            log.warning("%d pixel(s) flagged %s", n, kind)
+    return xr.Dataset(
+        {
+            "bad_pixel": (("row", "col"), flags,
+                          {"units": "1", "long_name": "bad-pixel flags (0: good)",
+                           "flag_masks": np.array(list(BAD_PIXEL_FLAGS.values()), np.int8),
+                           "flag_meanings": " ".join(BAD_PIXEL_FLAGS)}),
+            **{f"n_{kind}": ((), n, {"units": "1", "long_name": f"pixels flagged {kind}"})
+               for kind, n in counts.items()},
+            "bad_columns": (("bad_column",), np.array(columns, dtype=np.int64),
+                            {"units": "1", "long_name": "columns flagged whole"}),
         },
         coords=_coords(detector),
     )

@@ -98,6 +98,12 @@ class DetectorConfig:
     prnu_rms: float = 2e-3               # white PRNU, relative
     dust_pixels: int = 6                 # pixels darkened by dust
     dust_depth: float = 0.05             # deepest dust loss, relative
+    # Defects (none by default, the idealisation of the paper's simulations): dead pixels and
+    # columns (no response), hot pixels (a dark signal of hot_level adu per frame, with its shot noise)
+    dead_pixels: int = 0
+    dead_columns: int = 0
+    hot_pixels: int = 0
+    hot_level: float = 2000.0            # adu per frame
     bright_bands: int = 2                # bright horizontal bands
     bright_band_amplitude: float = 3e-3  # relative excess sensitivity in a band
     offset_rms: float = 1e-3             # pixel, rms of dx and dy
@@ -459,6 +465,26 @@ def _remove_affine(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return values - (design @ coef).reshape(values.shape)
 
 
+BAD_DEAD, BAD_HOT, BAD_DUST = 1, 2, 4  # the truth's bad_pixel flags (dice_core.calibration.bad_pixel_mask's)
+
+
+def _defects(cfg: SimulationConfig, mask: np.ndarray) -> np.ndarray:
+    """The truth's defect flags (row, col): dead pixels and columns, hot pixels, in the science area."""
+    d = cfg.detector
+    flags = np.zeros(d.shape, np.int8)
+    if not (d.dead_pixels or d.dead_columns or d.hot_pixels):
+        return flags
+    rng = _rng(cfg, "defects")
+    sr, sc = np.nonzero(mask)
+    chosen = rng.choice(len(sr), d.dead_pixels + d.hot_pixels, replace=False)
+    dead, hot = chosen[:d.dead_pixels], chosen[d.dead_pixels:]
+    flags[sr[dead], sc[dead]] |= BAD_DEAD
+    flags[sr[hot], sc[hot]] |= BAD_HOT
+    for c in rng.choice(np.arange(*d.science_cols), d.dead_columns, replace=False):
+        flags[slice(*d.science_rows), c] |= BAD_DEAD
+    return flags
+
+
 def _sensitivity(cfg: SimulationConfig, mask: np.ndarray) -> np.ndarray:
     d = cfg.detector
     rng = _rng(cfg, "sensitivity")
@@ -573,13 +599,18 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
     if d.prf_slope_rms:
         rng = _rng(cfg, "prf slopes")
         slope_x, slope_y = d.prf_slope_rms * rng.standard_normal((2, *d.shape))
-    prf = PixelResponse(_sensitivity(cfg, mask), dx, dy, sigma_x, sigma_y, d.prf_order, d.prf_half_width,
-                        slope_x, slope_y)
+    defects = _defects(cfg, mask)
+    sensitivity = _sensitivity(cfg, mask)
+    sensitivity[(defects & BAD_DEAD) > 0] = 0.0
+    prf = PixelResponse(sensitivity, dx, dy, sigma_x, sigma_y, d.prf_order, d.prf_half_width, slope_x, slope_y)
 
     rng = _rng(cfg, "bias")
     bias = (d.bias + d.bias_column_rms * rng.standard_normal(cols)[None, :]
             + d.bias_row_slope * np.linspace(0, 1, rows)[:, None])
     read_noise = d.read_noise * (1 + d.read_noise_spread * rng.standard_normal(d.shape))
+    hot = (defects & BAD_HOT) > 0
+    bias[hot] += d.hot_level  # a hot pixel's dark signal, with its shot noise as a read noise
+    read_noise[hot] = np.sqrt(read_noise[hot] ** 2 + d.hot_level / d.gain)
 
     x0, y0 = prf.centres()
     xc, yc = (cols - 1) / 2, (rows - 1) / 2
@@ -660,6 +691,8 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
             "width_x": (rc, prf.width_x(), {"units": "pixel", "long_name": "PRF standard deviation along x"}),
             "width_y": (rc, prf.width_y(), {"units": "pixel", "long_name": "PRF standard deviation along y"}),
             "bias": (rc, bias, {"units": "adu", "long_name": "bias level"}),
+            "bad_pixel": (rc, defects, {"units": "1", "long_name": "simulated defects",
+                                        "flag_masks": [BAD_DEAD, BAD_HOT], "flag_meanings": "dead hot"}),
             "read_noise": (rc, read_noise, {"units": "adu", "long_name": "read noise rms"}),
             "envelope": (rc, envelope, {"units": "1", "long_name": "metrology fringe envelope (mean 1)"}),
             "chromatic_sensitivity": (rc, chromatic, {"units": "1", "long_name": "the laser's sensitivity over "

@@ -3,8 +3,10 @@
 import numpy as np
 import pytest
 
+from dice_core import calibration, simulation
 from dice_core.calibration import TemporalStatistics, area_rms, dark_maps, prnu_difference, prnu_map, remove_gradient
-from dice_core.io import FrameStream
+from dice_core.io import FrameStream, read_product
+from dice_core.manifest import load_manifest
 
 
 def test_temporal_statistics_match_numpy_whatever_the_chunking(rng):
@@ -117,3 +119,34 @@ def test_prnu_of_a_dark_frame_is_refused(calibration_dataset, dark):
     with pytest.raises(ValueError, match="no positive signal"):
         prnu_map(FrameStream(manifest.dark, manifest.detector), dark["dark"].values, dark["noise"].values,
                  manifest.detector)
+
+
+def test_dead_hot_dust_and_column_defects_are_flagged_and_counted(tmp_path):
+    """Simulated defects (3 dead pixels, 1 dead column, 4 hot pixels, the 6 dust pixels) found from the dark
+    and the reference flat's PRNU, each class counted; nothing else flagged."""
+    from conftest import small_config
+
+    cfg = small_config(detector={"dead_pixels": 3, "dead_columns": 1, "hot_pixels": 4},
+                       dark={"frames": 200}, flats={"frames": 200})
+    path = simulation.simulate_dataset(cfg, tmp_path / "raw")
+    manifest, truth = load_manifest(path), read_product(path.parent / "truth.nc")
+    dark = calibration.dark_maps(FrameStream(manifest.dark, manifest.detector), manifest.detector)
+    prnu = calibration.prnu_map(FrameStream(manifest.flats["fiber_a"], manifest.detector), dark["dark"].values,
+                                dark["noise"].values, manifest.detector)["prnu"].values
+    mask = calibration.bad_pixel_mask(dark, prnu, manifest.detector)
+    flags, true = mask["bad_pixel"].values, truth["bad_pixel"].values
+    flag = calibration.BAD_PIXEL_FLAGS
+    dead = (flags & flag["dead"]) > 0
+    np.testing.assert_array_equal(dead, (true & simulation.BAD_DEAD) > 0)
+    np.testing.assert_array_equal((flags & flag["hot"]) > 0, (true & simulation.BAD_HOT) > 0)
+    (column,) = mask["bad_columns"].values
+    assert dead[slice(*cfg.detector.science_rows), column].all() and int(mask["n_column"]) == 37
+    assert int(mask["n_dead"]) == 3 + 37 and int(mask["n_hot"]) == 4
+    # dust: the same rule on the true sensitivities finds the same pixels, but for a couple near the
+    # threshold that the flat's photon noise (1.6e-4 here) tips either way
+    true_rule = calibration.bad_pixel_mask(dark, truth["sensitivity"].values, manifest.detector)["bad_pixel"].values
+    dust, true_dust = (flags & flag["dust"]) > 0, (true_rule & flag["dust"]) > 0
+    assert true_dust.sum() >= 6 and np.sum(dust != true_dust) <= 2
+    assert int(mask["n_dust"]) == dust.sum()
+    assert np.all(flags[~manifest.detector.science_mask()] == 0)
+    assert mask["bad_pixel"].attrs["flag_meanings"] == "dead hot dust column"

@@ -90,6 +90,14 @@ def test_products_follow_the_contract(out):
     assert "dark_000.fits" in dark.attrs["inputs"]
 
 
+def test_bad_pixel_mask_product(out):
+    """The ci preset has no dead or hot pixels; its dust pixels are found, and the flags follow CF."""
+    mask = read_product(out / "calibration/bad_pixels.nc")
+    assert int(mask["n_dead"]) == int(mask["n_hot"]) == int(mask["n_column"]) == 0
+    assert 1 <= int(mask["n_dust"]) <= 12
+    assert mask["bad_pixel"].dims == ("row", "col") and mask["bad_pixel"].attrs["flag_meanings"]
+
+
 def test_prnu_product_matches_truth(out):
     manifest = load_manifest(out / "raw" / "dataset.yaml")
     truth = read_product(out / "raw" / "truth.nc")

@@ -70,3 +70,20 @@ rule compare_prnu:
         "../envs/dice.yaml"
     script:
         "../scripts/compare_prnu.py"
+
+
+rule find_bad_pixels:
+    input:
+        manifest=MANIFEST_FILE,
+        dark=rules.measure_dark.output.dark,
+        prnu=rules.select_reference_prnu.output.prnu,
+    output:
+        bad_pixels=f"{OUT}/calibration/bad_pixels.nc",
+    params:
+        code=code_version("io", "manifest", "calibration", "polynomials"),
+    log:
+        f"{OUT}/logs/find_bad_pixels.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/find_bad_pixels.py"

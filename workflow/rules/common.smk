@@ -108,7 +108,7 @@ def calibration_targets():
     if not MANIFEST.flats:
         skipped("PRNU", f"{MANIFEST.path} has no flats section")
         return targets
-    targets.append(f"{OUT}/calibration/prnu.nc")
+    targets += [f"{OUT}/calibration/prnu.nc", f"{OUT}/calibration/bad_pixels.nc"]
     for flat in MANIFEST.flats:
         targets += figure_pair(f"prnu_{flat}").values()
     others = list(MANIFEST.flats)[1:]
