@@ -130,6 +130,14 @@ class DetectorConfig:
                 and 0 <= self.science_cols[0] < self.science_cols[1] <= cols):
             raise ValueError(f"simulation config detector: science area {self.science_rows}, "
                              f"{self.science_cols} does not fit in {self.shape}")
+        science = (self.science_rows[1] - self.science_rows[0]) * (self.science_cols[1] - self.science_cols[0])
+        for key in ("dead_pixels", "dead_columns", "hot_pixels", "hot_level"):
+            if not getattr(self, key) >= 0:
+                raise ValueError(f"simulation config detector: {key} must be >= 0, got {getattr(self, key)!r}")
+        if self.dead_columns > self.science_cols[1] - self.science_cols[0] or (
+                self.dead_pixels + self.hot_pixels > science // 2):
+            raise ValueError("simulation config detector: more defects than the science area holds "
+                             f"({self.dead_columns} dead columns, {self.dead_pixels + self.hot_pixels} pixels)")
         if not self.prf_slope_rms >= 0:
             raise ValueError(f"simulation config detector: prf_slope_rms must be >= 0, got {self.prf_slope_rms!r}")
         if self.gaussian_photons_above is not None and not self.gaussian_photons_above >= 0:
@@ -475,13 +483,13 @@ def _defects(cfg: SimulationConfig, mask: np.ndarray) -> np.ndarray:
     if not (d.dead_pixels or d.dead_columns or d.hot_pixels):
         return flags
     rng = _rng(cfg, "defects")
-    sr, sc = np.nonzero(mask)
+    for c in rng.choice(np.arange(*d.science_cols), d.dead_columns, replace=False):
+        flags[slice(*d.science_rows), c] |= BAD_DEAD
+    sr, sc = np.nonzero(mask & (flags == 0))  # single defects off the dead columns
     chosen = rng.choice(len(sr), d.dead_pixels + d.hot_pixels, replace=False)
     dead, hot = chosen[:d.dead_pixels], chosen[d.dead_pixels:]
     flags[sr[dead], sc[dead]] |= BAD_DEAD
     flags[sr[hot], sc[hot]] |= BAD_HOT
-    for c in rng.choice(np.arange(*d.science_cols), d.dead_columns, replace=False):
-        flags[slice(*d.science_rows), c] |= BAD_DEAD
     return flags
 
 
@@ -495,16 +503,18 @@ def _sensitivity(cfg: SimulationConfig, mask: np.ndarray) -> np.ndarray:
         profile = np.exp(-0.5 * ((np.arange(rows) - centre) / width) ** 2)
         sens *= 1.0 + d.bright_band_amplitude * profile[:, None]
     sr, sc = np.nonzero(mask)
+    dust = np.zeros(d.shape, bool)
     for _ in range(d.dust_pixels):
         k = rng.integers(len(sr))
         r, c = sr[k], sc[k]
         depth = d.dust_depth * rng.uniform(0.3, 1.0)
         sens[r, c] *= 1.0 - depth
+        dust[r, c] = True
         # dust shadows spill a little onto the neighbours
         for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
             if 0 <= r + dr < rows and 0 <= c + dc < cols:
                 sens[r + dr, c + dc] *= 1.0 - 0.2 * depth
-    return sens / sens[mask].mean()
+    return sens / sens[mask].mean(), dust
 
 
 def _phase_history(cfg: SimulationConfig, name: str, rng) -> np.ndarray:
@@ -600,7 +610,8 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
         rng = _rng(cfg, "prf slopes")
         slope_x, slope_y = d.prf_slope_rms * rng.standard_normal((2, *d.shape))
     defects = _defects(cfg, mask)
-    sensitivity = _sensitivity(cfg, mask)
+    sensitivity, dust = _sensitivity(cfg, mask)
+    defects[dust & (defects == 0)] |= BAD_DUST
     sensitivity[(defects & BAD_DEAD) > 0] = 0.0
     prf = PixelResponse(sensitivity, dx, dy, sigma_x, sigma_y, d.prf_order, d.prf_half_width, slope_x, slope_y)
 
@@ -690,10 +701,12 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
             "prf_sigma_y": (rc, sigma_y, {"units": "pixel", "long_name": "hyper-Gaussian scale of the PRF along y"}),
             "width_x": (rc, prf.width_x(), {"units": "pixel", "long_name": "PRF standard deviation along x"}),
             "width_y": (rc, prf.width_y(), {"units": "pixel", "long_name": "PRF standard deviation along y"}),
-            "bias": (rc, bias, {"units": "adu", "long_name": "bias level"}),
-            "bad_pixel": (rc, defects, {"units": "1", "long_name": "simulated defects",
-                                        "flag_masks": [BAD_DEAD, BAD_HOT], "flag_meanings": "dead hot"}),
-            "read_noise": (rc, read_noise, {"units": "adu", "long_name": "read noise rms"}),
+            "bias": (rc, bias, {"units": "adu", "long_name": "bias level (hot pixels: plus hot_level)"}),
+            "bad_pixel": (rc, defects, {"units": "1", "long_name": "simulated defects (dust: its centre pixel)",
+                                        "flag_masks": np.array([BAD_DEAD, BAD_HOT, BAD_DUST], np.int8),
+                                        "flag_meanings": "dead hot dust"}),
+            "read_noise": (rc, read_noise, {"units": "adu", "long_name": "read noise rms (hot pixels: with the "
+                                                                          "dark signal's shot noise)"}),
             "envelope": (rc, envelope, {"units": "1", "long_name": "metrology fringe envelope (mean 1)"}),
             "chromatic_sensitivity": (rc, chromatic, {"units": "1", "long_name": "the laser's sensitivity over "
                                                       "the flat's (chromatic PRNU)"}),
