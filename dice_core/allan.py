@@ -39,9 +39,10 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from dice_core.fringes import frame_moments, photon_floor
+from dice_core.fringes import frame_moments, photon_floor, wrapped_about_mean
 from dice_core.io import first_chunk
-from dice_core.parallel import LANES, blas_threads, lane_executor, lane_workers, one_blas_thread
+from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
+                                threads_report)
 from dice_core.polynomials import polynomial_design
 
 __all__ = [
@@ -113,18 +114,6 @@ def _remove_affine(design, values):
     return values - design @ np.linalg.lstsq(design, values, rcond=None)[0]
 
 
-def _wrapped_about_mean(phase):
-    """Phases wrapped to (-pi, pi] about their circular mean (pixel,), rad.
-
-    A batch's pixel phases differ from the global solution's by a constant
-    that the gauge leaves free (the common phase of theta and phi(t)) plus the
-    small offset changes; wrapped about zero, a constant near pi would split
-    the pixels between +pi and -pi and give offsets of a whole period.
-    """
-    centre = np.angle(np.mean(np.exp(1j * phase)))
-    return np.angle(np.exp(1j * (phase - centre)))
-
-
 @dataclass(frozen=True)
 class _BatchFit:
     """What turns a batch's sums F'X into its offsets (see :func:`batch_offsets`)."""
@@ -138,7 +127,9 @@ class _BatchFit:
     def offsets(self, F, FtX):
         """Projected offsets (pixel,) of a batch with frame factors F (frame, 3) and sums F'X (3, pixel of idx)."""
         G = np.linalg.solve(F.T @ F, FtX + np.outer(F.sum(axis=0), self.level))
-        delta = _wrapped_about_mean(np.arctan2(G[1], G[2]) - self.reference_phase)
+        # about the circular mean: the difference is the constant phase the gauge leaves free plus the
+        # batch's small offset changes, and that constant may be near pi
+        delta = wrapped_about_mean(np.arctan2(G[1], G[2]) - self.reference_phase)
         return _remove_affine(self.design, delta) / self.k_norm
 
 
@@ -235,15 +226,8 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     with lane_executor(workers, len(lanes)) as executor:
         log.info("%s: %d batch fits over %d part(s) of the frames, in %d process(es)", label, len(batches),
                  len(lanes), lane_workers(workers, len(lanes)))
-        n = len(lanes)
-        args = ([batches] * n, [frame_factors] * n, [fit] * n, [label] * n)
-        results = list(map(_lane_batch_offsets, lanes, *args) if executor is None
-                       else executor.map(_lane_batch_offsets, lanes, *args))
-    if executor is None:
-        log.info("%s: BLAS threads: %d in this process, which reads the parts itself", label, blas_threads())
-    else:
-        log.info("%s: BLAS threads: %d in this process, %s in the processes that read the parts", label,
-                 blas_threads(), ", ".join(str(threads) for _, _, threads in results))
+        results = map_lanes(executor, _lane_batch_offsets, lanes, batches, frame_factors, fit, label)
+    log.info("%s: %s", label, threads_report(executor, [threads for _, _, threads in results]))
     out = np.full((len(batches), idx.size), np.nan)
     fitted = np.zeros(len(batches), bool)
     partial, covered = {}, {}

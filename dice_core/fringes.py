@@ -50,7 +50,8 @@ import scipy.linalg
 import xarray as xr
 
 from dice_core.io import Chunk, first_chunk
-from dice_core.parallel import LANES, blas_threads, lane_executor, lane_workers, one_blas_thread
+from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
+                                threads_report)
 from dice_core.polynomials import polynomial_design
 
 __all__ = [
@@ -60,6 +61,7 @@ __all__ = [
     "fit_baseline",
     "fix_gauge",
     "projected_offsets",
+    "wrapped_about_mean",
     "photon_floor",
     "frame_moments",
     "solution_dataset",
@@ -200,6 +202,16 @@ def _lorentz_boost(b):
     return L
 
 
+def wrapped_about_mean(phase):
+    """Phases (rad) wrapped to (-pi, pi] about their circular mean.
+
+    Wrapped about zero instead, phases spread around pi (a constant the gauge
+    leaves free) would split between +pi and -pi, a whole period apart.
+    """
+    centre = np.angle(np.mean(np.exp(1j * phase)))
+    return np.angle(np.exp(1j * (phase - centre)))
+
+
 def projected_offsets(theta, x, y, k_guess):
     """Wavevector and offsets from pixel phases theta = K.r + K.delta + constant.
 
@@ -220,12 +232,10 @@ def projected_offsets(theta, x, y, k_guess):
     for sign in (1.0, -1.0):  # theta may run along -K_guess
         k = sign * np.asarray(k_guess, float)
         for _ in range(3):
-            psi = np.angle(np.exp(1j * (theta - k[0] * x - k[1] * y)))
-            psi = np.angle(np.exp(1j * (psi - np.angle(np.mean(np.exp(1j * psi))))))
+            psi = wrapped_about_mean(theta - k[0] * x - k[1] * y)
             coef, *_ = np.linalg.lstsq(design, psi, rcond=None)
             k = k + coef[1:]
-        psi = np.angle(np.exp(1j * (theta - k[0] * x - k[1] * y)))
-        psi = np.angle(np.exp(1j * (psi - np.angle(np.mean(np.exp(1j * psi))))))
+        psi = wrapped_about_mean(theta - k[0] * x - k[1] * y)
         coef, *_ = np.linalg.lstsq(design, psi, rcond=None)
         residual = psi - design @ coef
         if best is None or np.std(residual) < np.std(best[1]):
@@ -351,12 +361,7 @@ def _pass(lanes, dark, idx, G, *, extra=None, reference=None, centred=False, exe
     level = centre - dark.ravel()  # X - d = (X - r) + (r - d)
     offset = -(level @ projector)
     subtract_centre = reference is not None and not centred
-    if executor is None:
-        results = [_accumulate(lane, projector, offset, centre, subtract_centre) for lane in lanes]
-    else:
-        n = len(lanes)
-        results = list(executor.map(_accumulate, lanes, [projector] * n, [offset] * n, [centre] * n,
-                                    [subtract_centre] * n))
+    results = map_lanes(executor, _accumulate, lanes, projector, offset, centre, subtract_centre)
     coef = np.concatenate([products for products, _, _, _ in results]).astype(np.float64) - offset
     if coef.shape[0] == 0:
         raise FringeError("no frames to fit")
@@ -496,11 +501,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         coef, FtI, FtF, third, saturated, lane_threads = _pass(lanes, dark0, idx, G, extra=extra,
                                                                reference=reference, centred=centred,
                                                                executor=executor)
-        if executor is None:
-            log.info("%s: BLAS threads: %d in this process, which reads the parts itself", label, blas_threads())
-        else:
-            log.info("%s: BLAS threads: %d in this process, %s in the processes that read the parts", label,
-                     blas_threads(), ", ".join(map(str, lane_threads)))
+        log.info("%s: %s", label, threads_report(executor, lane_threads))
         u1, u2 = coef[:, 1], coef[:, 2]
         amp2 = u1**2 + u2**2
         if np.median(np.sqrt(amp2) / np.abs(coef[:, 0])) < min_contrast:

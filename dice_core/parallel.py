@@ -27,7 +27,8 @@ import multiprocessing
 
 import threadpoolctl
 
-__all__ = ["LANES", "one_blas_thread", "blas_threads", "lane_executor", "lane_workers"]
+__all__ = ["LANES", "one_blas_thread", "blas_threads", "lane_executor", "lane_workers", "map_lanes",
+           "threads_report"]
 
 #: Consecutive parts a :class:`dice_core.io.FrameStream` is reduced in.
 LANES = 2
@@ -78,3 +79,19 @@ def lane_executor(workers: int, n_lanes: int):
         return concurrent.futures.ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("fork"),
                                                       initializer=_start_worker)
     return contextlib.nullcontext(None)
+
+
+def map_lanes(executor, function, lanes, *shared):
+    """``function(lane, *shared)`` for each lane, in lane order: in the executor's processes, or here if None."""
+    if executor is None:
+        return [function(lane, *shared) for lane in lanes]
+    n = len(lanes)
+    return list(executor.map(function, lanes, *[[value] * n for value in shared]))
+
+
+def threads_report(executor, lane_threads) -> str:
+    """The log's account of the BLAS threads: this process's, and each lane process's (``lane_threads``)."""
+    if executor is None:
+        return f"BLAS threads: {blas_threads()} in this process, which reads the parts itself"
+    return (f"BLAS threads: {blas_threads()} in this process, {', '.join(map(str, lane_threads))} "
+            "in the processes that read the parts")
