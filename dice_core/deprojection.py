@@ -15,12 +15,21 @@ Erratum: the paper gives y as "analog (indexes 1 and 2 are switched)" to x;
 switching the indexes of its x formula describes the same intersection and
 returns x again. The y used here eliminates x from the same two line
 equations; ``tests/test_deprojection.py`` checks both against known offsets.
+
+Spherical waves. Each pixel then has its own wavevector per baseline (the
+gradient of the two-source phase, ``kx_local``, ``ky_local`` of the metrology
+product), and the 2x2 solve is made pixel by pixel with them. The affine part
+of (dx, dy) and each baseline's unobservable modes, carried through the same
+solve, are then removed from the offsets and the latter declared
+(``unobservable_dx``, ``unobservable_dy``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import xarray as xr
+
+from dice_core.geometry import orthonormal_modes, remove_modes
 
 __all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "MIN_SINE"]
 
@@ -36,8 +45,9 @@ def deproject(p1, k1, p2, k2, *, min_sine: float = MIN_SINE, label: str = "pair"
     ----------
     p1, p2 : ndarray
         Offsets projected on the wavevectors, pixel (any shape, the same).
-    k1, k2 : (float, float)
-        The wavevectors (kx, ky), rad/pixel (only their directions matter).
+    k1, k2 : (float, float) or (ndarray, ndarray)
+        The wavevectors (kx, ky), rad/pixel (only their directions matter):
+        one for all pixels, or one per pixel (arrays of the shape of p1).
     min_sine : float
         Refuse wavevectors closer than asin(min_sine) to colinear.
     label : str
@@ -56,9 +66,12 @@ def deproject(p1, k1, p2, k2, *, min_sine: float = MIN_SINE, label: str = "pair"
     n1 = np.asarray(k1, float) / np.hypot(*k1)
     n2 = np.asarray(k2, float) / np.hypot(*k2)
     sine = n1[0] * n2[1] - n1[1] * n2[0]
-    if abs(sine) < min_sine:
-        angle = np.degrees(np.arccos(np.clip(abs(n1 @ n2), 0, 1)))
-        raise ValueError(f"{label}: wavevectors {tuple(k1)} and {tuple(k2)} are {angle:.1f} degrees from colinear; "
+    if np.nanmin(np.abs(sine)) < min_sine:
+        cosine = np.nanmax(np.abs(n1[0] * n2[0] + n1[1] * n2[1]))
+        angle = np.degrees(np.arccos(np.clip(cosine, 0, 1)))
+        where = "" if np.ndim(sine) == 0 else " at some pixels"
+        shown = "" if np.ndim(sine) else f" {tuple(k1)} and {tuple(k2)}"
+        raise ValueError(f"{label}: wavevectors{shown} are {angle:.1f} degrees from colinear{where}; "
                          f"a pair needs at least {np.degrees(np.arcsin(min_sine)):.0f} degrees")
     p1, p2 = np.asarray(p1, float), np.asarray(p2, float)
     # inverse of [[n1x, n1y], [n2x, n2y]]
@@ -67,8 +80,13 @@ def deproject(p1, k1, p2, k2, *, min_sine: float = MIN_SINE, label: str = "pair"
     return dx, dy
 
 
-def pair_difference(dx_a, dy_a, dx_b, dy_b):
+def pair_difference(dx_a, dy_a, dx_b, dy_b, *, modes=()):
     """Differences between two pairs' offset maps and their standard deviations (NaN ignored).
+
+    ``modes`` lists (mode_dx, mode_dy) arrays (mode, row, col), the pairs'
+    unobservable modes (spherical waves): each pair's offsets are orthogonal
+    to its own modes only, so the difference is taken orthogonal to all of
+    them and to the affine part.
 
     Returns
     -------
@@ -78,7 +96,23 @@ def pair_difference(dx_a, dy_a, dx_b, dy_b):
         Their standard deviations over the finite pixels, pixel.
     """
     ddx, ddy = np.asarray(dx_b) - np.asarray(dx_a), np.asarray(dy_b) - np.asarray(dy_a)
+    if len(modes):
+        good = np.isfinite(ddx) & np.isfinite(ddy)
+        rows, cols = np.nonzero(good)
+        basis = list(_affine_fields(rows, cols))
+        for mode_dx, mode_dy in modes:
+            basis += [np.concatenate([mx[good], my[good]]) for mx, my in zip(mode_dx, mode_dy)]
+        values = remove_modes(np.concatenate([ddx[good], ddy[good]]), np.array(basis))
+        ddx, ddy = np.full(ddx.shape, np.nan), np.full(ddy.shape, np.nan)
+        ddx[good], ddy[good] = values[:rows.size], values[rows.size:]
     return ddx, ddy, float(np.nanstd(ddx)), float(np.nanstd(ddy))
+
+
+def _affine_fields(rows, cols):
+    """The six affine (dx, dy) fields at pixels rows, cols, each as dx values then dy values: (6, 2 pixel)."""
+    x, y, one, zero = cols.astype(float), rows.astype(float), np.ones(rows.size), np.zeros(rows.size)
+    return np.array([np.concatenate(pair) for pair in
+                     [(one, zero), (x, zero), (y, zero), (zero, one), (zero, x), (zero, y)]])
 
 
 def deproject_floor(s1, k1, s2, k2):
@@ -91,16 +125,63 @@ def deproject_floor(s1, k1, s2, k2):
     return sdx, sdy
 
 
+def _wavevector(metrology):
+    """A metrology product's wavevector: per pixel (spherical waves) or its mean (plane waves), rad/pixel."""
+    if "kx_local" in metrology:
+        return metrology["kx_local"].values, metrology["ky_local"].values
+    return float(metrology["kx"]), float(metrology["ky"])
+
+
+def _without_unobservable(dx, dy, first, second, k1, k2, label):
+    """dx, dy with their affine part and the baselines' unobservable modes removed; the modes (mode, row, col) x 2.
+
+    Each baseline's modes (``unobservable_offset``, along its local wavevector)
+    become (dx, dy) fields through the same per-pixel solve, with the other
+    baseline's projection zero. They are orthonormalised against the affine
+    part of (dx, dy) (1, x, y in each) under the mean over the finite pixels
+    of both components together, so that each returned mode has unit rms over
+    the dx and dy values.
+    """
+    good = np.isfinite(dx) & np.isfinite(dy)
+    rows, cols = np.nonzero(good)
+    affine = _affine_fields(rows, cols)
+    fields = []
+    for which, dataset in ((0, first), (1, second)):
+        if "unobservable_offset" not in dataset:
+            continue
+        for mode in dataset["unobservable_offset"].values:
+            zeros = np.zeros_like(mode)
+            mx, my = deproject(*(((mode, k1, zeros, k2)) if which == 0 else (zeros, k1, mode, k2)), label=label)
+            fields.append(np.concatenate([mx[good], my[good]]))
+    modes = orthonormal_modes(np.array(fields).reshape(len(fields), 2 * rows.size), against=affine)
+    values = remove_modes(remove_modes(np.concatenate([dx[good], dy[good]]), affine), modes)
+    out_dx, out_dy = np.full(dx.shape, np.nan), np.full(dy.shape, np.nan)
+    out_dx[good], out_dy[good] = values[:rows.size], values[rows.size:]
+    mode_dx, mode_dy = np.full((len(modes), *dx.shape), np.nan), np.full((len(modes), *dy.shape), np.nan)
+    mode_dx[:, rows, cols], mode_dy[:, rows, cols] = modes[:, :rows.size], modes[:, rows.size:]
+    return out_dx, out_dy, mode_dx, mode_dy
+
+
 def offsets_dataset(first, second, *, label: str = "pair"):
     """The ``calibration/offsets_<pair>.nc`` product from two ``metrology/<baseline>.nc`` datasets.
 
-    ``label`` names the pair in errors (colinear wavevectors).
+    With spherical waves (products holding ``kx_local``), the solve is made
+    with each pixel's wavevectors, and the offsets are reported orthogonal to
+    the affine part and to the unobservable modes, which the product holds as
+    ``unobservable_dx``, ``unobservable_dy`` (mode, row, col). ``label`` names
+    the pair in errors (colinear wavevectors).
     """
-    k1 = (float(first["kx"]), float(first["ky"]))
-    k2 = (float(second["kx"]), float(second["ky"]))
+    k1, k2 = _wavevector(first), _wavevector(second)
     dx, dy = deproject(first["projected_offset"].values, k1, second["projected_offset"].values, k2, label=label)
     fdx, fdy = deproject_floor(first["photon_noise_floor"].values, k1, second["photon_noise_floor"].values, k2)
     rc = ("row", "col")
+    modes = {}
+    if np.ndim(k1[0]) or np.ndim(k2[0]):
+        dx, dy, mode_dx, mode_dy = _without_unobservable(dx, dy, first, second, k1, k2, label)
+        attrs = {"units": "1", "long_name": "unobservable offset mode beyond the affine part (unit rms over dx "
+                                            "and dy together); dx, dy are orthogonal to every mode"}
+        modes = {"unobservable_dx": (("mode", *rc), mode_dx, {**attrs, "long_name": attrs["long_name"] + ", x part"}),
+                 "unobservable_dy": (("mode", *rc), mode_dy, {**attrs, "long_name": attrs["long_name"] + ", y part"})}
     return xr.Dataset(
         {
             "dx": (rc, dx, {"units": "pixel", "long_name": "pixel offset along x (columns)"}),
@@ -109,6 +190,8 @@ def offsets_dataset(first, second, *, label: str = "pair"):
             "dy_photon_noise_floor": (rc, fdy, {"units": "pixel", "long_name": "1-sigma photon-noise error of dy"}),
             "dx_rms": ((), float(np.nanstd(dx)), {"units": "pixel", "long_name": "rms of dx"}),
             "dy_rms": ((), float(np.nanstd(dy)), {"units": "pixel", "long_name": "rms of dy"}),
+            **modes,
         },
-        coords={"row": first["row"].values, "col": first["col"].values},
+        coords={"row": first["row"].values, "col": first["col"].values,
+                **({"mode": np.arange(modes["unobservable_dx"][1].shape[0])} if modes else {})},
     )

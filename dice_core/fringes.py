@@ -49,6 +49,7 @@ import numpy as np
 import scipy.linalg
 import xarray as xr
 
+from dice_core.geometry import BaselineGeometry, TwoSourceFit, fit_two_source
 from dice_core.io import Chunk, first_chunk
 from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
                                 threads_report)
@@ -274,6 +275,12 @@ class FringeSolution:
         With a flat: the offsets under the PRNU-free gauge instead (pixel), the
         diagnostic of a flat that is not the laser's response; their difference
         from ``offsets`` is what the flat's gauge adds.
+    pixel_phase : ndarray (pixel,)
+        Fitted phase theta of each pixel, rad, wrapped (the constant is the gauge's).
+    two_source : TwoSourceFit or None
+        With a bench geometry (spherical waves): the refined tips, each pixel's
+        local wavevector and the unobservable offset modes; ``offsets`` are then
+        along the local wavevectors and ``k`` is their mean.
     """
 
     rows: np.ndarray
@@ -291,6 +298,8 @@ class FringeSolution:
     masked: np.ndarray = None
     masked_by_reason: dict = field(default_factory=dict)
     offsets_prnu_free: np.ndarray | None = None
+    pixel_phase: np.ndarray = None
+    two_source: TwoSourceFit | None = None
 
 
 def _accumulate(chunks: Iterable[Chunk], projector, offset, centre, subtract_centre):
@@ -412,7 +421,7 @@ def _phase_coverage(phase, bins=16):
 @one_blas_thread
 def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, tolerance=1e-7, max_passes=10,
                  min_contrast=0.02, min_relative_contrast=0.5, smooth_degree=6, workers=1,
-                 label="baseline") -> FringeSolution:
+                 geometry: BaselineGeometry | None = None, label="baseline") -> FringeSolution:
     """Global fringe solution of one metrology acquisition.
 
     Pass 1 fits every frame with perfect pixels (iota = alpha = 1, no
@@ -421,7 +430,11 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     later pass reads the cube once with the pixel factors of the previous one.
     After each pass the gauge is fixed (:func:`fix_gauge`), the pixel phases
     give the mean K and the projected offsets, and the passes stop when no
-    offset moves by more than ``tolerance``.
+    offset moves by more than ``tolerance``. With a ``geometry`` (spherical
+    waves), the converged pixel phases are then measured against the two-source
+    surface of the refined fiber tips (:func:`dice_core.geometry.fit_two_source`):
+    the passes themselves do not depend on the shape of the fringes, only this
+    last step does.
 
     Parameters
     ----------
@@ -459,6 +472,9 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         after the other with one worker: the result does not depend on
         ``workers``, only the time does. Every process runs one BLAS thread,
         whatever the environment says (:mod:`dice_core.parallel`).
+    geometry : BaselineGeometry, optional
+        The baseline's fiber tips (nominal) and bench: spherical-wave fringes.
+        Without it the fringes are plane waves.
     label : str
         Name in log messages and errors.
 
@@ -581,13 +597,22 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
             state = (F_phys, G_phys, FtF_phys, third_phys, k)
 
         F_phys, G_phys, FtF_phys, third_phys, k = state
+        theta = np.arctan2(G_phys[:, 1], G_phys[:, 2])
+        two_source, k_norm = None, np.hypot(*k)
+        if geometry is not None:
+            two_source = fit_two_source(theta, x[active], y[active], *geometry.nominal,
+                                        wavelength=geometry.wavelength, pixel_pitch=geometry.pixel_pitch,
+                                        k_plane=k, tip_sigma=geometry.tip_sigma, label=label)
+            offsets = np.full(idx.size, np.nan)
+            offsets[active] = two_source.offsets
+            k, k_norm = two_source.k_local.mean(axis=0), np.hypot(*two_source.k_local.T)
         noise_px = np.zeros(active.sum()) if read_noise is None else np.nan_to_num(read_noise.ravel()[idx[active]])
         iota = G_phys[:, 0]
         alpha = np.hypot(G_phys[:, 1], G_phys[:, 2])
         level = F_phys[:, 0] * iota.mean()
         amplitude = np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean()
         phase = np.arctan2(F_phys[:, 2], F_phys[:, 1])
-        floor = photon_floor(G_phys, FtF_phys, third_phys, detector.gain, noise_px, np.hypot(*k))
+        floor = photon_floor(G_phys, FtF_phys, third_phys, detector.gain, noise_px, k_norm)
         if faint.any():
             log.warning("%s: %d pixel(s) without fringe contrast masked", label, faint.sum())
 
@@ -608,17 +633,58 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
                 log.warning("%s: no PRNU-free gauge for the diagnostic (%s)", label, exc)
             else:
                 G_free = G_phys @ np.linalg.inv(M_free).T
-                k_free, free = projected_offsets(np.arctan2(G_free[:, 1], G_free[:, 2]), ax, ay, k)
-                offsets_prnu_free = full(free if k_free @ k > 0 else -free)
+                theta_free = np.arctan2(G_free[:, 1], G_free[:, 2])
+                k_free, free = projected_offsets(theta_free, ax, ay, k)
+                if two_source is not None:  # against the same surface, the phases turned the same way
+                    free = two_source.offsets_of(theta_free if k_free @ k > 0 else -theta_free)
+                    offsets_prnu_free = full(free)
+                else:
+                    offsets_prnu_free = full(free if k_free @ k > 0 else -free)
 
         reasons = {"saturated": int(saturated.sum()), "no_contrast": int(faint.sum()),
                    "unconverged": int(unconverged.sum())}
         return FringeSolution(rows, cols, offsets, full(iota / iota.mean()), full(alpha / alpha.mean()),
                               full(floor), k, k_frame, level, amplitude, phase, history, ~active, reasons,
-                              offsets_prnu_free)
+                              offsets_prnu_free, full(theta), two_source)
 
 
-def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:
+def _two_source_variables(solution: FringeSolution, as_map) -> dict:
+    """The spherical-wave variables of :func:`solution_dataset`."""
+    fit = solution.two_source
+    active = ~solution.masked
+
+    def on_active(values):
+        out = np.full(solution.rows.size, np.nan)
+        out[active] = values
+        return as_map(out)
+
+    modes = np.stack([on_active(m) for m in fit.modes]) if len(fit.modes) else \
+        np.empty((0, *as_map(solution.offsets).shape))
+    fxyz = ("fiber", "xyz")
+    return {
+        "kx_local": (("row", "col"), on_active(fit.k_local[:, 0]),
+                     {"units": "rad/pixel", "long_name": "local wavevector along x (gradient of the fitted phase)"}),
+        "ky_local": (("row", "col"), on_active(fit.k_local[:, 1]),
+                     {"units": "rad/pixel", "long_name": "local wavevector along y (gradient of the fitted phase)"}),
+        "fiber_position": (fxyz, fit.tips, {"units": "m", "long_name": "refined fiber-tip position, detector frame"}),
+        "fiber_position_error": (fxyz, fit.tip_errors,
+                                 {"units": "m", "long_name": "1-sigma error of the refined fiber-tip position"}),
+        "fiber_position_nominal": (fxyz, fit.nominal,
+                                   {"units": "m", "long_name": "nominal fiber-tip position (the manifest's)"}),
+        "unobservable_offset": (("mode", "row", "col"), modes,
+                                {"units": "1", "long_name": "offset modes along the local wavevector, beyond the "
+                                                            "affine part, absorbed by the tips (unit rms)"}),
+        "tip_information": (("tip_mode",), fit.information,
+                            {"units": "1", "long_name": "information ratio, data over prior, of each tip mode"}),
+        "plane_wave_departure": (("row", "col"), on_active(fit.plane_wave_departure),
+                                 {"units": "pixel", "long_name": "fitted phase surface minus its best plane, over "
+                                                                 "|K|: what a plane-wave fit puts into the offsets"}),
+        "surface_phase_rms": ((), fit.phase_rms,
+                              {"units": "rad", "long_name": "rms of the pixel phases about the fitted surface"}),
+    }
+
+
+def solution_dataset(solution: FringeSolution, detector, *, fibers=None) -> xr.Dataset:
     """The ``metrology/<baseline>.nc`` product of a solution: maps (row, col), NaN outside the fit.
 
     Contract variables: projected_offset (pixel), iota and alpha (1), kx and ky
@@ -626,7 +692,13 @@ def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:
     floor of the offsets, K(t), B(t), A(t), the mask and the convergence history;
     with a flat, the offsets under the PRNU-free gauge
     (projected_offset_prnu_free_gauge, pixel) and the rms of their difference
-    from projected_offset (gauge_difference_rms, pixel).
+    from projected_offset (gauge_difference_rms, pixel). The fitted pixel
+    phases (pixel_phase, rad). With spherical waves also each pixel's local
+    wavevector (kx_local, ky_local, rad/pixel), the refined and nominal fiber
+    tips and the refined ones' errors (fiber_position, fiber_position_error,
+    fiber_position_nominal, m) and the unobservable offset modes along the
+    local wavevector (unobservable_offset, 1, orthonormal: unit rms over the
+    fitted pixels).
     """
     def as_map(values, fill=np.nan):
         out = np.full(detector.shape, fill, dtype=np.result_type(values, type(fill)))
@@ -674,7 +746,13 @@ def solution_dataset(solution: FringeSolution, detector) -> xr.Dataset:
             }),
             **{f"n_masked_{reason}": ((), count, {"units": "1", "long_name": f"pixels masked: {reason.replace('_', ' ')}"})
                for reason, count in solution.masked_by_reason.items()},
+            "pixel_phase": (rc, as_map(solution.pixel_phase),
+                            {"units": "rad", "long_name": "fitted pixel phase theta (wrapped; constant of the gauge)"}),
+            **({} if solution.two_source is None else _two_source_variables(solution, as_map)),
         },
         coords={"row": np.arange(detector.shape[0]), "col": np.arange(detector.shape[1]),
-                "frame": np.arange(solution.phase.size), "iteration": [h["pass"] for h in history]},
+                "frame": np.arange(solution.phase.size), "iteration": [h["pass"] for h in history],
+                **({} if solution.two_source is None else {
+                    "fiber": list(fibers or ("a", "b")), "xyz": ["x", "y", "z"],
+                    "mode": np.arange(len(solution.two_source.modes)), "tip_mode": np.arange(6)})},
     )

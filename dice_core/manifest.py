@@ -162,17 +162,6 @@ class Manifest:
     positions: tuple[StarPosition, ...] = ()
     geometry: BenchGeometry | None = None
 
-    def require_plane_waves(self):
-        """Raise :class:`DatasetError` if the metrology fringes are spherical waves (``metrology.geometry``).
-
-        The reduction models plane waves only; the dataset format asks a reader
-        without the spherical-wave reduction to refuse such fringes rather than
-        reduce them as plane waves (an error of up to 1e-3 pixel in the offsets).
-        """
-        if self.geometry is not None:
-            _fail(self.path, "spherical-wave fringes (metrology.geometry) cannot be reduced by this version, "
-                             "and are not reduced as plane waves")
-
     @property
     def reference_flat(self) -> str | None:
         """Name of the reference flat (the first one listed), or None without flats."""

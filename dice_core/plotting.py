@@ -88,8 +88,13 @@ def metrology_figure(ds, detector, *, title):
 
     Panels: projected offsets (1e-3 pixel); per-frame wavevector minus its
     mean (rad/pixel); B(t) and A(t) (adu); convergence (offset change per pass).
+    With spherical waves, a third row: what a plane-wave fit would have put
+    into the offsets (1e-3 pixel), and each tip coordinate's refinement from
+    its nominal value with its 1-sigma error (mm).
     """
-    fig, axes = plt.subplots(2, 2, figsize=(11, 8.5), constrained_layout=True)
+    spherical = "fiber_position" in ds
+    fig, axes = plt.subplots(3 if spherical else 2, 2, figsize=(11, 12.5 if spherical else 8.5),
+                             constrained_layout=True)
     offsets = ds["projected_offset"].values
     _show_map(axes[0, 0], fig, offsets, detector, scale=1e3, symmetric=True, units="offset [1e-3 pixel]",
               title=f"projected offsets: rms {np.nanstd(offsets):.2e} pixel, photon floor "
@@ -121,6 +126,20 @@ def metrology_figure(ds, detector, *, title):
     ax.set_ylabel("offset change from previous pass [pixel]")
     ax.set_title(f"convergence: {iteration.max()} passes", fontsize=9)
     ax.legend(fontsize=8)
+    if spherical:
+        departure = ds["plane_wave_departure"].values
+        _show_map(axes[2, 0], fig, departure, detector, scale=1e3, symmetric=True, units="offset [1e-3 pixel]",
+                  title=f"spherical minus plane wave: rms {np.nanstd(departure):.2e} pixel "
+                        f"({ds.sizes['mode']} mode(s) declared unobservable)")
+        ax = axes[2, 1]
+        shift = (ds["fiber_position"] - ds["fiber_position_nominal"]).values * 1e3
+        error = ds["fiber_position_error"].values * 1e3
+        labels = [f"{fiber} {axis}" for fiber in ds["fiber"].values for axis in ds["xyz"].values]
+        ax.errorbar(np.arange(shift.size), shift.ravel(), yerr=error.ravel(), fmt="o", capsize=3)
+        ax.axhline(0, color="0.5", lw=0.8)
+        ax.set_xticks(np.arange(shift.size), labels, rotation=45, fontsize=8)
+        ax.set_ylabel("refined - nominal [mm]")
+        ax.set_title("fiber tips refined from the phases (1-sigma errors)", fontsize=9)
     fig.suptitle(title, fontsize=11)
     return fig
 

@@ -43,6 +43,7 @@ import yaml
 from scipy.ndimage import gaussian_filter
 
 from dice_core.detector import PixelResponse
+from dice_core.geometry import two_source_phase
 from dice_core.io import write_cube, write_product
 from dice_core.polynomials import polynomial_design
 from dice_core.manifest import FORMAT
@@ -566,23 +567,6 @@ def fiber_tips(cfg: SimulationConfig) -> tuple[dict, dict]:
             error *= rng.uniform(*m.tip_error) / np.linalg.norm(error)
             true[name + suffix], nominal[name + suffix] = tip, tip + error
     return true, nominal
-
-
-def two_source_phase(x, y, tip_a, tip_b, *, wavelength, pixel_pitch):
-    """Phase (rad) and its gradient (rad/pixel) of the fringes of two point sources at pixel coordinates x, y.
-
-    Phi = (2 pi / wavelength) (|r - a| - |r - b|) with r = (x, y, 0) pixel_pitch
-    (the dataset format's definition); the gradient is taken along x and y in
-    pixel units. For tips far from the detector, grad Phi is about
-    2 pi (b - a)_xy / (wavelength distance) pixel_pitch.
-    """
-    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
-    r = np.stack([x * pixel_pitch, y * pixel_pitch, np.zeros(x.shape)], axis=-1)
-    to_a, to_b = r - np.asarray(tip_a), r - np.asarray(tip_b)
-    da, db = np.linalg.norm(to_a, axis=-1), np.linalg.norm(to_b, axis=-1)
-    wavenumber = 2 * np.pi / wavelength
-    gradient = wavenumber * pixel_pitch * (to_a[..., :2] / da[..., None] - to_b[..., :2] / db[..., None])
-    return wavenumber * (da - db), gradient[..., 0], gradient[..., 1]
 
 
 def make_truth(cfg: SimulationConfig) -> xr.Dataset:

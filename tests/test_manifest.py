@@ -111,9 +111,6 @@ def test_the_bench_geometry_of_format_1_1_is_read(layout, tmp_path):
     assert geometry.wavelength == 633.0e-9 and geometry.pixel_pitch == 24.0e-6
     assert geometry.fibers["F1"] == (0.0153, 0.0201, 0.6) and geometry.baseline_fibers["H1H4"] == ("F1", "F4")
     assert parse_manifest(layout, tmp_path / "dataset.yaml").geometry is None
-    parse_manifest(layout, tmp_path / "dataset.yaml").require_plane_waves()
-    with pytest.raises(DatasetError, match="spherical-wave fringes .* not reduced as plane waves"):
-        parse_manifest(document, tmp_path / "dataset.yaml").require_plane_waves()
 
 
 @pytest.mark.parametrize("edit, expected", [

@@ -140,11 +140,6 @@ def metrology_unavailable():
         return f"{MANIFEST.path} has no metrology section"
     if MANIFEST.dark is None:
         return f"{MANIFEST.path} has no dark to subtract"
-    if MANIFEST.geometry is not None:
-        # the format's rule: a reader without the spherical-wave reduction refuses such fringes
-        # rather than reduce them as plane waves (a smooth error of up to 1e-3 pixel in the offsets)
-        return (f"{MANIFEST.path} describes spherical-wave fringes (metrology.geometry), which this "
-                "version cannot reduce yet; it does not reduce them as plane waves")
     return None
 
 

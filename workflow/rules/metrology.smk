@@ -13,7 +13,7 @@ rule fit_fringes:
     output:
         metrology=f"{OUT}/metrology/{{baseline}}.nc",
     params:
-        code=code_version("io", "manifest", "fringes", "parallel", "polynomials"),
+        code=code_version("io", "manifest", "fringes", "geometry", "parallel", "polynomials"),
     log:
         f"{OUT}/logs/fit_fringes_{{baseline}}.log",
     benchmark:
@@ -32,7 +32,7 @@ rule deproject_offsets:
         offsets=f"{OUT}/calibration/offsets_{{pair}}.nc",
     params:
         baselines=pair_baselines,
-        code=code_version("io", "deprojection"),
+        code=code_version("io", "deprojection", "geometry"),
     log:
         f"{OUT}/logs/deproject_offsets_{{pair}}.log",
     conda:
@@ -68,7 +68,7 @@ rule allan_deviation:
     output:
         allan=f"{OUT}/allan/{{baseline}}.nc",
     params:
-        code=code_version("io", "manifest", "allan", "fringes", "parallel", "polynomials"),
+        code=code_version("io", "manifest", "allan", "fringes", "geometry", "parallel", "polynomials"),
     log:
         f"{OUT}/logs/allan_deviation_{{baseline}}.log",
     benchmark:

@@ -10,7 +10,6 @@ from dice_core.manifest import load_manifest
 def allan_deviation(manifest_path, metrology_path, dark_path, baseline, output, config, workers):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
-    manifest.require_plane_waves()
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
                             purpose="Allan deviations", dtype="float32")
     product = allan.allan_of_baseline(stream, io.read_product(metrology_path), io.read_product(dark_path),

@@ -11,8 +11,10 @@ from dice_core import deprojection, io
 
 def compare_pairs(reference_path, other_path, reference, pair, output, config):
     ref, other = io.read_product(reference_path), io.read_product(other_path)
+    modes = [(p["unobservable_dx"].values, p["unobservable_dy"].values) for p in (ref, other)
+             if "unobservable_dx" in p]  # spherical waves: the difference orthogonal to both pairs' modes
     ddx, ddy, sdx, sdy = deprojection.pair_difference(ref["dx"].values, ref["dy"].values,
-                                                      other["dx"].values, other["dy"].values)
+                                                      other["dx"].values, other["dy"].values, modes=modes)
     floor_dx = np.hypot(ref["dx_photon_noise_floor"].values, other["dx_photon_noise_floor"].values)
     floor_dy = np.hypot(ref["dy_photon_noise_floor"].values, other["dy_photon_noise_floor"].values)
     rc = ("row", "col")

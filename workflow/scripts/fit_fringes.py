@@ -4,25 +4,31 @@ import logging
 
 import dice_core
 from dice_core import fringes, io
+from dice_core.geometry import BaselineGeometry
 from dice_core.manifest import load_manifest
 
 
 def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config, workers):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
-    manifest.require_plane_waves()  # the workflow skips such datasets; never fit them as plane waves
     dark = io.read_product(dark_path)
     flat = io.read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
                             min_frames=16, purpose="a fringe solution", dtype="float32")
-    log.info("baseline %s: %d frames in %d file(s); flat %s", baseline, stream.n_frames, len(stream.cubes),
-             "used for the gauge" if flat is not None else "not used")
     options = config["metrology"]
+    geometry = None if manifest.geometry is None else BaselineGeometry.of_baseline(
+        manifest.geometry, baseline, tip_sigma=options["tip_sigma"])
+    log.info("baseline %s: %d frames in %d file(s); flat %s; %s", baseline, stream.n_frames, len(stream.cubes),
+             "used for the gauge" if flat is not None else "not used",
+             "plane waves" if geometry is None else
+             f"spherical waves of fibers {' and '.join(geometry.fibers)}, nominal tips known to "
+             f"{geometry.tip_sigma * 1e3:g} mm")
     solution = fringes.fit_baseline(stream, dark["dark"].values, manifest.detector, flat=flat,
                                     read_noise=dark["noise"].values, tolerance=options["tolerance"],
                                     max_passes=options["max_passes"], smooth_degree=options["smooth_degree"],
-                                    workers=workers, label=f"baseline {baseline}")
-    product = fringes.solution_dataset(solution, manifest.detector)
+                                    workers=workers, geometry=geometry, label=f"baseline {baseline}")
+    product = fringes.solution_dataset(solution, manifest.detector,
+                                       fibers=None if geometry is None else geometry.fibers)
     log.info("baseline %s: K = (%.6f, %.6f) rad/pixel, offsets rms %.3e pixel, photon floor %.3e pixel, "
              "%d pixel(s) masked", baseline, *solution.k, float(product["projected_offset"].std()),
              float(product["photon_noise_floor_rms"]), int(product["n_masked"]))

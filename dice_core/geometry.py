@@ -1,0 +1,340 @@
+"""Spherical-wave fringes of two fiber tips: the phase surface, its refinement, and what it absorbs.
+
+On a real DICE bench each baseline's fringes come from two fiber tips, point
+sources at s1 and s2 about 600 mm from the detector. Their phase at detector
+point r (dataset format, "Coordinates")::
+
+    Phi(r) = (2 pi / wavelength) (|r - s1| - |r - s2|),   r = (x, y, 0) pixel_pitch,
+
+a hyperboloid, not a plane: fitted with a plane over an 80x84 detector it
+leaves up to 1e-3 pixel of smooth pattern in the offsets once the baseline's
+midpoint is 10-20 mm off the detector normal. :func:`fit_two_source`
+measures each pixel's offset against this surface instead, along the pixel's
+local wavevector grad Phi, after refining the tips from the pixel phases.
+
+Refinement and what it absorbs (docs/metrology.md, "Spherical waves"). The
+pixel phases are theta_p = sign Phi(r_p + delta_p) + c + a.r_p: the sign
+and constant c are the fringe solution's gauge, the plane a.r_p carries the
+affine part of the offsets, which metrology never sees (dataset format). The
+tips are refined by a maximum a posteriori fit: the nominal tips, known to
+``tip_sigma`` (about 1 mm on a bench), are the prior, and the unknown pixel
+offsets, rms s_delta, are the noise the tips are fitted against. Moving the
+tips changes the surface along six patterns, the columns of d Phi / d s; with
+the plane free, only their non-affine parts matter. Those the data pin better
+than the prior, those of information ratio
+
+    r_k = tip_sigma^2 lambda_k / (s_delta |K|)^2 > MODE_INFORMATION_THRESHOLD,
+
+lambda_k the eigenvalues of J'J (J the non-affine parts of d Phi / d s), are
+absorbed by the fit: the offsets' components along them go into the tips.
+They are the unobservable modes the offsets product declares, and the offsets
+are reported orthogonal to them. The other modes stay at the prior; what they
+can leave in the offsets is at most sqrt(r_k) s_delta / sqrt(pixels), about
+a tenth of that per mode at the threshold, 0.01.
+
+Units: m for positions, pixel for x, y and offsets, rad for phases,
+rad/pixel for wavevectors.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "MODE_INFORMATION_THRESHOLD",
+    "MAX_TIP_SHIFT_SIGMA",
+    "GeometryError",
+    "BaselineGeometry",
+    "TwoSourceFit",
+    "two_source_phase",
+    "tip_jacobian",
+    "fit_two_source",
+    "orthonormal_modes",
+    "remove_modes",
+]
+
+log = logging.getLogger(__name__)
+
+#: Largest move of a refined tip coordinate from its nominal value accepted, in units of tip_sigma.
+MAX_TIP_SHIFT_SIGMA = 5.0
+
+#: Information ratio (data over prior) above which a tip mode counts as refined from the data,
+#: and its offset pattern as unobservable (module docstring).
+MODE_INFORMATION_THRESHOLD = 0.01
+
+
+class GeometryError(ValueError):
+    """Pixel phases that the two-source surface of the given tips does not fit."""
+
+
+@dataclass(frozen=True)
+class BaselineGeometry:
+    """One baseline's bench: its two fibers (phase order) and their nominal tips, m, detector frame.
+
+    ``tip_sigma`` is the 1-sigma error of each nominal coordinate, m (the
+    prior of the refinement); ``wavelength`` and ``pixel_pitch`` are in m.
+    """
+
+    fibers: tuple[str, str]
+    nominal: tuple[tuple[float, float, float], tuple[float, float, float]]
+    wavelength: float
+    pixel_pitch: float
+    tip_sigma: float = 1e-3
+
+    @classmethod
+    def of_baseline(cls, bench, baseline: str, *, tip_sigma: float = 1e-3) -> "BaselineGeometry":
+        """From a manifest's :class:`dice_core.manifest.BenchGeometry`."""
+        fibers = tuple(bench.baseline_fibers[baseline])
+        return cls(fibers, tuple(tuple(bench.fibers[f]) for f in fibers), bench.wavelength, bench.pixel_pitch,
+                   tip_sigma)
+
+
+def two_source_phase(x, y, tip_a, tip_b, *, wavelength, pixel_pitch):
+    """Phase (rad) and its gradient (rad/pixel) of the fringes of two point sources at pixel coordinates x, y.
+
+    Phi = (2 pi / wavelength) (|r - a| - |r - b|) with r = (x, y, 0) pixel_pitch
+    (the dataset format's definition); the gradient is taken along x and y in
+    pixel units. For tips far from the detector, grad Phi is about
+    2 pi (b - a)_xy pixel_pitch / (wavelength distance).
+
+    Returns
+    -------
+    phase, gx, gy : ndarray (shape of x and y)
+    """
+    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+    r = np.stack([x * pixel_pitch, y * pixel_pitch, np.zeros(x.shape)], axis=-1)
+    to_a, to_b = r - np.asarray(tip_a, float), r - np.asarray(tip_b, float)
+    da, db = np.linalg.norm(to_a, axis=-1), np.linalg.norm(to_b, axis=-1)
+    wavenumber = 2 * np.pi / wavelength
+    gradient = wavenumber * pixel_pitch * (to_a[..., :2] / da[..., None] - to_b[..., :2] / db[..., None])
+    return wavenumber * (da - db), gradient[..., 0], gradient[..., 1]
+
+
+def tip_jacobian(x, y, tip_a, tip_b, *, wavelength, pixel_pitch) -> np.ndarray:
+    """d Phi / d (tip_a, tip_b) at pixel coordinates x, y (1-D): (pixel, 6), rad/m.
+
+    Columns: a_x, a_y, a_z, b_x, b_y, b_z. d|r - a| / da = -(r - a) / |r - a|.
+    """
+    r = np.stack([np.asarray(x, float) * pixel_pitch, np.asarray(y, float) * pixel_pitch,
+                  np.zeros(np.size(x))], axis=-1)
+    to_a, to_b = r - np.asarray(tip_a, float), r - np.asarray(tip_b, float)
+    wavenumber = 2 * np.pi / wavelength
+    unit_a = to_a / np.linalg.norm(to_a, axis=-1, keepdims=True)
+    unit_b = to_b / np.linalg.norm(to_b, axis=-1, keepdims=True)
+    return wavenumber * np.column_stack([-unit_a, unit_b])
+
+
+def _wrap(phase):
+    return np.angle(np.exp(1j * phase))
+
+
+def orthonormal_modes(fields, *, against=None):
+    """Orthonormal basis of the span of ``fields`` (mode, sample), orthogonal to ``against`` (mode, sample).
+
+    The inner product is the mean over samples, so every returned mode has
+    unit rms. Directions of ``fields`` inside the span of ``against`` (below
+    1e-9 of their rms) are dropped.
+    """
+    fields = np.asarray(fields, float).reshape(-1, np.shape(fields)[-1])
+    n = fields.shape[1]
+    if fields.shape[0] == 0:
+        return np.empty((0, n))
+    scale = np.max(np.linalg.norm(fields, axis=1))
+    if against is not None and len(against):
+        q, _ = np.linalg.qr(np.asarray(against, float).T)
+        fields = fields - (fields @ q) @ q.T
+    u, s, _ = np.linalg.svd(fields.T, full_matrices=False)
+    return u[:, s > 1e-9 * scale].T * np.sqrt(n)
+
+
+def remove_modes(values, modes):
+    """``values`` (sample,) minus their least-squares projection on ``modes`` (mode, sample)."""
+    if len(modes) == 0:
+        return np.asarray(values, float).copy()
+    q, _ = np.linalg.qr(np.asarray(modes, float).T)
+    return values - q @ (q.T @ values)
+
+
+@dataclass
+class TwoSourceFit:
+    """Result of :func:`fit_two_source`; pixel arrays run over the pixels given to it.
+
+    Attributes
+    ----------
+    tips : ndarray (2, 3)
+        Refined tip positions, m, in phase order.
+    tip_errors : ndarray (2, 3)
+        Their 1-sigma errors, m (the prior and the data combined; the pixel
+        offsets count as the noise they are fitted against).
+    nominal : ndarray (2, 3)
+        The starting tips, m.
+    sign : int
+        +1 if the pixel phases increase with Phi, -1 if with -Phi.
+    k_local : ndarray (pixel, 2)
+        Each pixel's wavevector, the gradient of the fitted phase surface
+        (plane included), rad/pixel; points the way the pixel phases increase.
+    offsets : ndarray (pixel,)
+        Offsets projected on each pixel's local wavevector, pixel, with zero
+        mean and gradient and orthogonal to ``modes``.
+    modes : ndarray (mode, pixel)
+        Unobservable offset modes beyond the affine part, orthonormal (unit rms
+        over the pixels) and orthogonal to the affine part.
+    information : ndarray (6,)
+        Information ratio (data over prior) of each tip mode, descending.
+    phase_rms : float
+        Rms of the pixel phases about the fitted surface, rad (the offsets
+        times |K|).
+    iterations : int
+    plane_wave_departure : ndarray (pixel,)
+        The fitted surface minus its best plane, over |K|, pixel: what a
+        plane-wave reduction would have put into the offsets.
+    """
+
+    tips: np.ndarray
+    tip_errors: np.ndarray
+    nominal: np.ndarray
+    sign: int
+    k_local: np.ndarray
+    offsets: np.ndarray
+    modes: np.ndarray
+    information: np.ndarray
+    phase_rms: float
+    iterations: int
+    plane_wave_departure: np.ndarray = None
+    _surface: np.ndarray = None  # sign Phi + c + a.r at the pixels, rad
+    _affine: np.ndarray = None  # (pixel, 3): 1, x, y
+
+    def offsets_of(self, theta) -> np.ndarray:
+        """Offsets (pixel) of other pixel phases (rad, same pixels) against this fit's surface and modes.
+
+        The phase constant and plane are fitted again (another gauge may rotate
+        the phases); the tips and modes are this fit's.
+        """
+        k_norm = np.hypot(*self.k_local.T)
+        psi = _wrap(np.asarray(theta, float) - self._surface)
+        psi = _wrap(psi - np.angle(np.mean(np.exp(1j * psi))))
+        offsets = remove_modes(psi / k_norm, self._affine.T)
+        return remove_modes(offsets, self.modes)
+
+
+def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch, k_plane,
+                   tip_sigma: float = 1e-3, max_iterations: int = 30, label: str = "baseline") -> TwoSourceFit:
+    """Refine a baseline's two fiber tips from its pixel phases and measure the offsets against their surface.
+
+    Parameters
+    ----------
+    theta : ndarray (pixel,)
+        Pixel phases of the fringe solution, rad (any constant, wrapped).
+    x, y : ndarray (pixel,)
+        Nominal pixel centres, pixel.
+    nominal_a, nominal_b : (float, float, float)
+        Nominal tip positions, m, detector frame (dataset format), phase order.
+    wavelength, pixel_pitch : float
+        m.
+    k_plane : (float, float)
+        The plane-wave wavevector of the same phases, rad/pixel (its sign the
+        way ``theta`` increases): the start of the unwrapping.
+    tip_sigma : float
+        1-sigma error of each nominal tip coordinate, m: the prior.
+    max_iterations : int
+        Of the Gauss-Newton refinement.
+    label : str
+        Names the baseline in logs and errors.
+
+    Returns
+    -------
+    TwoSourceFit
+
+    Raises
+    ------
+    GeometryError
+        Pixel phases that no refinement of the tips fits (their rms about the
+        surface above 0.5 rad), or that move a tip coordinate by more than
+        ``MAX_TIP_SHIFT_SIGMA`` x ``tip_sigma`` from its nominal value: the
+        nominal tips, the wavelength or the pitch are not the bench's.
+    """
+    theta, x, y = (np.asarray(v, float) for v in (theta, x, y))
+    nominal = np.array([nominal_a, nominal_b], float)
+    n = theta.size
+    affine = np.column_stack([np.ones(n), x, y])
+    q_affine, _ = np.linalg.qr(affine)
+
+    def surface(tips):
+        phase, gx, gy = two_source_phase(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
+        return phase, np.column_stack([gx, gy])
+
+    phase0, grad0 = surface(nominal)
+    sign = 1 if float(np.mean(grad0, axis=0) @ np.asarray(k_plane, float)) > 0 else -1
+    # Unwrap against the plane-wave solution: a tip 1 mm off changes the period by up to 15 %,
+    # tens of radians across the detector, which the plane absorbs.
+    plane = np.asarray(k_plane, float) - sign * grad0.mean(axis=0)
+    constant = 0.0
+    for _ in range(4):
+        psi = _wrap(theta - sign * phase0 - plane @ affine[:, 1:].T - constant)
+        coef, *_ = np.linalg.lstsq(affine, psi, rcond=None)
+        constant, plane = constant + coef[0], plane + coef[1:]
+
+    tips = nominal.copy()
+    scale = 1e-3  # tip coordinates solved in mm, for conditioning
+    prior = (scale / tip_sigma) ** 2
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):
+        phase, grad = surface(tips)
+        # continuous residual: the wrap is taken about the current surface, a fraction of a radian away
+        psi = _wrap(theta - sign * phase - constant - affine[:, 1:] @ plane)
+        jac = sign * tip_jacobian(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch) * scale
+        jac_free = jac - q_affine @ (q_affine.T @ jac)  # the plane takes the affine part
+        psi_free = psi - q_affine @ (q_affine.T @ psi)
+        noise2 = max(np.mean(psi_free**2), 1e-300)  # the pixel offsets are the noise, rad^2
+        normal = jac_free.T @ jac_free / noise2 + prior * np.eye(6)
+        rhs = jac_free.T @ psi_free / noise2 - prior * (tips - nominal).ravel() / scale
+        step = np.linalg.solve(normal, rhs)
+        tips = tips + step.reshape(2, 3) * scale
+        coef, *_ = np.linalg.lstsq(affine, psi - jac @ step, rcond=None)
+        constant, plane = constant + coef[0], plane + coef[1:]
+        # 10 nm: the largest non-affine response, 2.5e-3 pixel per mm of tip (docs), makes that 2.5e-8 pixel
+        if np.max(np.abs(step)) * scale < 1e-8:
+            break
+    else:
+        log.warning("%s: tip refinement not converged in %d iterations (last step %.2e m)", label,
+                    max_iterations, np.max(np.abs(step)) * scale)
+
+    phase, grad = surface(tips)
+    model = sign * phase + constant + affine[:, 1:] @ plane
+    psi = _wrap(theta - model)
+    psi_free = psi - q_affine @ (q_affine.T @ psi)
+    phase_rms = float(np.sqrt(np.mean(psi_free**2)))
+    if phase_rms > 0.5:
+        raise GeometryError(f"{label}: the pixel phases depart from the two-source surface of the refined tips "
+                            f"by {phase_rms:.2f} rad rms; are the fiber tips, wavelength and pixel pitch right?")
+    shift = tips - nominal
+    worst = np.unravel_index(np.argmax(np.abs(shift)), shift.shape)
+    if abs(shift[worst]) > MAX_TIP_SHIFT_SIGMA * tip_sigma:
+        raise GeometryError(f"{label}: the pixel phases move tip {'ab'[worst[0]]} by {shift[worst] * 1e3:+.3f} mm "
+                            f"along {'xyz'[worst[1]]} from its nominal position, more than {MAX_TIP_SHIFT_SIGMA:g} x "
+                            f"its {tip_sigma * 1e3:g} mm error; are the fiber tips, wavelength and pixel pitch right?")
+    k_local = sign * grad + plane
+    k_norm = np.hypot(*k_local.T)
+
+    jac = sign * tip_jacobian(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch) * scale
+    jac_free = jac - q_affine @ (q_affine.T @ jac)
+    noise2 = max(np.mean(psi_free**2), 1e-300)
+    data = jac_free.T @ jac_free / noise2
+    covariance = np.linalg.inv(data + prior * np.eye(6)) * scale**2
+    values, vectors = np.linalg.eigh(data / prior)
+    order = np.argsort(values)[::-1]
+    values, vectors = values[order], vectors[:, order]
+    absorbed = values > MODE_INFORMATION_THRESHOLD
+    affine_offsets = affine.T  # the affine part of the offsets: 1, x, y along each local wavevector
+    modes = orthonormal_modes((jac_free @ vectors[:, absorbed]).T / k_norm, against=affine_offsets)
+    offsets = remove_modes(remove_modes(psi / k_norm, affine_offsets), modes)
+    log.info("%s: tips refined in %d iteration(s), moved by %s mm; phases about the surface %.3e rad rms; "
+             "%d offset mode(s) beyond the affine part absorbed (information ratios %s)", label, iterations,
+             np.array2string(shift * 1e3, precision=3), phase_rms, len(modes),
+             np.array2string(values, precision=2))
+    departure = remove_modes(model, affine.T) / k_norm
+    return TwoSourceFit(tips, np.sqrt(np.diag(covariance)).reshape(2, 3), nominal, sign, k_local, offsets, modes,
+                        values, phase_rms, iterations, departure, model, affine)
