@@ -188,6 +188,11 @@ def area_rms(image: np.ndarray, detector: Detector) -> float:
     return float(np.nanstd(values))
 
 
+#: A pixel of a flat whose mean level is below this fraction of the science area's median does not
+#: respond: it is left out of the illumination fit and the normalisation (and flagged dead later).
+DEAD_BELOW = 0.5
+
+
 def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, detector: Detector, *,
              gradient_degree: int = 1, n_frames: int | None = None, label: str = "flat") -> xr.Dataset:
     """PRNU map of a flat-field acquisition, with its photon-noise limit.
@@ -219,7 +224,11 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, 
         mean level, adu. ``illumination`` (row, col): the removed surface,
         relative. ``frame_level`` (frame): mean science-area level of each
         dark-subtracted frame, adu. Scalars ``n_frames``, ``prnu_rms``,
-        ``photon_noise_limit_rms``, ``saturated_samples``.
+        ``photon_noise_limit_rms``, ``saturated_samples``, ``n_not_responding``.
+        Pixels that do not respond (mean level below :data:`DEAD_BELOW` of the
+        median: dead pixels and columns) keep their measured PRNU but are left
+        out of the illumination fit, the normalisation and ``prnu_rms``, with
+        a warning naming the first of them.
 
     Notes
     -----
@@ -265,10 +274,21 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, 
     if stats.masked.any():
         log.warning("%s: %d saturated samples masked in %d pixels", label,
                     stats.masked.sum(), np.count_nonzero(stats.masked))
-    # Step 4: divide out the smooth illumination; step 5: mean 1 over the science area.
-    fit_mask = science & (stats.count > 0)
-    flattened, surface = remove_gradient(np.where(fit_mask, mean, np.nan), fit_mask, degree=gradient_degree)
-    prnu = flattened / np.nanmean(flattened[sl])
+    # Step 4: divide out the smooth illumination; step 5: mean 1 over the science area. A dead pixel
+    # or column would pull both (a dead column of 78 pixels shifts the mean by 1.4e-2 on 80x84).
+    with np.errstate(invalid="ignore"):
+        responding = mean > DEAD_BELOW * np.nanmedian(np.where(science & (stats.count > 0), mean, np.nan))
+    not_responding = science & ~responding
+    if not_responding.any():
+        rows, cols = np.nonzero(not_responding)
+        shown = ", ".join(f"(row {r}, col {c})" for r, c in list(zip(rows, cols))[:5])
+        log.warning("%s: %d pixel(s) respond to less than %.0f%% of the median level, left out of the "
+                    "illumination fit and the normalisation: %s%s", label, rows.size, 100 * DEAD_BELOW, shown,
+                    ", ..." if rows.size > 5 else "")
+    fit_mask = science & (stats.count > 0) & responding
+    flattened, surface = remove_gradient(np.where(science & (stats.count > 0), mean, np.nan), fit_mask,
+                                         degree=gradient_degree)
+    prnu = flattened / np.nanmean(np.where(fit_mask, flattened, np.nan)[sl])
 
     with np.errstate(invalid="ignore", divide="ignore"):
         signal = raw_sum / stats.count  # mean before normalisation: the photon count
@@ -292,9 +312,14 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, 
             "frame_level": (("frame",), frame_level,
                             {"units": "adu", "long_name": "mean science-area level of each dark-subtracted frame"}),
             "n_frames": ((), int(frame_level.size), {"units": "1", "long_name": "frames in the flat acquisition"}),
-            "prnu_rms": ((), area_rms(prnu, detector), {"units": "1", "long_name": "PRNU rms over the science area"}),
-            "photon_noise_limit_rms": ((), float(np.sqrt(np.nanmean(limit[sl] ** 2))),
-                                       {"units": "1", "long_name": "rms photon-noise limit over the science area"}),
+            "prnu_rms": ((), area_rms(np.where(responding, prnu, np.nan), detector),
+                         {"units": "1", "long_name": "PRNU rms over the responding pixels of the science area"}),
+            "n_not_responding": ((), int(not_responding.sum()),
+                                 {"units": "1", "long_name": f"science pixels below {DEAD_BELOW:g} of the median "
+                                                             "level, left out of the normalisation"}),
+            "photon_noise_limit_rms": ((), float(np.sqrt(np.nanmean(np.where(responding, limit, np.nan)[sl] ** 2))),
+                                       {"units": "1", "long_name": "rms photon-noise limit over the responding "
+                                                                   "pixels of the science area"}),
             "saturated_samples": ((), int(stats.masked.sum()), {"units": "1", "long_name": "saturated samples left out"}),
         },
         coords={**_coords(detector), "frame": np.arange(frame_level.size)},
@@ -337,6 +362,16 @@ def prnu_difference(reference: xr.Dataset, other: xr.Dataset, detector: Detector
 
 #: Bits of the bad-pixel mask: what each flag means (a pixel may carry several).
 BAD_PIXEL_FLAGS = {"dead": 1, "hot": 2, "dust": 4, "column": 8}
+
+#: The flags that make a pixel unusable, which the metrology and the star windows leave out. A dust
+#: pixel only loses a few percent of its light, which the flat measures and corrects: it is flagged,
+#: for the record, and used.
+UNUSABLE = BAD_PIXEL_FLAGS["dead"] | BAD_PIXEL_FLAGS["hot"] | BAD_PIXEL_FLAGS["column"]
+
+
+def unusable_pixels(flags) -> np.ndarray:
+    """Bool map of the pixels a mask's flags (``bad_pixel``, row x col) make unusable (:data:`UNUSABLE`)."""
+    return (np.asarray(flags).astype(np.int64) & UNUSABLE) != 0
 
 
 def _local_median(image, size=5):

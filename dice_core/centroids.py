@@ -143,7 +143,7 @@ def gaussian_fit(image: np.ndarray, window: Window, *, weights=None) -> Gaussian
     # start: background from the border, position and shape from the second moments
     border = np.concatenate([image[0], image[-1], image[1:-1, 0], image[1:-1, -1]])
     b0 = float(np.median(border))
-    signal = np.clip(data - b0, 0, None)
+    signal = np.clip(data - b0, 0, None) * (w > 0)  # pixels of weight 0 (left out) do not start it either
     total = signal.sum()
     if not total > 0:
         raise ValueError("no signal above the background in the window")
@@ -358,6 +358,7 @@ class PositionCentroids:
     n_frames: np.ndarray
     n_saturated: np.ndarray
     windows: np.ndarray  # (star, size, size): the corrected mean windows of the first position, adu
+    n_bad_pixels: np.ndarray = None  # (position, star): bad pixels of the mask in the star's window
 
 
 def _noise_weights(window_image, n_frames, gain, read_noise):
@@ -365,8 +366,20 @@ def _noise_weights(window_image, n_frames, gain, read_noise):
     return 1.0 / np.sqrt((np.clip(window_image, 0, None) / gain + read_noise**2) / n_frames)
 
 
+def _pixel_list(window, bad, flags):
+    """'row r, col c (dead, column)' for the bad pixels of a window, for messages."""
+    from dice_core.calibration import BAD_PIXEL_FLAGS
+
+    rows, cols = np.nonzero(bad)
+    items = []
+    for r, c in zip(rows, cols):
+        kinds = [kind for kind, bit in BAD_PIXEL_FLAGS.items() if flags[r, c] & bit]
+        items.append(f"row {window.row0 + r}, col {window.col0 + c} ({', '.join(kinds) or 'flagged'})")
+    return "; ".join(items[:4]) + ("; ..." if len(items) > 4 else "")
+
+
 def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, prnu=None, dx=None, dy=None,
-                      method: str = "fourier", half_size: int = 7, label: str = "stars",
+                      bad_pixels=None, method: str = "fourier", half_size: int = 7, label: str = "stars",
                       log=None) -> PositionCentroids:
     """Centroids of the stars at every detector position, with their precision and photon-noise limit.
 
@@ -390,6 +403,14 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
         Flat-field correction (windows divided by it).
     dx, dy : ndarray (row, col), optional
         Pixel offsets for the offset correction (:func:`offset_corrected`).
+    bad_pixels : int ndarray (row, col), optional
+        The bad-pixel mask's flags (0 good; ``calibration/bad_pixels.nc``). A
+        Gaussian fit without the offset correction leaves a window's bad pixels
+        out (weight 0). The Fourier method and the offset correction resample
+        the whole window, which one bad value spoils: a star with a bad pixel
+        in its window is then not measured at that position (NaN, logged with
+        the star and the pixels), and at the first position, whose windows are
+        the references, it is an error naming them.
     method : {"fourier", "gaussian"}
         Fourier resampling against each star's window at the first position,
         tied to the central star's Gaussian fit there (stars tied to one
@@ -425,6 +446,9 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
     n_pos, n_star = len(positions), len(approx)
     out = {name: np.full((n_pos, n_star), np.nan) for name in ("x", "y", "px", "py", "lx", "ly")}
     n_saturated = np.zeros((n_pos, n_star), dtype=np.int64)
+    n_bad = np.zeros((n_pos, n_star), dtype=np.int64)
+    flags = np.zeros(detector.shape, np.int64) if bad_pixels is None else np.asarray(bad_pixels).astype(np.int64)
+    leave_out = method == "gaussian" and dx is None  # else a bad value is resampled over the window
     n_frames = np.zeros(n_pos, dtype=np.int64)
     centres = [(float(r), float(c)) for r, c in approx]
     references, first_windows = None, None
@@ -446,7 +470,7 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
         n_frames[i] = n
         if references is None:
             width = max(max(f.width_x, f.width_y) for f in (
-                gaussian_fit(mean[w.slices] - dark[w.slices], w) for w in
+                gaussian_fit(mean[w.slices] - dark[w.slices], w, weights=(flags[w.slices] == 0).astype(float)) for w in
                 (star_window(r, c, half_size, detector.shape, label=f"star {s} at {where}")
                  for s, (r, c) in enumerate(centres))))
             isolated = isolated_half_size(centres, half_size, width)
@@ -462,8 +486,12 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
 
         def corrected(frame, window, star):
             image = frame[window.slices] - dark[window.slices]
+            bad = flags[window.slices] != 0
             if prnu is not None:
-                image = image / prnu[window.slices]
+                with np.errstate(divide="ignore", invalid="ignore"):  # a dead pixel's PRNU is about 0
+                    image = image / prnu[window.slices]
+            if bad.any():  # left out (weight 0) or the star refused: a placeholder, never used
+                image = np.where(bad, 0.0, image)
             if dx is not None:
                 image = offset_corrected(image, dx[window.slices], dy[window.slices])
             if not np.all(np.isfinite(image)):
@@ -473,7 +501,16 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
 
         images = [corrected(mean, w, s) for s, w in enumerate(windows)]
         batch_images = [[corrected(frame, w, s) for s, w in enumerate(windows)] for frame in batch_means]
-        noise = [_noise_weights(image, n, detector.gain, read_noise[w.slices]) for image, w in zip(images, windows)]
+        noise = [np.where(flags[w.slices] != 0, 0.0, _noise_weights(image, n, detector.gain, read_noise[w.slices]))
+                 for image, w in zip(images, windows)]
+        for s, w in enumerate(windows):
+            n_bad[i, s] = int(np.count_nonzero(flags[w.slices]))
+        if references is None and not leave_out and n_bad[i].any():
+            s = int(np.flatnonzero(n_bad[i])[0])
+            raise WindowError(f"star {s} at {where}: its window, a reference of every later position, holds bad "
+                              f"pixel(s) {_pixel_list(windows[s], flags[windows[s].slices] != 0, flags[windows[s].slices])}"
+                              f"; the {method} method{' with the offset correction' if dx is not None else ''} "
+                              "cannot leave pixels out (the gaussian method without metrology can)")
         if references is None:
             if method == "fourier" and any(saturated[w.slices].any() for w in windows):
                 s = next(s for s, w in enumerate(windows) if saturated[w.slices].any())
@@ -500,6 +537,14 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
 
         for s, window in enumerate(windows):
             n_saturated[i, s] = int(saturated[window.slices].sum())
+            if n_bad[i, s] and not leave_out:
+                if log is not None:
+                    log.warning("%s: star %d at %s has bad pixel(s) in its window, %s: not measured", label, s,
+                                where, _pixel_list(window, flags[window.slices] != 0, flags[window.slices]))
+                continue
+            if n_bad[i, s] and log is not None:
+                log.info("%s: star %d at %s: bad pixel(s) left out of its window, %s", label, s, where,
+                         _pixel_list(window, flags[window.slices] != 0, flags[window.slices]))
             if n_saturated[i, s]:
                 if log is not None:
                     log.warning("%s: star %d at %s has %d saturated sample(s) in its window: not measured",
@@ -517,7 +562,7 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
             log.info("%s: %s, %d frames: central star at x %.4f, y %.4f pixel", label, where, n,
                      out["x"][i, central], out["y"][i, central])
     return PositionCentroids(out["x"], out["y"], out["px"], out["py"], out["lx"], out["ly"], n_frames, n_saturated,
-                             first_windows)
+                             first_windows, n_bad)
 
 
 def centroids_dataset(result: PositionCentroids, positions, *, mode: str, method: str):
@@ -538,6 +583,10 @@ def centroids_dataset(result: PositionCentroids, positions, *, mode: str, method
             "n_frames": (("position",), result.n_frames, {"units": "1", "long_name": "frames averaged"}),
             "n_saturated": (dims, result.n_saturated, {"units": "1", "long_name": "saturated samples in the "
                                                        "star's window (the star is not measured)"}),
+            **({} if result.n_bad_pixels is None else {
+                "n_bad_pixels": (dims, result.n_bad_pixels,
+                                 {"units": "1", "long_name": "bad pixels of the mask in the star's window (left "
+                                                             "out by a Gaussian fit, else the star not measured)"})}),
             "window": (("star", "window_row", "window_col"), result.windows,
                        {"units": "adu", "long_name": "corrected mean window of each star at the first position"}),
         },

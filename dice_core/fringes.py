@@ -268,9 +268,9 @@ class FringeSolution:
     history : list of dict
         Per pass from the second: max and rms change of the offsets (pixel).
     masked : ndarray (pixel,) of bool
-        Pixels left without an offset (saturated samples, no contrast, not converged).
+        Pixels left without an offset (bad pixels, saturated samples, no contrast, not converged).
     masked_by_reason : dict
-        Number of masked pixels by reason: ``saturated``, ``no_contrast``, ``unconverged``.
+        Number of masked pixels by reason: ``bad_pixel``, ``saturated``, ``no_contrast``, ``unconverged``.
     offsets_prnu_free : ndarray (pixel,) or None
         With a flat: the offsets under the PRNU-free gauge instead (pixel), the
         diagnostic of a flat that is not the laser's response; their difference
@@ -421,7 +421,7 @@ def _phase_coverage(phase, bins=16):
 @one_blas_thread
 def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, tolerance=1e-7, max_passes=10,
                  min_contrast=0.02, min_relative_contrast=0.5, smooth_degree=6, workers=1,
-                 geometry: BaselineGeometry | None = None, label="baseline") -> FringeSolution:
+                 geometry: BaselineGeometry | None = None, bad_pixels=None, label="baseline") -> FringeSolution:
     """Global fringe solution of one metrology acquisition.
 
     Pass 1 fits every frame with perfect pixels (iota = alpha = 1, no
@@ -475,6 +475,10 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     geometry : BaselineGeometry, optional
         The baseline's fiber tips (nominal) and bench: spherical-wave fringes.
         Without it the fringes are plane waves.
+    bad_pixels : bool ndarray (row, col), optional
+        Pixels to leave out from the start (the bad-pixel mask: dead, hot, dust,
+        columns): they enter neither the frame fits nor the plane of K, and
+        have no offset.
     label : str
         Name in log messages and errors.
 
@@ -498,7 +502,8 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     centred = hasattr(stream, "centred")
     if centred:  # the reader subtracts it while converting, at no extra pass; _pass only folds it in
         stream = stream.centred(reference)
-    k0 = initial_wavevector(first.frames[0] - dark0, mask)
+    bad = np.zeros(detector.shape, bool) if bad_pixels is None else np.asarray(bad_pixels, bool) & mask
+    k0 = initial_wavevector(first.frames[0] - dark0, mask & ~bad)
     log.info("%s: wavevector from the FFT of frame 0: (%.5f, %.5f) rad/pixel", label, *k0)
     rows, cols = np.nonzero(mask)
     idx = rows * detector.shape[1] + cols
@@ -513,6 +518,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         # sin(theta + phi + dK.r) ~ sin(theta + phi) + (dK.r)(u1 alpha cos theta - u2 alpha sin theta).
         theta0 = k0[0] * xc + k0[1] * yc
         G = np.column_stack([np.ones(idx.size), np.sin(theta0), np.cos(theta0)])
+        G[bad.ravel()[idx]] = 0.0  # bad pixels out of the frame fits from the first pass on
         extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
         coef, FtI, FtF, third, saturated, lane_threads = _pass(lanes, dark0, idx, G, extra=extra,
                                                                reference=reference, centred=centred,
@@ -534,7 +540,11 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
 
         # Pixels leave the fit when found unusable, so that they bias neither the frame fits nor
         # the plane of K: first those with saturated samples, then those without fringe contrast.
-        active = ~saturated
+        flagged = bad.ravel()[idx]
+        saturated &= ~flagged
+        active = ~saturated & ~flagged
+        if flagged.any():
+            log.info("%s: %d bad pixel(s) of the mask left out of the fit", label, flagged.sum())
         if saturated.any():
             log.warning("%s: %d pixel(s) with saturated samples left out of the fit", label, saturated.sum())
         FtI = FtI[:, active]
@@ -641,7 +651,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
                 else:
                     offsets_prnu_free = full(free if k_free @ k > 0 else -free)
 
-        reasons = {"saturated": int(saturated.sum()), "no_contrast": int(faint.sum()),
+        reasons = {"bad_pixel": int(flagged.sum()), "saturated": int(saturated.sum()), "no_contrast": int(faint.sum()),
                    "unconverged": int(unconverged.sum())}
         return FringeSolution(rows, cols, offsets, full(iota / iota.mean()), full(alpha / alpha.mean()),
                               full(floor), k, k_frame, level, amplitude, phase, history, ~active, reasons,
@@ -718,7 +728,8 @@ def solution_dataset(solution: FringeSolution, detector, *, fibers=None) -> xr.D
                                    {"units": "pixel", "long_name": "1-sigma offset error from photon and read noise"}),
             "masked": (rc, as_map(solution.masked.astype(np.int8), np.int8(0)),
                        {"units": "1",
-                        "long_name": "1 where the pixel has no offset (saturated, no contrast or not converged)"}),
+                        "long_name": "1 where the pixel has no offset (bad pixel, saturated, no contrast or "
+                                     "not converged)"}),
             "kx": ((), float(solution.k[0]), {"units": "rad/pixel", "long_name": "mean wavevector along x"}),
             "ky": ((), float(solution.k[1]), {"units": "rad/pixel", "long_name": "mean wavevector along y"}),
             "phase": (("frame",), solution.phase, {"units": "rad", "long_name": "fringe phase phi(t)"}),

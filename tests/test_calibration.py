@@ -121,9 +121,10 @@ def test_prnu_of_a_dark_frame_is_refused(calibration_dataset, dark):
                  manifest.detector)
 
 
-def test_dead_hot_dust_and_column_defects_are_flagged_and_counted(tmp_path):
+def test_dead_hot_dust_and_column_defects_are_flagged_and_counted(tmp_path, caplog):
     """Simulated defects (3 dead pixels, 1 dead column, 4 hot pixels, the 6 dust pixels) found from the dark
-    and the reference flat's PRNU, each class counted; nothing else flagged."""
+    and the reference flat's PRNU, each class counted; nothing else flagged. The PRNU leaves the dead pixels
+    out of its illumination fit and normalisation, and stays at its photon limit on the others."""
     from conftest import small_config
 
     cfg = small_config(detector={"dead_pixels": 3, "dead_columns": 1, "hot_pixels": 4},
@@ -131,8 +132,18 @@ def test_dead_hot_dust_and_column_defects_are_flagged_and_counted(tmp_path):
     path = simulation.simulate_dataset(cfg, tmp_path / "raw")
     manifest, truth = load_manifest(path), read_product(path.parent / "truth.nc")
     dark = calibration.dark_maps(FrameStream(manifest.dark, manifest.detector), manifest.detector)
-    prnu = calibration.prnu_map(FrameStream(manifest.flats["fiber_a"], manifest.detector), dark["dark"].values,
-                                dark["noise"].values, manifest.detector)["prnu"].values
+    with caplog.at_level("WARNING"):
+        flat = calibration.prnu_map(FrameStream(manifest.flats["fiber_a"], manifest.detector), dark["dark"].values,
+                                    dark["noise"].values, manifest.detector, label="flat fiber_a")
+    prnu = flat["prnu"].values
+    assert int(flat["n_not_responding"]) == 3 + 37
+    assert "flat fiber_a: 40 pixel(s) respond to less than 50% of the median level" in caplog.text
+    responding = manifest.detector.science_mask() & ((truth["bad_pixel"].values & simulation.BAD_DEAD) == 0)
+    expected, _ = remove_gradient(truth["sensitivity"].values, responding)
+    expected /= expected[responding].mean()
+    error = (prnu - expected)[responding]
+    assert np.sqrt(np.mean(error**2)) < 1.5 * float(flat["photon_noise_limit_rms"])
+    assert float(flat["prnu_rms"]) < 0.01  # the dead pixels (PRNU about 0) not in it
     mask = calibration.bad_pixel_mask(dark, prnu, manifest.detector)
     flags, true = mask["bad_pixel"].values, truth["bad_pixel"].values
     flag = calibration.BAD_PIXEL_FLAGS

@@ -169,7 +169,7 @@ def test_flat_correction_removes_the_error_of_prnu(rng):
     assert np.abs(flat_errors).max() < 1e-6
 
 
-def simulate_stars(path, *, prf_width_spread, prf_slope_rms=0.0):
+def simulate_stars(path, *, prf_width_spread, prf_slope_rms=0.0, step=None):
     """Simulated positions without noise: the default detector (PRNU 2e-3, offsets 1e-3 pixel)."""
     from dice_core import simulation
     from dice_core.io import read_product
@@ -180,7 +180,7 @@ def simulate_stars(path, *, prf_width_spread, prf_slope_rms=0.0):
         "detector": {"photon_noise": False, "read_noise": 0.0, "dtype": "float32",
                      "prf_width_spread": prf_width_spread, "prf_slope_rms": prf_slope_rms},
         "metrology": {"frames": 2, "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}},
-        "stars": {"positions": 5, "frames": 4, "flux_rsd": 0.0}})
+        "stars": {"positions": 5, "frames": 4, "flux_rsd": 0.0, **({} if step is None else {"step": step})}})
     manifest = load_manifest(simulation.simulate_dataset(cfg, path))
     return manifest, read_product(path / "truth.nc")
 
@@ -356,3 +356,53 @@ def test_asymmetric_pixels_are_corrected_at_their_barycentres_not_their_centres(
     assert 1e-3 < shift < 3e-3
     assert 3e-4 < error_centre < differential_error(flat_only, truth) < 1e-3  # 4.5e-4 and 5.7e-4
     assert error_barycentre < 1e-5  # 5e-6
+
+
+def test_bad_pixels_in_a_star_window_are_left_out_or_the_star_refused(tmp_path, caplog):
+    """A Gaussian fit without metrology leaves the mask's bad pixels out (the centroid hardly moves on
+    noiseless data); the Fourier method, which resamples the whole window, refuses the star where a window
+    holds one: an error naming the star and the pixel at the first position (the references), a NaN and a
+    warning at a later one."""
+    import logging
+
+    from dice_core.calibration import BAD_PIXEL_FLAGS
+
+    manifest, truth = simulate_stars(tmp_path, prf_width_spread=0.0, step=[0.0, 0.6])  # windows follow the stars
+    positions = [p.index for p in manifest.positions]
+    common = dict(read_noise=np.ones(manifest.detector.shape), prnu=truth["sensitivity"].values)
+    args = (positions, manifest.star_approx, manifest.detector, truth["bias"].values)
+    clean = {m: centroids.measure_positions(stacks_of(manifest), *args, method=m, **common)
+             for m in ("gaussian", "fourier")}
+    size = clean["fourier"].windows.shape[-1]
+    half = size // 2
+    # star 1's windows: the first on its approximate position, each later one on the previous centroid
+    centres = [manifest.star_approx[1]] + [(clean["fourier"].y[i, 1], clean["fourier"].x[i, 1])
+                                           for i in range(len(positions) - 1)]
+    windows = [centroids.star_window(r, c, half, manifest.detector.shape) for r, c in centres]
+    first = windows[0]
+    flags = np.zeros(manifest.detector.shape, np.int8)
+    column = first.col0 + half + 1  # through the star's core, next to its peak
+    flags[first.row0:first.row0 + size, column] = BAD_PIXEL_FLAGS["dead"] | BAD_PIXEL_FLAGS["column"]
+    left_out = centroids.measure_positions(stacks_of(manifest), *args, method="gaussian", bad_pixels=flags, **common)
+    assert np.all(left_out.n_bad_pixels[:, 1] > 0) and not left_out.n_bad_pixels[:, [0, 2, 3, 4]].any()
+    # the fit without the column is as accurate as with it: the model's own error, not a bad value
+    assert differential_error(left_out, truth) < 1.2 * differential_error(clean["gaussian"], truth)
+    with pytest.raises(centroids.WindowError, match=rf"star 1 at position {positions[0]}: its window, a reference "
+                                                     rf"of every later position, holds bad pixel\(s\) row \d+, "
+                                                     rf"col {column} \(dead, column\)"):
+        centroids.measure_positions(stacks_of(manifest), *args, method="fourier", bad_pixels=flags, **common)
+    # a pixel only a later window of star 1 holds
+    later = [(i, r, c) for i, w in enumerate(windows[1:], 1) for r in range(w.row0, w.row0 + size)
+             for c in range(w.col0, w.col0 + size)
+             if not (first.row0 <= r < first.row0 + size and first.col0 <= c < first.col0 + size)]
+    assert later, "the stars do not move enough between positions for this test"
+    i, r, c = later[0]
+    flags = np.zeros(manifest.detector.shape, np.int8)
+    flags[r, c] = BAD_PIXEL_FLAGS["hot"]
+    log = logging.getLogger("test-centroids")
+    with caplog.at_level("WARNING", logger="test-centroids"):
+        refused = centroids.measure_positions(stacks_of(manifest), *args, method="fourier", bad_pixels=flags,
+                                              log=log, **common)
+    assert np.isnan(refused.x[i, 1]) and refused.n_bad_pixels[i, 1] == 1
+    assert f"star 1 at position {positions[i]} has bad pixel(s) in its window, row {r}, col {c} (hot)" in caplog.text
+    assert np.isfinite(refused.x[:, [0, 2, 3, 4]]).all()

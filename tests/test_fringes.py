@@ -202,7 +202,7 @@ def test_saturated_and_fringeless_pixels_are_masked_and_counted(noisy):
     for pixel in ((30, 40), (50, 60)):
         assert solution.masked[where[pixel]] and np.isnan(solution.offsets[where[pixel]])
     assert solution.masked.sum() == 2
-    assert solution.masked_by_reason == {"saturated": 1, "no_contrast": 1, "unconverged": 0}
+    assert solution.masked_by_reason == {"bad_pixel": 0, "saturated": 1, "no_contrast": 1, "unconverged": 0}
     ratio = rms(solution.offsets - true_projection(truth, solution)) / rms(solution.photon_floor)
     assert ratio < 1.2
 
@@ -368,3 +368,20 @@ def test_a_flat_that_is_not_the_lasers_response_biases_the_flat_gauge_only(tmp_p
     product = fringes.solution_dataset(solution, manifest.detector)
     assert float(product["gauge_difference_rms"]) == pytest.approx(rms(solution.offsets - solution.offsets_prnu_free))
     assert product["projected_offset_prnu_free_gauge"].attrs["units"] == "pixel"
+
+
+def test_bad_pixels_of_the_mask_are_left_out_of_the_fit_and_counted(tmp_path):
+    """A dead column, dead and hot pixels: given the mask, they enter neither the frame fits nor the plane
+    of K, have no offset, are counted as bad pixels, and the other pixels keep their accuracy."""
+    manifest, truth = simulate(tmp_path, detector={"dead_pixels": 3, "dead_columns": 1, "hot_pixels": 4})
+    bad = truth["bad_pixel"].values != 0
+    solution = fit(manifest, truth, "H1H4", bad_pixels=bad)
+    inside = bad[solution.rows, solution.cols]
+    assert solution.masked_by_reason["bad_pixel"] == inside.sum() >= 3 + 78 + 4
+    assert solution.masked[inside].all() and np.isnan(solution.offsets[inside]).all()
+    assert solution.masked_by_reason["no_contrast"] == 0
+    good = ~solution.masked
+    ratio = rms((solution.offsets - true_projection(truth, solution))[good]) / rms(solution.photon_floor[good])
+    assert ratio < 1.2
+    product = fringes.solution_dataset(solution, manifest.detector)
+    assert int(product["n_masked_bad_pixel"]) == inside.sum()

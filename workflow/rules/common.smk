@@ -130,6 +130,14 @@ def prnu_for_metrology(wildcards):
     return []
 
 
+def bad_pixel_mask(wildcards=None):
+    """The bad-pixel mask, which every stage that reads pixels leaves its flagged pixels out by, if the
+    dataset allows one (a dark and a flat)."""
+    if MANIFEST.dark and MANIFEST.flats:
+        return [f"{OUT}/calibration/bad_pixels.nc"]
+    return []
+
+
 def pair_baselines(wildcards):
     return list(MANIFEST.pairs[wildcards.pair])
 
@@ -187,8 +195,8 @@ def position_stacks(wildcards):
 
 
 def centroid_calibrations(wildcards):
-    """The calibration products a mode needs: the reference PRNU, the pair's offsets."""
-    inputs = {}
+    """The calibration products a mode needs: the reference PRNU, the pair's offsets; the bad-pixel mask."""
+    inputs = {"bad_pixels": bad_pixel_mask()} if bad_pixel_mask() else {}
     if "flat" in wildcards.mode:
         inputs["prnu"] = f"{OUT}/calibration/prnu.nc"
     if "metrology" in wildcards.mode:

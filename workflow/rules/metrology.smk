@@ -9,11 +9,12 @@ rule fit_fringes:
         manifest=MANIFEST_FILE,
         dark=rules.measure_dark.output.dark,
         prnu=prnu_for_metrology,
+        bad_pixels=bad_pixel_mask,
         cubes=baseline_files,
     output:
         metrology=f"{OUT}/metrology/{{baseline}}.nc",
     params:
-        code=code_version("io", "manifest", "fringes", "geometry", "parallel", "polynomials"),
+        code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
     log:
         f"{OUT}/logs/fit_fringes_{{baseline}}.log",
     benchmark:

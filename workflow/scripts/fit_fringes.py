@@ -3,16 +3,20 @@
 import logging
 
 import dice_core
-from dice_core import fringes, io
+from dice_core import calibration, fringes, io
 from dice_core.geometry import BaselineGeometry
 from dice_core.manifest import load_manifest
 
 
-def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config, workers):
+def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline, output, config, workers):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     dark = io.read_product(dark_path)
     flat = io.read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
+    bad_pixels = None
+    if bad_pixel_paths:  # dead, hot and column defects out; dust pixels kept (the flat measures them)
+        bad_pixels = calibration.unusable_pixels(io.read_product(bad_pixel_paths[0])["bad_pixel"].values)
+        log.info("baseline %s: %d unusable pixel(s) of the bad-pixel mask left out", baseline, bad_pixels.sum())
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
                             min_frames=16, purpose="a fringe solution", dtype="float32")
     options = config["metrology"]
@@ -26,7 +30,8 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config, 
     solution = fringes.fit_baseline(stream, dark["dark"].values, manifest.detector, flat=flat,
                                     read_noise=dark["noise"].values, tolerance=options["tolerance"],
                                     max_passes=options["max_passes"], smooth_degree=options["smooth_degree"],
-                                    workers=workers, geometry=geometry, label=f"baseline {baseline}")
+                                    workers=workers, geometry=geometry, bad_pixels=bad_pixels,
+                                    label=f"baseline {baseline}")
     product = fringes.solution_dataset(solution, manifest.detector,
                                        fibers=None if geometry is None else geometry.fibers)
     log.info("baseline %s: K = (%.6f, %.6f) rad/pixel, offsets rms %.3e pixel, photon floor %.3e pixel, "
@@ -34,10 +39,11 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, baseline, output, config, 
              float(product["photon_noise_floor_rms"]), int(product["n_masked"]))
     product.attrs["baseline"] = baseline
     io.write_product(product, output, title=f"fringe solution of baseline {baseline} of {manifest.name}",
-                     config=config, inputs=[manifest.path, dark_path, *prnu_paths,
+                     config=config, inputs=[manifest.path, dark_path, *prnu_paths, *bad_pixel_paths,
                                             *manifest.baselines[baseline].files])
 
 
 dice_core.run_logged(snakemake.log[0], fit_fringes, snakemake.input.manifest, snakemake.input.dark,
-                     list(snakemake.input.prnu), snakemake.wildcards.baseline, snakemake.output.metrology,
+                     list(snakemake.input.prnu), list(snakemake.input.bad_pixels), snakemake.wildcards.baseline,
+                     snakemake.output.metrology,
                      snakemake.config, snakemake.threads)

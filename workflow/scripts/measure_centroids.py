@@ -2,8 +2,10 @@
 
 import logging
 
+import numpy as np
+
 import dice_core
-from dice_core import centroids, io, stacks
+from dice_core import calibration, centroids, io, stacks
 from dice_core.manifest import load_manifest
 
 
@@ -13,8 +15,8 @@ def read_stacks(paths):
         yield stacks.PositionStack.from_dataset(io.read_product(path))
 
 
-def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, stack_paths, mode, output, config,
-                      options):
+def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pixel_paths, stack_paths, mode, output,
+                      config, options):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     use_flat, use_metrology = centroids.mode_corrections(mode)
@@ -24,22 +26,27 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, stack_p
     if use_metrology:
         offsets = io.read_product(offsets_path)
         dx, dy = offsets["dx"].values, offsets["dy"].values
+    bad_pixels = None
+    if bad_pixel_paths:  # dead, hot and column defects; dust pixels are the flat's to correct
+        flags = io.read_product(bad_pixel_paths[0])["bad_pixel"].values
+        bad_pixels = np.where(calibration.unusable_pixels(flags), flags, 0)
     positions = [p.index for p in manifest.positions]
     log.info("mode %s (flat %s, pixel offsets %s), method %s, %d positions, %d stars, %dx%d windows", mode,
              use_flat, use_metrology, options["method"], len(positions), len(manifest.star_approx),
              2 * options["half_size"] + 1, 2 * options["half_size"] + 1)
     result = centroids.measure_positions(
         read_stacks(stack_paths), positions, manifest.star_approx, manifest.detector, dark["dark"].values,
-        read_noise=dark["noise"].values, prnu=prnu, dx=dx, dy=dy, method=options["method"],
+        read_noise=dark["noise"].values, prnu=prnu, dx=dx, dy=dy, bad_pixels=bad_pixels, method=options["method"],
         half_size=options["half_size"], label=f"mode {mode}", log=log)
     product = centroids.centroids_dataset(result, positions, mode=mode, method=options["method"])
     inputs = [manifest.path, dark_path, *([prnu_path] if use_flat else []), *([offsets_path] if use_metrology else []),
-              *stack_paths]
+              *bad_pixel_paths, *stack_paths]
     io.write_product(product, output, title=f"pseudo-star centroids of {manifest.name}, mode {mode}",
                      config=config, inputs=inputs)
 
 
 dice_core.run_logged(snakemake.log[0], measure_centroids, snakemake.input.manifest, snakemake.input.dark,
-                     snakemake.input.get("prnu"), snakemake.input.get("offsets"), list(snakemake.input.stacks),
+                     snakemake.input.get("prnu"), snakemake.input.get("offsets"),
+                     list(snakemake.input.get("bad_pixels", [])), list(snakemake.input.stacks),
                      snakemake.wildcards.mode,
                      snakemake.output.centroids, snakemake.config, snakemake.params.options)
