@@ -511,9 +511,9 @@ def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector,
     offsets_map = metrology["projected_offset"].values
     rows, cols = np.nonzero(np.isfinite(offsets_map))
     k = np.array([float(metrology["kx"]), float(metrology["ky"])])
-    if "kx_local" in metrology:  # spherical waves: the fitted pixel phases themselves, not a plane
+    if "pixel_phase" in metrology:  # the fitted pixel phases, whatever the shape of the fringes
         reference_phase = metrology["pixel_phase"].values[rows, cols]
-    else:
+    else:  # a product from before pixel_phase (plane waves): the same up to a constant
         reference_phase = k[0] * cols + k[1] * rows + np.hypot(*k) * offsets_map[rows, cols]
     level, amplitude = metrology["level"].values, metrology["amplitude"].values
     frame_factors = np.column_stack([level, amplitude * np.cos(phase), amplitude * np.sin(phase)])

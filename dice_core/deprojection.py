@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from dice_core.geometry import orthonormal_modes, remove_modes
+from dice_core.geometry import affine_basis, orthonormal_modes, remove_modes
 
 __all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "MIN_SINE"]
 
@@ -110,9 +110,8 @@ def pair_difference(dx_a, dy_a, dx_b, dy_b, *, modes=()):
 
 def _affine_fields(rows, cols):
     """The six affine (dx, dy) fields at pixels rows, cols, each as dx values then dy values: (6, 2 pixel)."""
-    x, y, one, zero = cols.astype(float), rows.astype(float), np.ones(rows.size), np.zeros(rows.size)
-    return np.array([np.concatenate(pair) for pair in
-                     [(one, zero), (x, zero), (y, zero), (zero, one), (zero, x), (zero, y)]])
+    basis, zeros = affine_basis(cols, rows), np.zeros((3, rows.size))
+    return np.vstack([np.hstack([basis, zeros]), np.hstack([zeros, basis])])
 
 
 def deproject_floor(s1, k1, s2, k2):
@@ -154,6 +153,8 @@ def _without_unobservable(dx, dy, first, second, k1, k2, label):
             mx, my = deproject(*(((mode, k1, zeros, k2)) if which == 0 else (zeros, k1, mode, k2)), label=label)
             fields.append(np.concatenate([mx[good], my[good]]))
     modes = orthonormal_modes(np.array(fields).reshape(len(fields), 2 * rows.size), against=affine)
+    # (the affine part removed is that of (dx, dy); each baseline removed the affine part of its projection,
+    # whose image through the per-pixel solve differs from it by the variation of K, 1e-4 across the detector)
     values = remove_modes(remove_modes(np.concatenate([dx[good], dy[good]]), affine), modes)
     out_dx, out_dy = np.full(dx.shape, np.nan), np.full(dy.shape, np.nan)
     out_dx[good], out_dy[good] = values[:rows.size], values[rows.size:]
@@ -178,6 +179,7 @@ def offsets_dataset(first, second, *, label: str = "pair"):
     modes = {}
     if np.ndim(k1[0]) or np.ndim(k2[0]):
         dx, dy, mode_dx, mode_dy = _without_unobservable(dx, dy, first, second, k1, k2, label)
+    if modes_found := (np.ndim(k1[0]) or np.ndim(k2[0])) and len(mode_dx) > 0:  # none: absent (the contract)
         attrs = {"units": "1", "long_name": "unobservable offset mode beyond the affine part (unit rms over dx "
                                             "and dy together); dx, dy are orthogonal to every mode"}
         modes = {"unobservable_dx": (("mode", *rc), mode_dx, {**attrs, "long_name": attrs["long_name"] + ", x part"}),
@@ -193,5 +195,5 @@ def offsets_dataset(first, second, *, label: str = "pair"):
             **modes,
         },
         coords={"row": first["row"].values, "col": first["col"].values,
-                **({"mode": np.arange(modes["unobservable_dx"][1].shape[0])} if modes else {})},
+                **({"mode": np.arange(mode_dx.shape[0])} if modes_found else {})},
     )

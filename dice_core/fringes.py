@@ -49,7 +49,7 @@ import numpy as np
 import scipy.linalg
 import xarray as xr
 
-from dice_core.geometry import BaselineGeometry, TwoSourceFit, fit_two_source
+from dice_core.geometry import BaselineGeometry, TwoSourceFit, fit_two_source, wrapped_about_mean
 from dice_core.io import Chunk, first_chunk
 from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
                                 threads_report)
@@ -203,16 +203,6 @@ def _lorentz_boost(b):
     return L
 
 
-def wrapped_about_mean(phase):
-    """Phases (rad) wrapped to (-pi, pi] about their circular mean.
-
-    Wrapped about zero instead, phases spread around pi (a constant the gauge
-    leaves free) would split between +pi and -pi, a whole period apart.
-    """
-    centre = np.angle(np.mean(np.exp(1j * phase)))
-    return np.angle(np.exp(1j * (phase - centre)))
-
-
 def projected_offsets(theta, x, y, k_guess):
     """Wavevector and offsets from pixel phases theta = K.r + K.delta + constant.
 
@@ -281,6 +271,11 @@ class FringeSolution:
         With a bench geometry (spherical waves): the refined tips, each pixel's
         local wavevector and the unobservable offset modes; ``offsets`` are then
         along the local wavevectors and ``k`` is their mean.
+    gauge_difference_floor : float or None
+        With a flat, and frames in two parts (files): the rms noise of
+        ``offsets - offsets_prnu_free``, pixel, measured as half the rms of
+        the two parts' own gauge differences minus each other. A difference
+        well above it is a systematic: the two gauges disagree.
     """
 
     rows: np.ndarray
@@ -300,6 +295,7 @@ class FringeSolution:
     offsets_prnu_free: np.ndarray | None = None
     pixel_phase: np.ndarray = None
     two_source: TwoSourceFit | None = None
+    gauge_difference_floor: float | None = None
 
 
 def _accumulate(chunks: Iterable[Chunk], projector, offset, centre, subtract_centre):
@@ -360,7 +356,9 @@ def _pass(lanes, dark, idx, G, *, extra=None, reference=None, centred=False, exe
     ``extra`` (pixel, m) adds regressors to the frame fit only (the K(t) terms).
     Returns frame factors (frame, 3 [+m]), F'I (3, pixel), F'F (3, 3), the
     third moments sum_t F_tk F_t F_t' (3, 3, 3), the pixels of ``idx``
-    holding a saturated sample, and the BLAS threads each lane ran with.
+    holding a saturated sample, the BLAS threads each lane ran with, and each
+    lane's own frame factors (frame of the lane, 3) and F'I (3, pixel), for
+    diagnostics that compare independent parts of the frames.
     """
     design = G if extra is None else np.column_stack([G, extra])
     n_pixels = dark.size
@@ -383,7 +381,12 @@ def _pass(lanes, dark, idx, G, *, extra=None, reference=None, centred=False, exe
     # per pass instead of a few small operations per chunk.
     FtI = FtX[:, idx] + np.outer(F.sum(axis=0), level[idx])
     FtF, third = frame_moments(F)
-    return coef, FtI, FtF, third, saturated[idx], [threads for _, _, _, threads in results]
+    parts, start = [], 0
+    for products, lane_FtX, _, _ in results:
+        F_lane = F[start:start + products.shape[0]]
+        start += products.shape[0]
+        parts.append((F_lane, lane_FtX[:, idx] + np.outer(F_lane.sum(axis=0), level[idx])))
+    return coef, FtI, FtF, third, saturated[idx], [threads for _, _, _, threads in results], parts
 
 
 def frame_moments(F):
@@ -520,9 +523,10 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         G = np.column_stack([np.ones(idx.size), np.sin(theta0), np.cos(theta0)])
         G[bad.ravel()[idx]] = 0.0  # bad pixels out of the frame fits from the first pass on
         extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
-        coef, FtI, FtF, third, saturated, lane_threads = _pass(lanes, dark0, idx, G, extra=extra,
-                                                               reference=reference, centred=centred,
-                                                               executor=executor)
+        coef, FtI, FtF, third, saturated, lane_threads, parts = _pass(lanes, dark0, idx, G, extra=extra,
+                                                                      reference=reference, centred=centred,
+                                                                      executor=executor)
+        parts_idx = idx
         log.info("%s: %s", label, threads_report(executor, lane_threads))
         u1, u2 = coef[:, 1], coef[:, 2]
         amp2 = u1**2 + u2**2
@@ -553,8 +557,10 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         for n_pass in range(1, max_passes + 1):
             fit_idx = idx[active]
             if n_pass > 1:
-                coef, FtI, FtF, third, _, _ = _pass(lanes, dark0, fit_idx, np.linalg.solve(FtF, FtI).T,
-                                                    reference=reference, centred=centred, executor=executor)
+                coef, FtI, FtF, third, _, _, parts = _pass(lanes, dark0, fit_idx, np.linalg.solve(FtF, FtI).T,
+                                                           reference=reference, centred=centred,
+                                                           executor=executor)
+                parts_idx = fit_idx
             F = coef[:, :3]
             G_new = np.linalg.solve(FtF, FtI).T
             fx, fy = x[active], y[active]
@@ -612,7 +618,8 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         if geometry is not None:
             two_source = fit_two_source(theta, x[active], y[active], *geometry.nominal,
                                         wavelength=geometry.wavelength, pixel_pitch=geometry.pixel_pitch,
-                                        k_plane=k, tip_sigma=geometry.tip_sigma, label=label)
+                                        k_plane=k, tip_sigma=geometry.tip_sigma, fibers=geometry.fibers,
+                                        label=label)
             offsets = np.full(idx.size, np.nan)
             offsets[active] = two_source.offsets
             k, k_norm = two_source.k_local.mean(axis=0), np.hypot(*two_source.k_local.T)
@@ -631,31 +638,53 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
             out[active] = values
             return out
 
-        offsets_prnu_free = None
+        offsets_prnu_free = gauge_floor = None
         if flat is not None:
             # The diagnostic of a flat that is not the laser's response (chromatic PRNU, speckle): the
             # same factorisation under the PRNU-free gauge (the pixel contrast's smoothness), which the
             # flat does not enter. The passes do not depend on the gauge, so this costs no pass.
             ax, ay = x[active], y[active]
+            flat_active = np.nan_to_num(flat.ravel()[idx[active]], nan=1.0)
+
+            def offsets_under(F_any, G_any, use_flat):
+                """Offsets (active pixels) of a factorisation under one gauge, turned the way of ``k``."""
+                M_any = fix_gauge(F_any, G_any, flat=flat_active if use_flat else None, x=ax, y=ay,
+                                  smooth_degree=smooth_degree)
+                G_gauged = G_any @ np.linalg.inv(M_any).T
+                theta_any = np.arctan2(G_gauged[:, 1], G_gauged[:, 2])
+                k_any, plane = projected_offsets(theta_any, ax, ay, k)
+                if two_source is not None:  # against the same surface, the phases turned the same way
+                    return two_source.offsets_of(theta_any if k_any @ k > 0 else -theta_any)
+                return plane if k_any @ k > 0 else -plane
+
             try:
-                M_free = fix_gauge(F_phys, G_phys, flat=None, x=ax, y=ay, smooth_degree=smooth_degree)
+                free = offsets_under(F_phys, G_phys, False)
             except FringeError as exc:  # a diagnostic must not fail a fit the flat's gauge made
                 log.warning("%s: no PRNU-free gauge for the diagnostic (%s)", label, exc)
             else:
-                G_free = G_phys @ np.linalg.inv(M_free).T
-                theta_free = np.arctan2(G_free[:, 1], G_free[:, 2])
-                k_free, free = projected_offsets(theta_free, ax, ay, k)
-                if two_source is not None:  # against the same surface, the phases turned the same way
-                    free = two_source.offsets_of(theta_free if k_free @ k > 0 else -theta_free)
-                    offsets_prnu_free = full(free)
+                offsets_prnu_free = full(free)
+                # Its noise: the gauge difference of each independent part of the frames (the lanes); for
+                # two halves, the full data's difference has the noise of half their difference.
+                keep = np.isin(parts_idx, idx[active])
+                try:
+                    halves = []
+                    for F_part, FtI_part in parts:
+                        G_part = np.linalg.solve(F_part.T @ F_part, FtI_part[:, keep]).T
+                        halves.append(offsets_under(F_part, G_part, True) - offsets_under(F_part, G_part, False))
+                except (FringeError, np.linalg.LinAlgError) as exc:
+                    log.warning("%s: no noise floor for the gauge difference (%s)", label, exc)
                 else:
-                    offsets_prnu_free = full(free if k_free @ k > 0 else -free)
+                    if len(halves) == 2:
+                        gauge_floor = float(np.sqrt(np.mean((halves[0] - halves[1]) ** 2)) / 2)
+                    else:
+                        log.info("%s: the frames are one part (one file): no noise floor for the gauge "
+                                 "difference", label)
 
         reasons = {"bad_pixel": int(flagged.sum()), "saturated": int(saturated.sum()), "no_contrast": int(faint.sum()),
                    "unconverged": int(unconverged.sum())}
         return FringeSolution(rows, cols, offsets, full(iota / iota.mean()), full(alpha / alpha.mean()),
                               full(floor), k, k_frame, level, amplitude, phase, history, ~active, reasons,
-                              offsets_prnu_free, full(theta), two_source)
+                              offsets_prnu_free, full(theta), two_source, gauge_floor)
 
 
 def _two_source_variables(solution: FringeSolution, as_map) -> dict:
@@ -668,10 +697,13 @@ def _two_source_variables(solution: FringeSolution, as_map) -> dict:
         out[active] = values
         return as_map(out)
 
-    modes = np.stack([on_active(m) for m in fit.modes]) if len(fit.modes) else \
-        np.empty((0, *as_map(solution.offsets).shape))
     fxyz = ("fiber", "xyz")
+    modes = {} if not len(fit.modes) else {  # none: absent, as the products contract says of the offsets'
+        "unobservable_offset": (("mode", "row", "col"), np.stack([on_active(m) for m in fit.modes]),
+                                {"units": "1", "long_name": "offset modes along the local wavevector, beyond the "
+                                                            "affine part, absorbed by the tips (unit rms)"})}
     return {
+        **modes,
         "kx_local": (("row", "col"), on_active(fit.k_local[:, 0]),
                      {"units": "rad/pixel", "long_name": "local wavevector along x (gradient of the fitted phase)"}),
         "ky_local": (("row", "col"), on_active(fit.k_local[:, 1]),
@@ -681,9 +713,6 @@ def _two_source_variables(solution: FringeSolution, as_map) -> dict:
                                  {"units": "m", "long_name": "1-sigma error of the refined fiber-tip position"}),
         "fiber_position_nominal": (fxyz, fit.nominal,
                                    {"units": "m", "long_name": "nominal fiber-tip position (the manifest's)"}),
-        "unobservable_offset": (("mode", "row", "col"), modes,
-                                {"units": "1", "long_name": "offset modes along the local wavevector, beyond the "
-                                                            "affine part, absorbed by the tips (unit rms)"}),
         "tip_information": (("tip_mode",), fit.information,
                             {"units": "1", "long_name": "information ratio, data over prior, of each tip mode"}),
         "plane_wave_departure": (("row", "col"), on_active(fit.plane_wave_departure),
@@ -696,6 +725,8 @@ def _two_source_variables(solution: FringeSolution, as_map) -> dict:
 
 def solution_dataset(solution: FringeSolution, detector, *, fibers=None) -> xr.Dataset:
     """The ``metrology/<baseline>.nc`` product of a solution: maps (row, col), NaN outside the fit.
+
+    ``fibers`` names the baseline's two fibers; required for a spherical-wave solution.
 
     Contract variables: projected_offset (pixel), iota and alpha (1), kx and ky
     (the mean wavevector, rad/pixel), phase (frame, rad). Also the photon-noise
@@ -710,6 +741,9 @@ def solution_dataset(solution: FringeSolution, detector, *, fibers=None) -> xr.D
     local wavevector (unobservable_offset, 1, orthonormal: unit rms over the
     fitted pixels).
     """
+    if solution.two_source is not None and fibers is None:
+        raise ValueError("a spherical-wave solution's product needs the names of its two fibers")
+
     def as_map(values, fill=np.nan):
         out = np.full(detector.shape, fill, dtype=np.result_type(values, type(fill)))
         out[solution.rows, solution.cols] = values
@@ -754,6 +788,10 @@ def solution_dataset(solution: FringeSolution, detector, *, fibers=None) -> xr.D
                 "gauge_difference_rms": (
                     (), float(np.sqrt(np.nanmean((solution.offsets - solution.offsets_prnu_free) ** 2))),
                     {"units": "pixel", "long_name": "rms of the flat gauge's offsets minus the PRNU-free gauge's"}),
+                **({} if solution.gauge_difference_floor is None else {"gauge_difference_floor": (
+                    (), solution.gauge_difference_floor,
+                    {"units": "pixel", "long_name": "noise of gauge_difference_rms, from the two halves of the "
+                                                    "frames"})}),
             }),
             **{f"n_masked_{reason}": ((), count, {"units": "1", "long_name": f"pixels masked: {reason.replace('_', ' ')}"})
                for reason, count in solution.masked_by_reason.items()},
@@ -764,6 +802,7 @@ def solution_dataset(solution: FringeSolution, detector, *, fibers=None) -> xr.D
         coords={"row": np.arange(detector.shape[0]), "col": np.arange(detector.shape[1]),
                 "frame": np.arange(solution.phase.size), "iteration": [h["pass"] for h in history],
                 **({} if solution.two_source is None else {
-                    "fiber": list(fibers or ("a", "b")), "xyz": ["x", "y", "z"],
-                    "mode": np.arange(len(solution.two_source.modes)), "tip_mode": np.arange(6)})},
+                    "fiber": list(fibers), "xyz": ["x", "y", "z"], "tip_mode": np.arange(6),
+                    **({"mode": np.arange(len(solution.two_source.modes))} if len(solution.two_source.modes) else {})
+                })},
     )

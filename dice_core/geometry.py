@@ -20,17 +20,21 @@ tips are refined by a maximum a posteriori fit: the nominal tips, known to
 ``tip_sigma`` (about 1 mm on a bench), are the prior, and the unknown pixel
 offsets, rms s_delta, are the noise the tips are fitted against. Moving the
 tips changes the surface along six patterns, the columns of d Phi / d s; with
-the plane free, only their non-affine parts matter. Those the data pin better
-than the prior, those of information ratio
+the plane free, only their non-affine parts matter. Every mode whose
+information ratio, data over prior,
 
-    r_k = tip_sigma^2 lambda_k / (s_delta |K|)^2 > MODE_INFORMATION_THRESHOLD,
+    r_k = tip_sigma^2 lambda_k / (s_delta |K|)^2 > MODE_INFORMATION_THRESHOLD (0.01),
 
-lambda_k the eigenvalues of J'J (J the non-affine parts of d Phi / d s), are
-absorbed by the fit: the offsets' components along them go into the tips.
-They are the unobservable modes the offsets product declares, and the offsets
-are reported orthogonal to them. The other modes stay at the prior; what they
-can leave in the offsets is at most sqrt(r_k) s_delta / sqrt(pixels), about
-a tenth of that per mode at the threshold, 0.01.
+lambda_k the eigenvalues of J'J (J the non-affine parts of d Phi / d s), is
+declared: the fit absorbs a fraction r_k / (1 + r_k) of the offsets'
+component along it into the tips (all of it for r_k >> 1, part of it for
+0.01 < r_k < 1, where the prior still dominates). They are the unobservable
+modes the offsets product declares, and the offsets are reported orthogonal
+to them. The other modes stay at the prior. For offsets that are white, with
+rms s_delta over N pixels, what such a mode can leave in the offsets is at
+most about sqrt(r_k) s_delta / sqrt(N), a tenth of s_delta / sqrt(N) at the
+threshold. Offsets with a smooth component c along an undeclared mode lose
+r_k / (1 + r_k) of it, up to 1 % of c.
 
 Units: m for positions, pixel for x, y and offsets, rad for phases,
 rad/pixel for wavevectors.
@@ -52,6 +56,8 @@ __all__ = [
     "two_source_phase",
     "tip_jacobian",
     "fit_two_source",
+    "wrapped_about_mean",
+    "affine_basis",
     "orthonormal_modes",
     "remove_modes",
 ]
@@ -127,16 +133,33 @@ def tip_jacobian(x, y, tip_a, tip_b, *, wavelength, pixel_pitch) -> np.ndarray:
     return wavenumber * np.column_stack([-unit_a, unit_b])
 
 
+def wrapped_about_mean(phase):
+    """Phases (rad) wrapped to (-pi, pi] about their circular mean.
+
+    Wrapped about zero instead, phases spread around pi (a constant the gauge
+    leaves free) would split between +pi and -pi, a whole period apart.
+    """
+    centre = np.angle(np.mean(np.exp(1j * phase)))
+    return np.angle(np.exp(1j * (phase - centre)))
+
+
 def _wrap(phase):
     return np.angle(np.exp(1j * phase))
+
+
+def affine_basis(x, y) -> np.ndarray:
+    """The affine fields 1, x, y at pixel coordinates x, y (1-D): (3, pixel)."""
+    x = np.asarray(x, float)
+    return np.array([np.ones_like(x), x, np.asarray(y, float)])
 
 
 def orthonormal_modes(fields, *, against=None):
     """Orthonormal basis of the span of ``fields`` (mode, sample), orthogonal to ``against`` (mode, sample).
 
     The inner product is the mean over samples, so every returned mode has
-    unit rms. Directions of ``fields`` inside the span of ``against`` (below
-    1e-9 of their rms) are dropped.
+    unit rms. Directions of ``fields`` inside the span of ``against``, or
+    dependent on the others, below 1e-9 of the largest field's norm, are
+    dropped.
     """
     fields = np.asarray(fields, float).reshape(-1, np.shape(fields)[-1])
     n = fields.shape[1]
@@ -144,18 +167,23 @@ def orthonormal_modes(fields, *, against=None):
         return np.empty((0, n))
     scale = np.max(np.linalg.norm(fields, axis=1))
     if against is not None and len(against):
-        q, _ = np.linalg.qr(np.asarray(against, float).T)
-        fields = fields - (fields @ q) @ q.T
+        basis = orthonormal_modes(against) / np.sqrt(n)
+        fields = fields - (fields @ basis.T) @ basis
     u, s, _ = np.linalg.svd(fields.T, full_matrices=False)
     return u[:, s > 1e-9 * scale].T * np.sqrt(n)
 
 
 def remove_modes(values, modes):
-    """``values`` (sample,) minus their least-squares projection on ``modes`` (mode, sample)."""
+    """``values`` (sample,) minus their least-squares projection on the span of ``modes`` (mode, sample).
+
+    Dependent modes are harmless: the projection is onto an orthonormal basis
+    of their span (:func:`orthonormal_modes`).
+    """
+    values = np.asarray(values, float)
     if len(modes) == 0:
-        return np.asarray(values, float).copy()
-    q, _ = np.linalg.qr(np.asarray(modes, float).T)
-    return values - q @ (q.T @ values)
+        return values.copy()
+    basis = orthonormal_modes(modes) / np.sqrt(values.size)
+    return values - basis.T @ (basis @ values)
 
 
 @dataclass
@@ -169,6 +197,8 @@ class TwoSourceFit:
     tip_errors : ndarray (2, 3)
         Their 1-sigma errors, m (the prior and the data combined; the pixel
         offsets count as the noise they are fitted against).
+    tip_covariance : ndarray (6, 6)
+        Their covariance, m^2, coordinates in the order of ``tips.ravel()``.
     nominal : ndarray (2, 3)
         The starting tips, m.
     sign : int
@@ -184,44 +214,52 @@ class TwoSourceFit:
         over the pixels) and orthogonal to the affine part.
     information : ndarray (6,)
         Information ratio (data over prior) of each tip mode, descending.
+    tip_modes : ndarray (6, 6)
+        The tip modes, columns in the order of ``information``: unit vectors
+        over the coordinates of ``tips.ravel()``.
     phase_rms : float
         Rms of the pixel phases about the fitted surface, rad (the offsets
         times |K|).
     iterations : int
+        Gauss-Newton iterations run.
     plane_wave_departure : ndarray (pixel,)
         The fitted surface minus its best plane, over |K|, pixel: what a
         plane-wave reduction would have put into the offsets.
+    surface : ndarray (pixel,)
+        The fitted phase, sign Phi + c + a.r, rad.
     """
 
     tips: np.ndarray
     tip_errors: np.ndarray
+    tip_covariance: np.ndarray
     nominal: np.ndarray
     sign: int
     k_local: np.ndarray
     offsets: np.ndarray
     modes: np.ndarray
     information: np.ndarray
+    tip_modes: np.ndarray
     phase_rms: float
     iterations: int
-    plane_wave_departure: np.ndarray = None
-    _surface: np.ndarray = None  # sign Phi + c + a.r at the pixels, rad
-    _affine: np.ndarray = None  # (pixel, 3): 1, x, y
+    plane_wave_departure: np.ndarray
+    surface: np.ndarray
+    affine: np.ndarray  # (3, pixel): 1, x, y
 
     def offsets_of(self, theta) -> np.ndarray:
         """Offsets (pixel) of other pixel phases (rad, same pixels) against this fit's surface and modes.
 
-        The phase constant and plane are fitted again (another gauge may rotate
-        the phases); the tips and modes are this fit's.
+        The phases' constant is taken out (their difference from the surface
+        wrapped about its circular mean: another gauge may rotate them), then
+        the affine part and the modes, in offset space; the tips are this fit's.
         """
-        k_norm = np.hypot(*self.k_local.T)
-        psi = _wrap(np.asarray(theta, float) - self._surface)
-        psi = _wrap(psi - np.angle(np.mean(np.exp(1j * psi))))
-        offsets = remove_modes(psi / k_norm, self._affine.T)
+        psi = wrapped_about_mean(np.asarray(theta, float) - self.surface)
+        offsets = remove_modes(psi / np.hypot(*self.k_local.T), self.affine)
         return remove_modes(offsets, self.modes)
 
 
 def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch, k_plane,
-                   tip_sigma: float = 1e-3, max_iterations: int = 30, label: str = "baseline") -> TwoSourceFit:
+                   tip_sigma: float = 1e-3, max_iterations: int = 30, fibers=("a", "b"),
+                   label: str = "baseline") -> TwoSourceFit:
     """Refine a baseline's two fiber tips from its pixel phases and measure the offsets against their surface.
 
     Parameters
@@ -240,7 +278,9 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     tip_sigma : float
         1-sigma error of each nominal tip coordinate, m: the prior.
     max_iterations : int
-        Of the Gauss-Newton refinement.
+        Of the Gauss-Newton refinement, at least 1.
+    fibers : (str, str)
+        The two fibers' names, for messages.
     label : str
         Names the baseline in logs and errors.
 
@@ -252,19 +292,29 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     ------
     GeometryError
         Pixel phases that no refinement of the tips fits (their rms about the
-        surface above 0.5 rad), or that move a tip coordinate by more than
-        ``MAX_TIP_SHIFT_SIGMA`` x ``tip_sigma`` from its nominal value: the
-        nominal tips, the wavelength or the pitch are not the bench's.
+        surface above 0.5 rad), that move a tip coordinate by more than
+        ``MAX_TIP_SHIFT_SIGMA`` x ``tip_sigma`` from its nominal value (the
+        nominal tips, the wavelength or the pitch are not the bench's), or a
+        refinement that does not converge.
+    ValueError
+        ``max_iterations`` under 1.
     """
+    if max_iterations < 1:
+        raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
     theta, x, y = (np.asarray(v, float) for v in (theta, x, y))
     nominal = np.array([nominal_a, nominal_b], float)
-    n = theta.size
-    affine = np.column_stack([np.ones(n), x, y])
-    q_affine, _ = np.linalg.qr(affine)
+    affine = affine_basis(x, y)
+    q_affine = orthonormal_modes(affine) / np.sqrt(x.size)  # (3, pixel), orthonormal rows
+
+    def without_affine(values):
+        return values - q_affine.T @ (q_affine @ values)
 
     def surface(tips):
         phase, gx, gy = two_source_phase(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
         return phase, np.column_stack([gx, gy])
+
+    def jacobian(tips):  # rad per mm of tip, for conditioning
+        return sign * tip_jacobian(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch) * 1e-3
 
     phase0, grad0 = surface(nominal)
     sign = 1 if float(np.mean(grad0, axis=0) @ np.asarray(k_plane, float)) > 0 else -1
@@ -273,68 +323,71 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     plane = np.asarray(k_plane, float) - sign * grad0.mean(axis=0)
     constant = 0.0
     for _ in range(4):
-        psi = _wrap(theta - sign * phase0 - plane @ affine[:, 1:].T - constant)
-        coef, *_ = np.linalg.lstsq(affine, psi, rcond=None)
+        psi = _wrap(theta - sign * phase0 - plane @ affine[1:] - constant)
+        coef, *_ = np.linalg.lstsq(affine.T, psi, rcond=None)
         constant, plane = constant + coef[0], plane + coef[1:]
+
+    # The noise the tips are fitted against is mostly the pixel offsets themselves (about 1e-3 pixel,
+    # white: docs/metrology.md), estimated from the residual phases; 1e-6 rad keeps noiseless phases
+    # (tests) from a singular system.
+    def noise_variance(psi_free):
+        return max(float(np.mean(psi_free**2)), 1e-12)
 
     tips = nominal.copy()
-    scale = 1e-3  # tip coordinates solved in mm, for conditioning
-    prior = (scale / tip_sigma) ** 2
-    iterations = 0
+    prior = (1e-3 / tip_sigma) ** 2  # in mm^-2
     for iterations in range(1, max_iterations + 1):
-        phase, grad = surface(tips)
+        phase, _ = surface(tips)
         # continuous residual: the wrap is taken about the current surface, a fraction of a radian away
-        psi = _wrap(theta - sign * phase - constant - affine[:, 1:] @ plane)
-        jac = sign * tip_jacobian(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch) * scale
-        jac_free = jac - q_affine @ (q_affine.T @ jac)  # the plane takes the affine part
-        psi_free = psi - q_affine @ (q_affine.T @ psi)
-        noise2 = max(np.mean(psi_free**2), 1e-300)  # the pixel offsets are the noise, rad^2
+        psi = _wrap(theta - sign * phase - constant - plane @ affine[1:])
+        jac = jacobian(tips)
+        jac_free, psi_free = without_affine(jac), without_affine(psi)  # the plane takes the affine part
+        noise2 = noise_variance(psi_free)
         normal = jac_free.T @ jac_free / noise2 + prior * np.eye(6)
-        rhs = jac_free.T @ psi_free / noise2 - prior * (tips - nominal).ravel() / scale
-        step = np.linalg.solve(normal, rhs)
-        tips = tips + step.reshape(2, 3) * scale
-        coef, *_ = np.linalg.lstsq(affine, psi - jac @ step, rcond=None)
+        rhs = jac_free.T @ psi_free / noise2 - prior * (tips - nominal).ravel() * 1e3
+        step = np.linalg.solve(normal, rhs)  # mm
+        tips = tips + step.reshape(2, 3) * 1e-3
+        coef, *_ = np.linalg.lstsq(affine.T, psi - jac @ step, rcond=None)
         constant, plane = constant + coef[0], plane + coef[1:]
         # 10 nm: the largest non-affine response, 2.5e-3 pixel per mm of tip (docs), makes that 2.5e-8 pixel
-        if np.max(np.abs(step)) * scale < 1e-8:
+        if np.max(np.abs(step)) * 1e-3 < 1e-8:
             break
     else:
-        log.warning("%s: tip refinement not converged in %d iterations (last step %.2e m)", label,
-                    max_iterations, np.max(np.abs(step)) * scale)
+        raise GeometryError(f"{label}: the refinement of the tips of fibers {fibers[0]} and {fibers[1]} did not "
+                            f"converge in {max_iterations} iterations (last step {np.max(np.abs(step)):.2e} mm)")
 
     phase, grad = surface(tips)
-    model = sign * phase + constant + affine[:, 1:] @ plane
+    model = sign * phase + constant + plane @ affine[1:]
     psi = _wrap(theta - model)
-    psi_free = psi - q_affine @ (q_affine.T @ psi)
+    psi_free = without_affine(psi)
     phase_rms = float(np.sqrt(np.mean(psi_free**2)))
     if phase_rms > 0.5:
         raise GeometryError(f"{label}: the pixel phases depart from the two-source surface of the refined tips "
-                            f"by {phase_rms:.2f} rad rms; are the fiber tips, wavelength and pixel pitch right?")
+                            f"of fibers {fibers[0]} and {fibers[1]} by {phase_rms:.2f} rad rms; are the fiber tips, "
+                            "wavelength and pixel pitch right?")
     shift = tips - nominal
     worst = np.unravel_index(np.argmax(np.abs(shift)), shift.shape)
     if abs(shift[worst]) > MAX_TIP_SHIFT_SIGMA * tip_sigma:
-        raise GeometryError(f"{label}: the pixel phases move tip {'ab'[worst[0]]} by {shift[worst] * 1e3:+.3f} mm "
-                            f"along {'xyz'[worst[1]]} from its nominal position, more than {MAX_TIP_SHIFT_SIGMA:g} x "
-                            f"its {tip_sigma * 1e3:g} mm error; are the fiber tips, wavelength and pixel pitch right?")
+        raise GeometryError(f"{label}: the pixel phases move the tip of fiber {fibers[worst[0]]} by "
+                            f"{shift[worst] * 1e3:+.3f} mm along {'xyz'[worst[1]]} from its nominal position, more "
+                            f"than {MAX_TIP_SHIFT_SIGMA:g} x its {tip_sigma * 1e3:g} mm error; are the fiber tips, "
+                            "wavelength and pixel pitch right?")
     k_local = sign * grad + plane
     k_norm = np.hypot(*k_local.T)
 
-    jac = sign * tip_jacobian(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch) * scale
-    jac_free = jac - q_affine @ (q_affine.T @ jac)
-    noise2 = max(np.mean(psi_free**2), 1e-300)
-    data = jac_free.T @ jac_free / noise2
-    covariance = np.linalg.inv(data + prior * np.eye(6)) * scale**2
+    jac_free = without_affine(jacobian(tips))
+    data = jac_free.T @ jac_free / noise_variance(psi_free)  # mm^-2
+    covariance = np.linalg.inv(data + prior * np.eye(6)) * 1e-6  # m^2
     values, vectors = np.linalg.eigh(data / prior)
     order = np.argsort(values)[::-1]
     values, vectors = values[order], vectors[:, order]
     absorbed = values > MODE_INFORMATION_THRESHOLD
-    affine_offsets = affine.T  # the affine part of the offsets: 1, x, y along each local wavevector
-    modes = orthonormal_modes((jac_free @ vectors[:, absorbed]).T / k_norm, against=affine_offsets)
-    offsets = remove_modes(remove_modes(psi / k_norm, affine_offsets), modes)
-    log.info("%s: tips refined in %d iteration(s), moved by %s mm; phases about the surface %.3e rad rms; "
-             "%d offset mode(s) beyond the affine part absorbed (information ratios %s)", label, iterations,
-             np.array2string(shift * 1e3, precision=3), phase_rms, len(modes),
+    modes = orthonormal_modes((jac_free @ vectors[:, absorbed]).T / k_norm, against=affine)
+    offsets = remove_modes(remove_modes(psi / k_norm, affine), modes)
+    log.info("%s: tips of fibers %s and %s refined in %d iteration(s), moved by %s mm; phases about the surface "
+             "%.3e rad rms; %d offset mode(s) beyond the affine part absorbed (information ratios %s)", label,
+             *fibers, iterations, np.array2string(shift * 1e3, precision=3), phase_rms, len(modes),
              np.array2string(values, precision=2))
-    departure = remove_modes(model, affine.T) / k_norm
-    return TwoSourceFit(tips, np.sqrt(np.diag(covariance)).reshape(2, 3), nominal, sign, k_local, offsets, modes,
-                        values, phase_rms, iterations, departure, model, affine)
+    return TwoSourceFit(tips=tips, tip_errors=np.sqrt(np.diag(covariance)).reshape(2, 3), tip_covariance=covariance,
+                        nominal=nominal, sign=sign, k_local=k_local, offsets=offsets, modes=modes,
+                        information=values, tip_modes=vectors, phase_rms=phase_rms, iterations=iterations,
+                        plane_wave_departure=remove_modes(model, affine) / k_norm, surface=model, affine=affine)

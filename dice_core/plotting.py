@@ -88,13 +88,17 @@ def metrology_figure(ds, detector, *, title):
 
     Panels: projected offsets (1e-3 pixel); per-frame wavevector minus its
     mean (rad/pixel); B(t) and A(t) (adu); convergence (offset change per pass).
-    With spherical waves, a third row: what a plane-wave fit would have put
-    into the offsets (1e-3 pixel), and each tip coordinate's refinement from
-    its nominal value with its 1-sigma error (mm).
+    With a flat, a row for the gauge diagnostic: the flat gauge's offsets
+    minus the PRNU-free gauge's (1e-3 pixel), and the rms of that difference
+    against its noise floor and the offsets' photon floor. With spherical
+    waves, a row with what a plane-wave fit would have put into the offsets
+    (1e-3 pixel), and each tip coordinate's refinement from its nominal value
+    with its 1-sigma error (mm).
     """
     spherical = "fiber_position" in ds
-    fig, axes = plt.subplots(3 if spherical else 2, 2, figsize=(11, 12.5 if spherical else 8.5),
-                             constrained_layout=True)
+    gauges = "projected_offset_prnu_free_gauge" in ds
+    n_rows = 2 + gauges + spherical
+    fig, axes = plt.subplots(n_rows, 2, figsize=(11, 4.2 * n_rows + 0.1), constrained_layout=True)
     offsets = ds["projected_offset"].values
     _show_map(axes[0, 0], fig, offsets, detector, scale=1e3, symmetric=True, units="offset [1e-3 pixel]",
               title=f"projected offsets: rms {np.nanstd(offsets):.2e} pixel, photon floor "
@@ -126,12 +130,31 @@ def metrology_figure(ds, detector, *, title):
     ax.set_ylabel("offset change from previous pass [pixel]")
     ax.set_title(f"convergence: {iteration.max()} passes", fontsize=9)
     ax.legend(fontsize=8)
+    row = 2
+    if gauges:
+        difference = offsets - ds["projected_offset_prnu_free_gauge"].values
+        _show_map(axes[row, 0], fig, difference, detector, scale=1e3, symmetric=True, units="offset [1e-3 pixel]",
+                  title="flat gauge minus PRNU-free gauge")
+        ax = axes[row, 1]
+        bars = {"gauge difference": float(ds["gauge_difference_rms"])}
+        if "gauge_difference_floor" in ds:
+            bars["its noise floor"] = float(ds["gauge_difference_floor"])
+        bars["offsets' photon floor"] = float(ds["photon_noise_floor_rms"])
+        for i, ((name, value), colour) in enumerate(zip(bars.items(), ("C3", "C0", "0.5"))):
+            ax.semilogy([i], [value], "o", ms=9, color=colour)
+            ax.annotate(f"{value:.1e}", (i, value), textcoords="offset points", xytext=(10, 0), va="center",
+                        fontsize=8)
+        ax.set_xticks(range(len(bars)), list(bars))
+        ax.set_xlim(-0.5, len(bars) - 0.3)
+        ax.set_ylabel("rms [pixel]")
+        ax.set_title("do the two gauges agree? (a difference far above its floor: no)", fontsize=9)
+        row += 1
     if spherical:
         departure = ds["plane_wave_departure"].values
-        _show_map(axes[2, 0], fig, departure, detector, scale=1e3, symmetric=True, units="offset [1e-3 pixel]",
+        _show_map(axes[row, 0], fig, departure, detector, scale=1e3, symmetric=True, units="offset [1e-3 pixel]",
                   title=f"spherical minus plane wave: rms {np.nanstd(departure):.2e} pixel "
                         f"({ds.sizes['mode']} mode(s) declared unobservable)")
-        ax = axes[2, 1]
+        ax = axes[row, 1]
         shift = (ds["fiber_position"] - ds["fiber_position_nominal"]).values * 1e3
         error = ds["fiber_position_error"].values * 1e3
         labels = [f"{fiber} {axis}" for fiber in ds["fiber"].values for axis in ds["xyz"].values]

@@ -18,6 +18,18 @@ def rms(values):
     return float(np.sqrt(np.nanmean(np.square(values))))
 
 
+def assert_pinned_tips_refined(fit, true_tips):
+    """Along each tip mode the data pin (the declared ones), the refined tips are within 4 sigma of the true
+    ones; along the best pinned one, the defocus, the nominal tips were not: the refinement did the work."""
+    error, start = (np.ravel(t) - np.ravel(true_tips) for t in (fit.tips, fit.nominal))
+    for k in np.flatnonzero(fit.information > geometry.MODE_INFORMATION_THRESHOLD):
+        v = fit.tip_modes[:, k]
+        sigma = np.sqrt(v @ fit.tip_covariance @ v)
+        assert abs(v @ error) < 4 * sigma, k
+    v = fit.tip_modes[:, 0]
+    assert abs(v @ start) > 4 * np.sqrt(v @ fit.tip_covariance @ v)
+
+
 def bench_tips(period, midpoint, angle):
     """Two tips 600 mm away about ``midpoint`` (m, from the detector centre), spaced for ``period`` pixel."""
     length = WAVELENGTH * DISTANCE / (period * PITCH)
@@ -75,29 +87,32 @@ def test_pixel_phases_give_offsets_at_their_noise_against_the_refined_surface(rn
     assert fit.sign == -1
     truth = -(gx * dx + gy * dy) / k_norm
     assert np.allclose(fit.k_local, -np.column_stack([gx, gy]), rtol=0, atol=2e-5 * k_norm.mean())
-    assert 1 <= len(fit.modes) <= 4  # the tips' z difference (a defocus) at least; never more than 6 - 2
+    # the tips' z difference (a defocus) at least; at most 5, the sixth tip mode being an exact null
+    assert 1 <= len(fit.modes) <= 5
     assert np.allclose(fit.modes @ fit.modes.T / X.size, np.eye(len(fit.modes)), atol=1e-10)
     assert np.allclose(fit.offsets @ np.vstack([AFFINE, fit.modes]).T, 0, atol=1e-9)
     expected = remove_modes(remove_modes(truth, AFFINE), fit.modes)
     assert rms(fit.offsets - expected) < 1.1 * noise
     assert rms(plane_offsets - remove_modes(truth, AFFINE)) > 10 * noise
-    # the refined tips: within 4 sigma of the truth, each coordinate
-    assert np.all(np.abs(fit.tips - np.array([a, b])) < 4 * fit.tip_errors)
-    assert np.all(fit.tip_errors < 1e-3)  # the prior, tightened by the data
+    assert_pinned_tips_refined(fit, np.array([a, b]))
 
 
 def test_tips_that_do_not_fit_the_phases_are_refused(rng):
     a, b = bench_tips(2.4, (0.01, 0.0), 0.0)
     phase, gx, gy = two_source_phase(X, Y, a, b, wavelength=WAVELENGTH, pixel_pitch=PITCH)
-    theta = np.angle(np.exp(1j * phase))
     theta = np.angle(np.exp(1j * (phase + 1e-4 * np.hypot(gx, gy) * rng.standard_normal(X.size))))
     wrong = (a + [0, 0, 0.02], b - [0, 0, 0.02])  # 20 mm off along z, in opposite ways: a defocus the data see
-    with pytest.raises(geometry.GeometryError, match="baseline H1H4: the pixel phases move tip . by .* mm along"):
+    with pytest.raises(geometry.GeometryError, match="baseline H1H4: the pixel phases move the tip of fiber F[14] "
+                                                     "by .* mm along z"):
         fit_two_source(theta, X, Y, *wrong, wavelength=WAVELENGTH, pixel_pitch=PITCH,
-                       k_plane=(gx.mean(), gy.mean()), label="baseline H1H4")
-    with pytest.raises(geometry.GeometryError, match="depart from the two-source surface of the refined tips by .* rad rms"):
+                       k_plane=(gx.mean(), gy.mean()), fibers=("F1", "F4"), label="baseline H1H4")
+    # phases that are no fringe at all: the refinement wanders and stops, or the surface does not fit them
+    with pytest.raises(geometry.GeometryError, match="tips of fibers a and b (did not converge|by .* rad rms)"):
         fit_two_source(rng.uniform(-np.pi, np.pi, X.size), X, Y, a, b, wavelength=WAVELENGTH, pixel_pitch=PITCH,
                        k_plane=(gx.mean(), gy.mean()))
+    with pytest.raises(ValueError, match="max_iterations must be >= 1"):
+        fit_two_source(theta, X, Y, a, b, wavelength=WAVELENGTH, pixel_pitch=PITCH, k_plane=(gx.mean(), gy.mean()),
+                       max_iterations=0)
 
 
 SPHERICAL_BASELINES = {  # the default preset's periods and angles, midpoints 8-20 mm off the normal
@@ -148,9 +163,17 @@ def test_spherical_fringes_give_offsets_at_the_photon_floor(spherical, baseline)
     expected = remove_modes(remove_modes(truth_p, affine), fit.modes)
     floor = rms(solution.photon_floor)
     assert rms(solution.offsets[active] - expected) < 1.2 * floor
-    # refined tips within 4 sigma of the true ones, from nominal ones 1 mm off
-    assert np.linalg.norm(fit.nominal - true_tips, axis=1) == pytest.approx(1e-3, rel=1e-6)
-    assert np.all(np.abs(fit.tips - true_tips) < 4 * fit.tip_errors)
+    # refined tips within 4 sigma of the true ones along what the data pin, from nominal ones 1 mm off
+    assert_pinned_tips_refined(fit, true_tips)
+    # the plane-wave fit of the same phases misses by the true surface's departure from its best plane
+    k_plane, plane_offsets = fringes.projected_offsets(solution.pixel_phase[active], c.astype(float),
+                                                       r.astype(float), solution.k)
+    n_plane = k_plane / np.hypot(*k_plane)
+    plane_truth = remove_modes(n_plane[0] * truth["dx"].values[r, c] + n_plane[1] * truth["dy"].values[r, c], affine)
+    phase, _, _ = two_source_phase(c, r, *true_tips, wavelength=WAVELENGTH, pixel_pitch=PITCH)
+    departure = remove_modes(phase, affine) / np.hypot(*k_plane)
+    assert rms(plane_offsets - plane_truth) == pytest.approx(rms(departure), rel=0.05)
+    assert rms(departure) > 4 * floor
     # the product carries the geometry and the modes
     assert list(product["fiber"].values) == list(manifest.geometry.baseline_fibers[baseline])
     assert product["unobservable_offset"].sizes["mode"] == len(fit.modes) >= 1
@@ -181,10 +204,10 @@ def test_spherical_pairs_give_dx_dy_at_the_floor_with_their_modes_declared(spher
         assert rms(error_dy) < 1.2 * rms(offsets["dy_photon_noise_floor"].values[good])
 
 
-@pytest.mark.parametrize("tilt", [(1e-3, 0.0), (0.0, 1e-3)])
+@pytest.mark.parametrize("tilt", [(1e-3, 0.0), (0.0, 1e-3), (0.7e-3, 0.7e-3)])
 def test_a_tilted_detector_leaves_less_than_1e_6_pixel(rng, tilt):
-    """Pixels at z = t.r (a 1 mrad tilt about the detector centre), reduced with the flat model: the plane
-    and the declared modes absorb what the tilt does to the phase (docs/metrology.md)."""
+    """Pixels at z = t.r (a 1 mrad tilt about the detector centre), reduced with the flat model and the true
+    tips: the plane and the declared modes absorb what the tilt does to the phase (docs/metrology.md)."""
     a, b = bench_tips(2.4, (0.015, 0.0), 0.03)
     _, gx, gy = two_source_phase(X, Y, a, b, wavelength=WAVELENGTH, pixel_pitch=PITCH)
     noise = 1e-3 * np.hypot(gx, gy) * rng.standard_normal(X.size)  # pixel offsets of 1e-3 pixel, as noise
@@ -195,7 +218,7 @@ def test_a_tilted_detector_leaves_less_than_1e_6_pixel(rng, tilt):
     fits = [fit_two_source(np.angle(np.exp(1j * (phase + noise))), X, Y, a, b, wavelength=WAVELENGTH,
                            pixel_pitch=PITCH, k_plane=(gx.mean(), gy.mean())) for phase in (tilted, flat)]
     assert rms(tilted - flat) / np.hypot(gx, gy).mean() > 3e-4  # pixel: what the tilt does to the phase
-    assert rms(fits[0].offsets - fits[1].offsets) < 1e-6
+    assert rms(fits[0].offsets - fits[1].offsets) < 5e-7
 
 
 def test_the_two_pairs_absorb_the_same_modes_so_a_joint_fit_would_pin_none(spherical):
@@ -208,7 +231,7 @@ def test_the_two_pairs_absorb_the_same_modes_so_a_joint_fit_would_pin_none(spher
               for p in pairs]
     spaces = [np.linalg.qr(m.T)[0] for m in spaces]
     cosines = np.linalg.svd(spaces[0].T @ spaces[1], compute_uv=False)
-    assert cosines.size == 6 and cosines.min() > 0.995
+    assert cosines.size == 6 and cosines.min() > 0.997
 
 
 def test_the_pair_difference_maps_are_at_their_floor(spherical):

@@ -296,7 +296,7 @@ def test_modes_without_their_calibration_are_skipped_or_refused(workdir, out, tm
     assert "centroids.pair 'P99' is not a pair of" in result.stdout + result.stderr
 
 
-def test_a_bench_geometry_is_reduced_with_the_metrology_and_every_mode(workdir, out, tmp_path):
+def test_a_bench_geometry_plans_the_metrology_and_every_mode(workdir, out, tmp_path):
     """A format-1.1 manifest (metrology.geometry) plans the whole metrology and every centroid mode; the
     spherical-wave reduction itself runs in the default preset's job (slow test) and tests/test_geometry.py."""
     document = yaml.safe_load((out / "raw" / "dataset.yaml").read_text())
@@ -404,13 +404,15 @@ def test_spherical_wave_fringes_are_reduced_at_the_floor_through_the_workflow(wo
               "--config", "dataset=ci-spherical")
     metrology = read_product(out / "metrology" / "H1H4.nc")
     assert metrology["fiber_position"].dims == ("fiber", "xyz") and metrology.sizes["mode"] >= 1
-    assert "tips refined in" in (out / "logs" / "fit_fringes_H1H4.log").read_text()
+    assert "tips of fibers H1H4a and H1H4b refined in" in (out / "logs" / "fit_fringes_H1H4.log").read_text()
     # what a plane-wave fit would have left, against the true tips' surface minus its best plane
     truth = read_product(out / "raw" / "truth.nc")
     good = np.isfinite(metrology["plane_wave_departure"].values)
     rows, cols = np.nonzero(good)
     tips = dict(zip(truth["fiber"].values, truth["fiber_position"].values))
-    phase, gx, gy = two_source_phase(cols, rows, tips["H1H4a"], tips["H1H4b"], wavelength=633e-9, pixel_pitch=24e-6)
+    bench = load_manifest(out / "raw" / "dataset.yaml").geometry
+    phase, gx, gy = two_source_phase(cols, rows, tips["H1H4a"], tips["H1H4b"], wavelength=bench.wavelength,
+                                     pixel_pitch=bench.pixel_pitch)
     design = np.column_stack([np.ones(rows.size), cols, rows])
     expected = (phase - design @ np.linalg.lstsq(design, phase, rcond=None)[0]) / np.hypot(gx, gy)
     departure = metrology["plane_wave_departure"].values[good]

@@ -15,6 +15,7 @@ rule fit_fringes:
         metrology=f"{OUT}/metrology/{{baseline}}.nc",
     params:
         code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
+        options=config["metrology"],  # a changed option (tip_sigma, tolerance...) reruns the fits
     log:
         f"{OUT}/logs/fit_fringes_{{baseline}}.log",
     benchmark:
@@ -50,7 +51,7 @@ rule compare_pairs:
         difference=f"{OUT}/calibration/offsets_difference_{{pair}}.nc",
     params:
         reference=MANIFEST.reference_pair,
-        code=code_version("io", "deprojection"),
+        code=code_version("io", "deprojection", "geometry"),
     log:
         f"{OUT}/logs/compare_pairs_{{pair}}.log",
     conda:

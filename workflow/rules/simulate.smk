@@ -10,7 +10,7 @@ if SIMULATION is not None:
             truth=f"{RAW}/truth.nc",
         params:
             simulation=SIM_CONFIG,
-            code=code_version("detector", "simulation", "io", "polynomials"),
+            code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
         log:
             f"{OUT}/logs/simulate_truth.log",
         conda:
@@ -25,7 +25,7 @@ if SIMULATION is not None:
             cube=f"{RAW}/{{relpath}}.fits",
         params:
             simulation=SIM_CONFIG,
-            code=code_version("detector", "simulation", "io", "polynomials"),
+            code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
         wildcard_constraints:
             relpath="(dark|flat|metrology|stars)/[A-Za-z0-9._-]+",
         log:
@@ -45,7 +45,7 @@ if SIMULATION is not None:
             manifest=f"{RAW}/dataset.yaml",
         params:
             simulation=SIM_CONFIG,
-            code=code_version("simulation", "manifest"),
+            code=code_version("geometry", "simulation", "manifest"),
         log:
             f"{OUT}/logs/simulate_manifest.log",
         conda:
