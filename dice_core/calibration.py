@@ -275,19 +275,22 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, 
         log.warning("%s: %d saturated samples masked in %d pixels", label,
                     stats.masked.sum(), np.count_nonzero(stats.masked))
     # Step 4: divide out the smooth illumination; step 5: mean 1 over the science area. A dead pixel
-    # or column would pull both (a dead column of 78 pixels shifts the mean by 1.4e-2 on 80x84).
+    # or column would pull both (a dead column of 78 pixels shifts the mean by 1.4e-2 on 80x84), so
+    # the pixels below half the light, judged once the illumination of a first fit is divided out
+    # (vignetting must not make a dim, healthy pixel dead), are left out of both.
+    measured = science & (stats.count > 0)
+    first, _ = remove_gradient(np.where(measured, mean, np.nan), measured, degree=gradient_degree)
     with np.errstate(invalid="ignore"):
-        responding = mean > DEAD_BELOW * np.nanmedian(np.where(science & (stats.count > 0), mean, np.nan))
-    not_responding = science & ~responding
+        responding = measured & (first > DEAD_BELOW * np.nanmedian(np.where(measured, first, np.nan)))
+    not_responding = measured & ~responding
     if not_responding.any():
         rows, cols = np.nonzero(not_responding)
         shown = ", ".join(f"(row {r}, col {c})" for r, c in list(zip(rows, cols))[:5])
         log.warning("%s: %d pixel(s) respond to less than %.0f%% of the median level, left out of the "
                     "illumination fit and the normalisation: %s%s", label, rows.size, 100 * DEAD_BELOW, shown,
                     ", ..." if rows.size > 5 else "")
-    fit_mask = science & (stats.count > 0) & responding
-    flattened, surface = remove_gradient(np.where(science & (stats.count > 0), mean, np.nan), fit_mask,
-                                         degree=gradient_degree)
+    fit_mask = responding
+    flattened, surface = remove_gradient(np.where(measured, mean, np.nan), fit_mask, degree=gradient_degree)
     prnu = flattened / np.nanmean(np.where(fit_mask, flattened, np.nan)[sl])
 
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -325,6 +328,8 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, 
         coords={**_coords(detector), "frame": np.arange(frame_level.size)},
     )
     ds.attrs["gradient_degree"] = gradient_degree
+    ds.attrs["normalisation"] = (f"mean 1 over the responding pixels of the science area (those above "
+                                 f"{DEAD_BELOW:g} of the median level once the illumination is divided out)")
     return ds
 
 
@@ -394,7 +399,7 @@ def bad_pixel_mask(dark: xr.Dataset, prnu: np.ndarray, detector: Detector, *, de
     dark : xarray.Dataset
         ``calibration/dark.nc``: mean dark ``dark`` and temporal noise ``noise``, adu.
     prnu : ndarray (row, col)
-        A PRNU map (mean 1 over the science area), e.g. the reference flat's.
+        A PRNU map (mean 1 over the responding pixels of the science area), e.g. the reference flat's.
     detector : Detector
     dead_below : float
         A pixel whose PRNU is below this responds to less than this fraction of

@@ -170,16 +170,20 @@ def gaussian_fit(image: np.ndarray, window: Window, *, weights=None) -> Gaussian
                        float(np.sqrt(eigenvalues[0])), angle, float(2 * result.cost), result.x.copy())
 
 
-def cramer_rao(fit: GaussianFit, window: Window, *, gain: float, read_noise) -> np.ndarray:
+def cramer_rao(fit: GaussianFit, window: Window, *, gain: float, read_noise, used=None) -> np.ndarray:
     """Cramer-Rao bound (sigma_x, sigma_y), pixel, for the position of a star of this shape and flux.
 
     Photon noise of the model counts (variance model / gain, adu^2) plus read
     noise (adu, scalar or per pixel of the window), all 7 parameters free:
-    the bound is sqrt of the diagonal of the inverse Fisher matrix.
+    the bound is sqrt of the diagonal of the inverse Fisher matrix. ``used``
+    (bool, size x size) leaves the other pixels out of the Fisher sum.
     """
     xg, yg = window.grid()
     model, jac = _gaussian_model(fit.params, xg.ravel(), yg.ravel())
     variance = np.clip(model, 0, None) / gain + np.ravel(np.broadcast_to(read_noise, (window.size,) * 2)) ** 2
+    if used is not None:
+        keep = np.ravel(used)
+        jac, variance = jac[keep], variance[keep]
     fisher = jac.T @ (jac / variance[:, None])
     return np.sqrt(np.diag(np.linalg.inv(fisher))[2:4])
 
@@ -404,13 +408,18 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
     dx, dy : ndarray (row, col), optional
         Pixel offsets for the offset correction (:func:`offset_corrected`).
     bad_pixels : int ndarray (row, col), optional
-        The bad-pixel mask's flags (0 good; ``calibration/bad_pixels.nc``). A
-        Gaussian fit without the offset correction leaves a window's bad pixels
-        out (weight 0). The Fourier method and the offset correction resample
-        the whole window, which one bad value spoils: a star with a bad pixel
-        in its window is then not measured at that position (NaN, logged with
-        the star and the pixels), and at the first position, whose windows are
-        the references, it is an error naming them.
+        The bad-pixel mask's flags (``bad_pixel`` of ``calibration/bad_pixels.nc``);
+        its unusable pixels (dead, hot, column: :data:`dice_core.calibration.UNUSABLE`)
+        are the bad ones, dust pixels being the flat's to correct. A Gaussian
+        fit without the offset correction leaves a window's bad pixels out
+        (weight 0, and out of the Cramer-Rao bound). The Fourier method and the
+        offset correction resample the whole window, which one bad value
+        spoils: a star with a bad pixel in its window is then not measured at
+        that position (NaN, logged with the star and the pixels). With the
+        Fourier method, a bad pixel in a star's window at the first position,
+        its reference, leaves that star unmeasured at every position (logged);
+        in the central star's, which ties the others, it is an error naming
+        the pixels.
     method : {"fourier", "gaussian"}
         Fourier resampling against each star's window at the first position,
         tied to the central star's Gaussian fit there (stars tied to one
@@ -447,8 +456,13 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
     out = {name: np.full((n_pos, n_star), np.nan) for name in ("x", "y", "px", "py", "lx", "ly")}
     n_saturated = np.zeros((n_pos, n_star), dtype=np.int64)
     n_bad = np.zeros((n_pos, n_star), dtype=np.int64)
-    flags = np.zeros(detector.shape, np.int64) if bad_pixels is None else np.asarray(bad_pixels).astype(np.int64)
+    from dice_core.calibration import unusable_pixels
+
+    flags = np.zeros(detector.shape, np.int64)
+    if bad_pixels is not None:
+        flags = np.where(unusable_pixels(bad_pixels), np.asarray(bad_pixels).astype(np.int64), 0)
     leave_out = method == "gaussian" and dx is None  # else a bad value is resampled over the window
+    no_reference = set()  # stars whose reference window (Fourier, first position) holds a bad pixel
     n_frames = np.zeros(n_pos, dtype=np.int64)
     centres = [(float(r), float(c)) for r, c in approx]
     references, first_windows = None, None
@@ -505,12 +519,18 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
                  for image, w in zip(images, windows)]
         for s, w in enumerate(windows):
             n_bad[i, s] = int(np.count_nonzero(flags[w.slices]))
-        if references is None and not leave_out and n_bad[i].any():
-            s = int(np.flatnonzero(n_bad[i])[0])
-            raise WindowError(f"star {s} at {where}: its window, a reference of every later position, holds bad "
-                              f"pixel(s) {_pixel_list(windows[s], flags[windows[s].slices] != 0, flags[windows[s].slices])}"
-                              f"; the {method} method{' with the offset correction' if dx is not None else ''} "
-                              "cannot leave pixels out (the gaussian method without metrology can)")
+        if references is None and method == "fourier" and n_bad[i].any():
+            for s in np.flatnonzero(n_bad[i]):
+                listed = _pixel_list(windows[s], flags[windows[s].slices] != 0, flags[windows[s].slices])
+                if s == central:
+                    raise WindowError(f"star {s} at {where}: its window, the reference every star is tied to, holds "
+                                      f"bad pixel(s) {listed}; the fourier method cannot leave pixels out (the "
+                                      "gaussian method without metrology can)")
+                no_reference.add(int(s))
+                if log is not None:
+                    log.warning("%s: star %d at %s: its reference window holds bad pixel(s) %s; the fourier method "
+                                "cannot leave pixels out: the star is not measured at any position", label, s,
+                                where, listed)
         if references is None:
             if method == "fourier" and any(saturated[w.slices].any() for w in windows):
                 s = next(s for s, w in enumerate(windows) if saturated[w.slices].any())
@@ -521,7 +541,7 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
             anchor = gaussian_fit(images[central], windows[central], weights=noise[central])
             # each star's reference tied to the central one's, by the method itself, with the weights
             # its reference is measured with later: that window's noise then cancels between tie and shift
-            ties = [np.zeros(2) if s == central or method == "gaussian" else
+            ties = [np.zeros(2) if s == central or method == "gaussian" or s in no_reference else
                     fourier_displacement(images[central], images[s], weights=noise[s]) + np.array(
                         [windows[s].col0 - windows[central].col0, windows[s].row0 - windows[central].row0])
                     for s in range(n_star)]
@@ -537,6 +557,8 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
 
         for s, window in enumerate(windows):
             n_saturated[i, s] = int(saturated[window.slices].sum())
+            if s in no_reference:
+                continue
             if n_bad[i, s] and not leave_out:
                 if log is not None:
                     log.warning("%s: star %d at %s has bad pixel(s) in its window, %s: not measured", label, s,
@@ -553,7 +575,8 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
             fit = gaussian_fit(images[s], window, weights=noise[s])  # the shape and flux of the bound
             xy = np.array([fit.x, fit.y]) if method == "gaussian" else locate(images[s], window, s, noise[s])
             batch_xy = np.array([locate(b[s], window, s, noise[s] / np.sqrt(n_batches)) for b in batch_images])
-            limit = cramer_rao(fit, window, gain=detector.gain * n, read_noise=read_noise[window.slices] / np.sqrt(n))
+            limit = cramer_rao(fit, window, gain=detector.gain * n, read_noise=read_noise[window.slices] / np.sqrt(n),
+                               used=flags[window.slices] == 0)
             out["x"][i, s], out["y"][i, s] = xy
             out["px"][i, s], out["py"][i, s] = batch_xy.std(axis=0, ddof=1) / np.sqrt(n_batches)
             out["lx"][i, s], out["ly"][i, s] = limit

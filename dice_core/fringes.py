@@ -273,9 +273,12 @@ class FringeSolution:
         along the local wavevectors and ``k`` is their mean.
     gauge_difference_floor : float or None
         With a flat, and frames in two parts (files): the rms noise of
-        ``offsets - offsets_prnu_free``, pixel, measured as half the rms of
-        the two parts' own gauge differences minus each other. A difference
-        well above it is a systematic: the two gauges disagree.
+        ``offsets - offsets_prnu_free`` from the metrology frames, pixel,
+        measured from the two parts' own gauge differences (half the rms of
+        their difference for equal parts). The flat's own noise, the same in
+        both parts, is not in it. The difference is a boost, two numbers, so
+        its ratio to the floor scatters like sqrt(F(2, 2)): pure noise passes
+        3x the floor one time in 10, 5x one time in 26.
     """
 
     rows: np.ndarray
@@ -478,10 +481,12 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     geometry : BaselineGeometry, optional
         The baseline's fiber tips (nominal) and bench: spherical-wave fringes.
         Without it the fringes are plane waves.
-    bad_pixels : bool ndarray (row, col), optional
-        Pixels to leave out from the start (the bad-pixel mask: dead, hot, dust,
-        columns): they enter neither the frame fits nor the plane of K, and
-        have no offset.
+    bad_pixels : ndarray (row, col), optional
+        Pixels to leave out from the start: a bool map, or the bad-pixel
+        mask's flags (``bad_pixel`` of ``calibration/bad_pixels.nc``), of which
+        the unusable ones (dead, hot, column: :data:`dice_core.calibration.UNUSABLE`;
+        dust pixels are kept). They enter neither the frame fits nor the plane
+        of K, and have no offset.
     label : str
         Name in log messages and errors.
 
@@ -505,7 +510,12 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     centred = hasattr(stream, "centred")
     if centred:  # the reader subtracts it while converting, at no extra pass; _pass only folds it in
         stream = stream.centred(reference)
-    bad = np.zeros(detector.shape, bool) if bad_pixels is None else np.asarray(bad_pixels, bool) & mask
+    bad = np.zeros(detector.shape, bool)
+    if bad_pixels is not None:
+        from dice_core.calibration import unusable_pixels
+
+        bad_pixels = np.asarray(bad_pixels)
+        bad = (bad_pixels if bad_pixels.dtype == bool else unusable_pixels(bad_pixels)) & mask
     k0 = initial_wavevector(first.frames[0] - dark0, mask & ~bad)
     log.info("%s: wavevector from the FFT of frame 0: (%.5f, %.5f) rad/pixel", label, *k0)
     rows, cols = np.nonzero(mask)
@@ -675,7 +685,9 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
                     log.warning("%s: no noise floor for the gauge difference (%s)", label, exc)
                 else:
                     if len(halves) == 2:
-                        gauge_floor = float(np.sqrt(np.mean((halves[0] - halves[1]) ** 2)) / 2)
+                        # the whole is (n1 d1 + n2 d2) / (n1 + n2): of noise rms(d1 - d2) sqrt(n1 n2) / (n1 + n2)
+                        n1, n2 = (F_part.shape[0] for F_part, _ in parts)
+                        gauge_floor = float(np.sqrt(np.mean((halves[0] - halves[1]) ** 2) * n1 * n2) / (n1 + n2))
                     else:
                         log.info("%s: the frames are one part (one file): no noise floor for the gauge "
                                  "difference", label)

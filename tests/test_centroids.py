@@ -359,13 +359,16 @@ def test_asymmetric_pixels_are_corrected_at_their_barycentres_not_their_centres(
 
 
 def test_bad_pixels_in_a_star_window_are_left_out_or_the_star_refused(tmp_path, caplog):
-    """A Gaussian fit without metrology leaves the mask's bad pixels out (the centroid hardly moves on
-    noiseless data); the Fourier method, which resamples the whole window, refuses the star where a window
-    holds one: an error naming the star and the pixel at the first position (the references), a NaN and a
-    warning at a later one."""
+    """A dead column through star 1's core (its samples at the dark level): a Gaussian fit without metrology
+    leaves it out and keeps the accuracy it has without the defect, where using it costs far more; the Fourier
+    method, which resamples the whole window, cannot: the star is not measured, at every position when its
+    reference window holds the defect (logged), at that position when only a later window does (NaN and a
+    warning), and a defect in the central star's reference window, which ties every star, is an error naming
+    the star and the pixel. Dust flags alone change nothing: the flat corrects those pixels."""
     import logging
 
     from dice_core.calibration import BAD_PIXEL_FLAGS
+    from dice_core.io import Chunk, FrameStream
 
     manifest, truth = simulate_stars(tmp_path, prf_width_spread=0.0, step=[0.0, 0.6])  # windows follow the stars
     positions = [p.index for p in manifest.positions]
@@ -380,17 +383,41 @@ def test_bad_pixels_in_a_star_window_are_left_out_or_the_star_refused(tmp_path, 
                                            for i in range(len(positions) - 1)]
     windows = [centroids.star_window(r, c, half, manifest.detector.shape) for r, c in centres]
     first = windows[0]
-    flags = np.zeros(manifest.detector.shape, np.int8)
     column = first.col0 + half + 1  # through the star's core, next to its peak
-    flags[first.row0:first.row0 + size, column] = BAD_PIXEL_FLAGS["dead"] | BAD_PIXEL_FLAGS["column"]
-    left_out = centroids.measure_positions(stacks_of(manifest), *args, method="gaussian", bad_pixels=flags, **common)
+    rows = slice(first.row0, first.row0 + size)
+    streams = {p.index: FrameStream(p.acquisition, manifest.detector) for p in manifest.positions}
+
+    def dead_column(index):
+        for chunk in streams[index]:
+            frames = chunk.frames.copy()
+            frames[:, rows, column] = truth["bias"].values[rows, column]  # no light: the dark level
+            yield Chunk(chunk.start, frames, chunk.saturated, chunk.any_saturated)
+
+    dead = stacks_of(manifest, chunks_of=dead_column)
+    flags = np.zeros(manifest.detector.shape, np.int8)
+    flags[rows, column] = BAD_PIXEL_FLAGS["dead"] | BAD_PIXEL_FLAGS["column"]
+    left_out = centroids.measure_positions(dead, *args, method="gaussian", bad_pixels=flags, **common)
+    used = centroids.measure_positions(dead, *args, method="gaussian", **common)
     assert np.all(left_out.n_bad_pixels[:, 1] > 0) and not left_out.n_bad_pixels[:, [0, 2, 3, 4]].any()
-    # the fit without the column is as accurate as with it: the model's own error, not a bad value
     assert differential_error(left_out, truth) < 1.2 * differential_error(clean["gaussian"], truth)
-    with pytest.raises(centroids.WindowError, match=rf"star 1 at position {positions[0]}: its window, a reference "
-                                                     rf"of every later position, holds bad pixel\(s\) row \d+, "
-                                                     rf"col {column} \(dead, column\)"):
-        centroids.measure_positions(stacks_of(manifest), *args, method="fourier", bad_pixels=flags, **common)
+    assert differential_error(used, truth) > 10 * differential_error(left_out, truth)
+    assert np.all(left_out.limit_x[:, 1] > clean["gaussian"].limit_x[:, 1])  # a bound without the column
+    dust = np.where(flags > 0, BAD_PIXEL_FLAGS["dust"], 0).astype(np.int8)
+    assert np.array_equal(centroids.measure_positions(dead, *args, method="gaussian", bad_pixels=dust, **common).x,
+                          used.x)
+    log = logging.getLogger("test-centroids")
+    with caplog.at_level("WARNING", logger="test-centroids"):
+        unreferenced = centroids.measure_positions(dead, *args, method="fourier", bad_pixels=flags, log=log, **common)
+    assert np.isnan(unreferenced.x[:, 1]).all() and np.isfinite(unreferenced.x[:, [0, 2, 3, 4]]).all()
+    assert (f"star 1 at position {positions[0]}: its reference window holds bad pixel(s) row {first.row0}, "
+            f"col {column} (dead, column)") in caplog.text
+    central = centroids.star_window(*manifest.star_approx[0], half, manifest.detector.shape)  # star 0, the centre
+    flags_central = np.zeros(manifest.detector.shape, np.int8)
+    flags_central[central.row0, central.col0] = BAD_PIXEL_FLAGS["hot"]
+    with pytest.raises(centroids.WindowError, match=rf"star 0 at position {positions[0]}: its window, the reference "
+                                                     rf"every star is tied to, holds bad pixel\(s\) row "
+                                                     rf"{central.row0}, col {central.col0} \(hot\)"):
+        centroids.measure_positions(stacks_of(manifest), *args, method="fourier", bad_pixels=flags_central, **common)
     # a pixel only a later window of star 1 holds
     later = [(i, r, c) for i, w in enumerate(windows[1:], 1) for r in range(w.row0, w.row0 + size)
              for c in range(w.col0, w.col0 + size)

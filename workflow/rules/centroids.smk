@@ -31,7 +31,7 @@ rule measure_centroids:
     output:
         centroids=f"{OUT}/centroids/{{mode}}.nc",
     params:
-        code=code_version("io", "manifest", "calibration", "centroids", "stacks"),
+        code=code_version("io", "manifest", "calibration", "centroids", "polynomials", "stacks"),
         options=centroid_options,
     log:
         f"{OUT}/logs/measure_centroids_{{mode}}.log",

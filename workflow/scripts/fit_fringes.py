@@ -15,8 +15,9 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
     flat = io.read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
     bad_pixels = None
     if bad_pixel_paths:  # dead, hot and column defects out; dust pixels kept (the flat measures them)
-        bad_pixels = calibration.unusable_pixels(io.read_product(bad_pixel_paths[0])["bad_pixel"].values)
-        log.info("baseline %s: %d unusable pixel(s) of the bad-pixel mask left out", baseline, bad_pixels.sum())
+        bad_pixels = io.read_product(bad_pixel_paths[0])["bad_pixel"].values
+        log.info("baseline %s: %d unusable pixel(s) of the bad-pixel mask left out", baseline,
+                 calibration.unusable_pixels(bad_pixels).sum())
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
                             min_frames=16, purpose="a fringe solution", dtype="float32")
     options = config["metrology"]

@@ -2,10 +2,8 @@
 
 import logging
 
-import numpy as np
-
 import dice_core
-from dice_core import calibration, centroids, io, stacks
+from dice_core import centroids, io, stacks
 from dice_core.manifest import load_manifest
 
 
@@ -26,10 +24,8 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pix
     if use_metrology:
         offsets = io.read_product(offsets_path)
         dx, dy = offsets["dx"].values, offsets["dy"].values
-    bad_pixels = None
-    if bad_pixel_paths:  # dead, hot and column defects; dust pixels are the flat's to correct
-        flags = io.read_product(bad_pixel_paths[0])["bad_pixel"].values
-        bad_pixels = np.where(calibration.unusable_pixels(flags), flags, 0)
+    # dead, hot and column defects are left out or refuse a star; dust pixels are the flat's to correct
+    bad_pixels = io.read_product(bad_pixel_paths[0])["bad_pixel"].values if bad_pixel_paths else None
     positions = [p.index for p in manifest.positions]
     log.info("mode %s (flat %s, pixel offsets %s), method %s, %d positions, %d stars, %dx%d windows", mode,
              use_flat, use_metrology, options["method"], len(positions), len(manifest.star_approx),
