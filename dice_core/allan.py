@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from dice_core.fringes import frame_moments, photon_floor, wrapped_about_mean
+from dice_core.fringes import frame_moments, photon_floor
 from dice_core.io import first_chunk
 from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
                                 threads_report)
@@ -50,6 +50,7 @@ __all__ = [
     "fringe_batches",
     "batch_offsets",
     "batch_floors",
+    "group_fits",
     "group_sizes",
     "group_deviation",
     "allan_deviation",
@@ -109,11 +110,6 @@ def fringe_batches(phase, *, span: float = 2 * np.pi) -> np.ndarray:
     return np.array(edges, dtype=int)
 
 
-def _remove_affine(design, values):
-    """``values`` (pixel,) minus their least-squares fit on ``design`` (pixel, k)."""
-    return values - design @ np.linalg.lstsq(design, values, rcond=None)[0]
-
-
 @dataclass(frozen=True)
 class _BatchFit:
     """What turns a batch's sums F'X into its offsets (see :func:`batch_offsets`)."""
@@ -123,21 +119,41 @@ class _BatchFit:
     reference_phase: np.ndarray  # rad
     design: np.ndarray  # affine design over the pixels
     k_norm: float  # rad/pixel
+    basis: np.ndarray = None  # orthonormal columns spanning ``design``: the affine part removed by a projection
+    rotation: np.ndarray = None  # exp(-i reference_phase)
+
+    def __post_init__(self):
+        if self.basis is None:
+            object.__setattr__(self, "basis", np.linalg.qr(self.design)[0])
+        if self.rotation is None:
+            object.__setattr__(self, "rotation", np.exp(-1j * self.reference_phase))
+
+    def normal_sums(self, F, FtX):
+        """F'I (3, pixel of idx) of frames with factors F (frame, 3) and sums F'X: the level folded back in."""
+        return FtX + np.outer(F.sum(axis=0), self.level)
+
+    def offsets_of_sums(self, FtF, FtI):
+        """Projected offsets (pixel,) of the least-squares fit with normal equations F'F (3, 3), F'I (3, pixel)."""
+        G = np.linalg.inv(FtF) @ FtI  # a 3x3 inverse: a fraction of the cost of solve() for 5600 pixels
+        # theta - reference as unit complex numbers, (G2 + i G1) / |G| exp(-i reference), wrapped about
+        # their circular mean: the difference is the constant phase the gauge leaves free plus the
+        # batch's small offset changes, and that constant may be near pi (wrapped_about_mean, cheaper)
+        turned = (G[2] + 1j * G[1]) * self.rotation
+        turned /= np.abs(turned)
+        centre = np.mean(turned)
+        delta = np.angle(turned * np.conj(centre / np.abs(centre)))
+        return (delta - self.basis @ (self.basis.T @ delta)) / self.k_norm
 
     def offsets(self, F, FtX):
         """Projected offsets (pixel,) of a batch with frame factors F (frame, 3) and sums F'X (3, pixel of idx)."""
-        G = np.linalg.solve(F.T @ F, FtX + np.outer(F.sum(axis=0), self.level))
-        # about the circular mean: the difference is the constant phase the gauge leaves free plus the
-        # batch's small offset changes, and that constant may be near pi
-        delta = wrapped_about_mean(np.arctan2(G[1], G[2]) - self.reference_phase)
-        return _remove_affine(self.design, delta) / self.k_norm
+        return self.offsets_of_sums(F.T @ F, self.normal_sums(F, FtX))
 
 
 def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
     """One lane's part of :func:`batch_offsets`: the batches its chunks hold whole, and the others' partial sums.
 
-    Returns ``(done, partial, blas_threads)``: ``done`` maps a batch index to its offsets
-    (pixel,), ``partial`` maps a batch the chunks hold only part of to its
+    Returns ``(done, partial, blas_threads)``: ``done`` maps a batch index to its normal
+    sums F'I (3, pixel of ``fit.idx``), ``partial`` maps a batch the chunks hold only part of to its
     sums F'X over those frames (3, pixel of ``fit.idx``) and the number of
     those frames; ``blas_threads`` those of the process that ran it (for the
     log). Module-level, so that a worker process can run it.
@@ -163,7 +179,7 @@ def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
             np.add(sums[b], F.T @ X[lo - lo_frame:hi - lo_frame], out=sums[b])
             covered[b] = covered.get(b, 0) + hi - lo
             if covered[b] == lengths[b]:
-                done[b] = fit.offsets(frame_factors[start:stop], sums.pop(b)[:, fit.idx])
+                done[b] = fit.normal_sums(frame_factors[start:stop], sums.pop(b)[:, fit.idx])
                 del covered[b]
                 if len(done) % 100 == 0:
                     log.info("%s: %d batches fitted in one part of the frames", label, len(done))
@@ -172,7 +188,7 @@ def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
 
 @one_blas_thread
 def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows, cols, *,
-                  reference=None, workers: int = 1, label="baseline"):
+                  reference=None, workers: int = 1, return_sums: bool = False, label="baseline"):
     """Projected offsets of every pixel in every batch, in one pass over the frames.
 
     For each batch b, with the frame factors F_t = (B, A cos phi, A sin phi)(t)
@@ -207,12 +223,18 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     workers : int
         Processes reading the parts at once, one BLAS thread each; the result
         does not depend on it (the parts are fixed and summed in order).
+    return_sums : bool
+        Also return each batch's normal sums F'I, for fits of groups of
+        batches as a whole (:func:`group_fits`).
 
     Returns
     -------
     ndarray (batch, pixel)
         Each batch's projected offsets minus those of ``reference_phase`` (the
         global solution's), pixel, affine part removed.
+    ndarray (batch, 3, pixel), float32
+        With ``return_sums``: each batch's F'I, adu^2 (float32 holds them to
+        6e-8, a phase to 1e-7 rad).
     """
     n_cols = np.shape(dark)[1]
     idx = rows * n_cols + cols
@@ -229,21 +251,30 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
         results = map_lanes(executor, _lane_batch_offsets, lanes, batches, frame_factors, fit, label)
     log.info("%s: %s", label, threads_report(executor, [threads for _, _, threads in results]))
     out = np.full((len(batches), idx.size), np.nan)
+    kept = np.zeros((len(batches), 3, idx.size), np.float32) if return_sums else None
     fitted = np.zeros(len(batches), bool)
     partial, covered = {}, {}
+
+    def finish(b, FtI):
+        start, stop = batches[b]
+        F = frame_factors[start:stop]
+        out[b], fitted[b] = fit.offsets_of_sums(F.T @ F, FtI), True
+        if kept is not None:
+            kept[b] = FtI
+
     for done, sums, _ in results:  # in lane order, so that a batch cut between parts sums the same way always
-        for b, offsets in done.items():
-            out[b], fitted[b] = offsets, True
+        for b, FtI in done.items():
+            finish(b, FtI)
         for b, (part, n_frames) in sums.items():
             partial[b] = part if b not in partial else partial[b] + part
             covered[b] = covered.get(b, 0) + n_frames
     for b, part in partial.items():
         start, stop = batches[b]
         if covered[b] == stop - start:
-            out[b], fitted[b] = fit.offsets(frame_factors[start:stop], part), True
+            finish(b, fit.normal_sums(frame_factors[start:stop], part))
     if not fitted.all():
         raise AllanError(f"{label}: the frames ended in batch {np.flatnonzero(~fitted)[0]} of {len(batches)}")
-    return out
+    return (out, kept) if return_sums else out
 
 
 def batch_floors(frame_factors, batches, pixel_factors, gain, read_noise, k_norm) -> np.ndarray:
@@ -259,6 +290,65 @@ def batch_floors(frame_factors, batches, pixel_factors, gain, read_noise, k_norm
         FtF, third = frame_moments(frame_factors[start:stop])
         out[b] = photon_floor(pixel_factors, FtF, third, gain, read_noise, k_norm)
     return out
+
+
+def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes, *, pixel_factors, gain,
+               read_noise):
+    """Offsets and photon-noise floors of consecutive groups of batches, each group fitted as a whole.
+
+    A group's normal equations are the sums of its batches' (F'F and F'I from
+    :func:`batch_offsets` with ``return_sums``): its fit is the least-squares
+    fit of all its frames at once, whose phases cover the circle evenly once
+    the group spans several periods, where the mean of its one-period batch
+    fits keeps each batch's uneven sampling (docs/metrology.md).
+
+    Parameters
+    ----------
+    sums : ndarray (batch, 3, pixel)
+        Each batch's F'I, adu^2.
+    batches : ndarray (batch, 2)
+        Consecutive batches (:func:`fringe_batches`).
+    frame_factors : ndarray (frame, 3)
+        (B, A cos phi, A sin phi), adu.
+    reference_phase, k, rows, cols
+        As for :func:`batch_offsets`.
+    sizes : sequence of int
+        Batches per group (:func:`group_sizes`).
+    pixel_factors : ndarray (pixel, 3)
+        (iota, alpha sin theta, alpha cos theta) of the global solution, for the floors.
+    gain : float
+        e-/adu.
+    read_noise : ndarray (pixel,)
+        adu.
+
+    Returns
+    -------
+    offsets, floors : list of ndarray (group, pixel), one per size
+        Each group's projected offsets (affine part removed) and their 1-sigma
+        photon-noise errors, pixel.
+    """
+    fit = _BatchFit(idx=None, level=None, reference_phase=np.asarray(reference_phase, float),
+                    design=polynomial_design(np.asarray(cols, float), np.asarray(rows, float), 1),
+                    k_norm=float(np.hypot(*k)))
+    moments = [frame_moments(frame_factors[start:stop]) for start, stop in batches]
+    # running sums of the small moments: a group's are two differences. The F'I are summed group by
+    # group instead (a running sum would hold another float64 copy of them all).
+    cum_FtF = np.concatenate([np.zeros((1, 3, 3)), np.cumsum([m[0] for m in moments], axis=0)])
+    cum_third = np.concatenate([np.zeros((1, 3, 3, 3)), np.cumsum([m[1] for m in moments], axis=0)])
+    offsets, floors = [], []
+    for m in sizes:
+        n_groups = len(batches) // m
+        group_offsets = np.empty((n_groups, sums.shape[2]))
+        group_floors = np.empty_like(group_offsets)
+        for g in range(n_groups):
+            lo, hi = g * m, (g + 1) * m
+            FtF = cum_FtF[hi] - cum_FtF[lo]
+            group_offsets[g] = fit.offsets_of_sums(FtF, sums[lo:hi].sum(axis=0, dtype=np.float64))
+            group_floors[g] = photon_floor(pixel_factors, FtF, cum_third[hi] - cum_third[lo], gain, read_noise,
+                                           fit.k_norm)
+        offsets.append(group_offsets)
+        floors.append(group_floors)
+    return offsets, floors
 
 
 def group_sizes(n_batches: int, *, per_decade: int = 10) -> np.ndarray:
@@ -347,8 +437,14 @@ def _mean_variance_root(deviations, axis=-1):
     return np.sqrt(np.nanmean(np.square(deviations), axis=axis))
 
 
+def _deviations_of_groups(groups):
+    """The paper's deviation and the Allan deviation of given group values, one (group, ...) array per size."""
+    return (np.stack([_deviation_of_means(g) for g in groups]), np.stack([_allan_of_means(g) for g in groups]))
+
+
 def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, amplitude, iota, alpha, read_noise,
-                  k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40) -> xr.Dataset:
+                  k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40, group_offsets=None,
+                  group_floors=None) -> xr.Dataset:
     """The ``allan/<baseline>.nc`` product from the batch offsets.
 
     Parameters
@@ -373,6 +469,11 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         Of the white-noise reference cube.
     n_sample_pixels : int
         Pixels whose own deviation curves the figure draws (evenly spread).
+    group_offsets, group_floors : list of ndarray (group, pixel), optional
+        Each group size's groups fitted as a whole (:func:`group_fits`, sizes
+        of :func:`group_sizes`), pixel. Given, they make the deviations and
+        their limits; the means of batch fits (the paper's) stay as
+        ``deviation_mean_batch_means`` and ``photon_limit_pixel_batch_means``.
 
     Returns
     -------
@@ -384,7 +485,8 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         ``white_deviation_mean`` and ``white_deviation_block_mean``, and the
         photon-noise limits ``photon_limit_pixel``, ``photon_limit_block``;
         ``slope`` of log deviation_mean against log n_frames; the batch offsets
-        and lengths.
+        and lengths. With ``group_offsets``, also ``deviation_mean_batch_means``,
+        ``photon_limit_pixel_batch_means`` (the groups as means of batch fits).
     """
     n_batches = offsets.shape[0]
     sizes = group_sizes(n_batches)
@@ -398,7 +500,7 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
     white = rng.standard_normal(offsets.shape) * np.std(offsets, axis=0, ddof=1)
     white_blocks = rng.standard_normal(blocks.shape) * np.std(blocks, axis=0, ddof=1)
 
-    per_pixel, per_pixel_allan = _deviations(offsets, sizes)
+    per_pixel, per_pixel_allan = _deviations(offsets, sizes)  # groups as means of their batch fits
     per_block, per_block_allan = _deviations(blocks, sizes)
     white_pixel, _ = _deviations(white, sizes)
     white_block, _ = _deviations(white_blocks, sizes)
@@ -411,13 +513,29 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
     used = (n_batches // sizes) * sizes
     limit_pixel = np.sqrt(np.array([pixel_variance[:n].mean() for n in used]) / sizes)
     limit_block = np.sqrt(np.array([block_variance[:n].mean() for n in used]) / sizes)
+    batch_means = {}
+    if group_offsets is not None:
+        # the contract's curves: each group fitted as a whole; the means of batch fits kept beside them
+        batch_means = {"deviation_mean_batch_means": _mean_variance_root(per_pixel),
+                       "photon_limit_pixel_batch_means": limit_pixel}
+        per_pixel, per_pixel_allan = _deviations_of_groups([np.where(good, g, 0.0) for g in group_offsets])
+        per_block, per_block_allan = _deviations_of_groups([np.where(good, g, 0.0) @ weights for g in group_offsets])
+        group_variance = [np.where(good, f, 0.0) ** 2 for f in group_floors]
+        limit_pixel = np.sqrt([v.mean() * good.size / good.sum() for v in group_variance])
+        limit_block = np.sqrt([(v @ weights**2).mean() for v in group_variance])
+        per_pixel[:, ~good] = np.nan
+        per_pixel_allan[:, ~good] = np.nan
     k_norm = float(np.hypot(*k))
     paper = np.where(good, photon_limit(n_frames, level, amplitude, iota, alpha, detector.gain, read_noise, k_norm),
                      0.0)
     paper_pixel = np.sqrt(np.sum(paper**2, axis=1) / good.sum())
     paper_block = np.sqrt(np.mean(paper**2 @ weights**2, axis=1))
     mean = _mean_variance_root(per_pixel)
-    slope = float(np.polyfit(np.log(n_frames), np.log(mean), 1)[0]) if len(sizes) > 1 else np.nan
+
+    def log_slope(values):
+        return float(np.polyfit(np.log(n_frames), np.log(values), 1)[0]) if len(sizes) > 1 else np.nan
+
+    slope = log_slope(mean)
 
     def as_maps(values):
         out = np.full((values.shape[0], *detector.shape), np.nan)
@@ -434,8 +552,13 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
                           {"units": "pixel", "long_name": "standard deviation between group means (paper's)"}),
             "allan_deviation": (maps, as_maps(per_pixel_allan),
                                 {"units": "pixel", "long_name": "non-overlapping Allan deviation"}),
-            "deviation_mean": (dims, mean, {"units": "pixel",
-                                            "long_name": "deviation between group means, rms over pixels"}),
+            "deviation_mean": (dims, mean, {"units": "pixel", "long_name": "deviation between groups, rms over "
+                                            "pixels" + (", each group fitted as a whole" if batch_means else
+                                                        ", each group the mean of its batch fits")}),
+            **{name: (dims, values, {"units": "pixel", "long_name": (
+                "deviation between groups as means of their batch fits (the paper's), rms over pixels"
+                if name.startswith("deviation") else "photon-noise limit of deviation_mean_batch_means")})
+               for name, values in batch_means.items()},
             "allan_deviation_mean": (dims, _mean_variance_root(per_pixel_allan),
                                      {"units": "pixel", "long_name": "Allan deviation, rms over pixels"}),
             "deviation_block_mean": (dims, _mean_variance_root(per_block),
@@ -459,6 +582,9 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
             "photon_limit_block_paper": (dims, paper_block, {"units": "pixel", "long_name": "paper's photon-noise "
                                                              f"limit of a {block}x{block}-pixel block"}),
             "slope": ((), slope, {"units": "1", "long_name": "log-log slope of deviation_mean against n_frames"}),
+            **({} if not batch_means else {"slope_batch_means": (
+                (), log_slope(batch_means["deviation_mean_batch_means"]),
+                {"units": "1", "long_name": "log-log slope of deviation_mean_batch_means against n_frames"})}),
             "sample_pixel": (("sample",), sample, {"units": "1", "long_name": "index of pixels drawn in the figure"}),
             "sample_deviation": (("n_frames", "sample"), per_pixel[:, sample],
                                  {"units": "pixel", "long_name": "deviation of the sample pixels"}),
@@ -518,12 +644,17 @@ def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector,
     level, amplitude = metrology["level"].values, metrology["amplitude"].values
     frame_factors = np.column_stack([level, amplitude * np.cos(phase), amplitude * np.sin(phase)])
     reference = first_chunk(stream).frames.mean(axis=0)
-    offsets = batch_offsets(stream.centred(reference), batches, frame_factors, np.nan_to_num(dark["dark"].values),
-                            reference_phase, k, rows, cols, reference=reference, workers=workers, label=label)
+    offsets, sums = batch_offsets(stream.centred(reference), batches, frame_factors,
+                                  np.nan_to_num(dark["dark"].values), reference_phase, k, rows, cols,
+                                  reference=reference, workers=workers, return_sums=True, label=label)
     iota, alpha = metrology["iota"].values[rows, cols], metrology["alpha"].values[rows, cols]
     read_noise = np.nan_to_num(dark["noise"].values[rows, cols])
     pixel_factors = np.column_stack([iota, alpha * np.sin(reference_phase), alpha * np.cos(reference_phase)])
     floors = batch_floors(frame_factors, batches, pixel_factors, detector.gain, read_noise, np.hypot(*k))
+    sizes = group_sizes(len(batches))
+    group_offsets, group_floors = group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes,
+                                             pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise)
+    log.info("%s: %d group sizes fitted as a whole, from %d to %d batches", label, len(sizes), sizes[0], sizes[-1])
     return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),
                          amplitude=float(np.mean(amplitude)), iota=iota, alpha=alpha, read_noise=read_noise, k=k,
-                         block=block)
+                         block=block, group_offsets=group_offsets, group_floors=group_floors)

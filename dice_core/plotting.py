@@ -171,9 +171,10 @@ def allan_figure(ds, *, title):
     """The paper's Allan figure from an ``allan/<baseline>.nc`` dataset, log-log against frames per group.
 
     Sample pixels (thin green), their rms (black) and the rms of 10x10-pixel
-    blocks (blue); white noise of matched single-batch scatter (dotted); the
-    photon-noise limits from the batch fits' own errors (dashed) and the
-    paper's formula (dash-dotted).
+    blocks (blue), each group fitted as a whole; the pixels' rms with groups
+    as means of their batch fits, the paper's way (grey, with its limit); white
+    noise of matched single-batch scatter (dotted); the photon-noise limits
+    from the fits' own errors (dashed) and the paper's formula (dash-dotted).
     """
     fig, ax = plt.subplots(figsize=(8, 6), constrained_layout=True)
     n = ds["n_frames"].values
@@ -184,6 +185,11 @@ def allan_figure(ds, *, title):
                f"{float(ds['slope']):.2f})"),
               ("block", "deviation_block_mean", "white_deviation_block_mean", "tab:blue",
                f"{block}x{block} blocks, rms"))
+    if "deviation_mean_batch_means" in ds:
+        ax.loglog(n, ds["deviation_mean_batch_means"].values, color="0.55", lw=1.6,
+                  label=f"pixels, groups as means of batch fits (slope {float(ds['slope_batch_means']):.2f})")
+        ax.loglog(n, ds["photon_limit_pixel_batch_means"].values, color="0.55", ls="--", lw=0.8,
+                  label="its photon limit")
     for kind, measured, white, colour, label in curves:
         ax.loglog(n, ds[measured].values, color=colour, lw=2, label=label)
         ax.loglog(n, ds[white].values, color=colour, ls=":", lw=1.2, label=f"white noise, {kind}s")

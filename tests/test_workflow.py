@@ -170,7 +170,7 @@ def test_allan_product_follows_the_contract(out):
     for name in ("deviation_mean", "allan_deviation_mean", "photon_limit_pixel", "photon_limit_block"):
         assert ds[name].dims == ("n_frames",) and ds[name].attrs["units"] == "pixel"
     # 300 frames of the ci preset: photon-limited and white, within the scatter of a few batches
-    assert float(ds["slope"]) == pytest.approx(-0.5, abs=0.15)
+    assert float(ds["slope_batch_means"]) == pytest.approx(-0.5, abs=0.15)
     np.testing.assert_allclose(ds["deviation_mean"], ds["photon_limit_pixel"], rtol=0.25)
 
 
@@ -373,9 +373,12 @@ def test_default_preset_against_truth(tmp_path):
         assert metrology.sizes["mode"] >= 1 and "gauge_difference_floor" in metrology, baseline
         # Allan deviations of the same baseline: white, and at the photon limit to the last point
         ds = read_product(out / "allan" / f"{baseline}.nc")
-        assert float(ds["slope"]) == pytest.approx(-0.5, abs=0.05), baseline
+        assert float(ds["slope_batch_means"]) == pytest.approx(-0.5, abs=0.05), baseline
         last = ds.isel(n_frames=-1)
         assert float(last["deviation_mean"]) == pytest.approx(float(last["photon_limit_pixel"]), rel=0.2)
+        # the largest group, fitted as a whole, at the global solution's floor scaled to its frames
+        scaled = float(metrology["photon_noise_floor_rms"]) * np.sqrt(metrology.sizes["frame"] / float(last["n_frames"]))
+        assert float(last["deviation_mean"]) == pytest.approx(scaled, rel=0.1), baseline
     # each pair's dx, dy within 1.2x their floors once the affine part and the declared modes are removed
     for pair in manifest.pairs:
         offsets = read_product(out / "calibration" / f"offsets_{pair}.nc")
