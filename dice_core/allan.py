@@ -139,7 +139,8 @@ class _BatchFit:
         # their circular mean: the difference is the constant phase the gauge leaves free plus the
         # batch's small offset changes, and that constant may be near pi (wrapped_about_mean, cheaper)
         turned = (G[2] + 1j * G[1]) * self.rotation
-        turned /= np.abs(turned)
+        size = np.abs(turned)
+        turned = np.where(size > 0, turned / np.where(size > 0, size, 1.0), 0.0)  # a pixel without signal: 0
         centre = np.mean(turned)
         delta = np.angle(turned * np.conj(centre / np.abs(centre)))
         return (delta - self.basis @ (self.basis.T @ delta)) / self.k_norm
@@ -178,8 +179,8 @@ def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
             # F'X on whole frames (a chunk is never copied), summed in float64
             np.add(sums[b], F.T @ X[lo - lo_frame:hi - lo_frame], out=sums[b])
             covered[b] = covered.get(b, 0) + hi - lo
-            if covered[b] == lengths[b]:
-                done[b] = fit.normal_sums(frame_factors[start:stop], sums.pop(b)[:, fit.idx])
+            if covered[b] == lengths[b]:  # float32: a phase to 1e-7 rad, half the memory and the pipe
+                done[b] = fit.normal_sums(frame_factors[start:stop], sums.pop(b)[:, fit.idx]).astype(np.float32)
                 del covered[b]
                 if len(done) % 100 == 0:
                     log.info("%s: %d batches fitted in one part of the frames", label, len(done))
@@ -258,7 +259,8 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     def finish(b, FtI):
         start, stop = batches[b]
         F = frame_factors[start:stop]
-        out[b], fitted[b] = fit.offsets_of_sums(F.T @ F, FtI), True
+        FtI = np.asarray(FtI, np.float32)  # every batch's sums rounded alike, wherever the lanes cut
+        out[b], fitted[b] = fit.offsets_of_sums(F.T @ F, FtI.astype(np.float64)), True
         if kept is not None:
             kept[b] = FtI
 
@@ -293,8 +295,8 @@ def batch_floors(frame_factors, batches, pixel_factors, gain, read_noise, k_norm
 
 
 def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes, *, pixel_factors, gain,
-               read_noise):
-    """Offsets and photon-noise floors of consecutive groups of batches, each group fitted as a whole.
+               read_noise, good, weights):
+    """Deviations and photon-noise limits of consecutive groups of batches, each group fitted as a whole.
 
     A group's normal equations are the sums of its batches' (F'F and F'I from
     :func:`batch_offsets` with ``return_sums``): its fit is the least-squares
@@ -320,12 +322,22 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
         e-/adu.
     read_noise : ndarray (pixel,)
         adu.
+    good : bool ndarray (pixel,)
+        Pixels with an offset in every batch.
+    weights : ndarray (pixel, block)
+        Block averages (:func:`block_weights`).
 
     Returns
     -------
-    offsets, floors : list of ndarray (group, pixel), one per size
-        Each group's projected offsets (affine part removed) and their 1-sigma
-        photon-noise errors, pixel.
+    dict of ndarray, one row per size
+        ``deviation`` and ``allan`` (size, pixel; NaN off ``good``),
+        ``block_deviation`` and ``block_allan`` (size, block): the paper's
+        deviation and the Allan deviation between the groups' offsets (affine
+        part removed) of each pixel and block; ``limit_pixel`` and
+        ``limit_block`` (size,): their photon-noise limits, the groups'
+        variances from their own fits averaged over groups, then over pixels or
+        blocks. All in pixel. Each size's groups are reduced as they are
+        fitted: at most n_batches / 2 maps in memory.
     """
     fit = _BatchFit(idx=None, level=None, reference_phase=np.asarray(reference_phase, float),
                     design=polynomial_design(np.asarray(cols, float), np.asarray(rows, float), 1),
@@ -335,20 +347,26 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
     # group instead (a running sum would hold another float64 copy of them all).
     cum_FtF = np.concatenate([np.zeros((1, 3, 3)), np.cumsum([m[0] for m in moments], axis=0)])
     cum_third = np.concatenate([np.zeros((1, 3, 3, 3)), np.cumsum([m[1] for m in moments], axis=0)])
-    offsets, floors = [], []
+    out = {name: [] for name in ("deviation", "allan", "block_deviation", "block_allan", "limit_pixel",
+                                 "limit_block")}
     for m in sizes:
         n_groups = len(batches) // m
-        group_offsets = np.empty((n_groups, sums.shape[2]))
-        group_floors = np.empty_like(group_offsets)
+        group_offsets = np.zeros((n_groups, sums.shape[2]))
+        variance = np.zeros_like(group_offsets)
         for g in range(n_groups):
             lo, hi = g * m, (g + 1) * m
             FtF = cum_FtF[hi] - cum_FtF[lo]
-            group_offsets[g] = fit.offsets_of_sums(FtF, sums[lo:hi].sum(axis=0, dtype=np.float64))
-            group_floors[g] = photon_floor(pixel_factors, FtF, cum_third[hi] - cum_third[lo], gain, read_noise,
-                                           fit.k_norm)
-        offsets.append(group_offsets)
-        floors.append(group_floors)
-    return offsets, floors
+            group_offsets[g, good] = fit.offsets_of_sums(FtF, sums[lo:hi].sum(axis=0, dtype=np.float64))[good]
+            variance[g, good] = photon_floor(pixel_factors, FtF, cum_third[hi] - cum_third[lo], gain, read_noise,
+                                             fit.k_norm)[good] ** 2
+        blocks = group_offsets @ weights
+        out["deviation"].append(np.where(good, _deviation_of_means(group_offsets), np.nan))
+        out["allan"].append(np.where(good, _allan_of_means(group_offsets), np.nan))
+        out["block_deviation"].append(_deviation_of_means(blocks))
+        out["block_allan"].append(_allan_of_means(blocks))
+        out["limit_pixel"].append(np.sqrt(variance.mean() * good.size / good.sum()))
+        out["limit_block"].append(np.sqrt((variance @ weights**2).mean()))
+    return {name: np.array(values) for name, values in out.items()}
 
 
 def group_sizes(n_batches: int, *, per_decade: int = 10) -> np.ndarray:
@@ -437,14 +455,8 @@ def _mean_variance_root(deviations, axis=-1):
     return np.sqrt(np.nanmean(np.square(deviations), axis=axis))
 
 
-def _deviations_of_groups(groups):
-    """The paper's deviation and the Allan deviation of given group values, one (group, ...) array per size."""
-    return (np.stack([_deviation_of_means(g) for g in groups]), np.stack([_allan_of_means(g) for g in groups]))
-
-
 def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, amplitude, iota, alpha, read_noise,
-                  k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40, group_offsets=None,
-                  group_floors=None) -> xr.Dataset:
+                  k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None) -> xr.Dataset:
     """The ``allan/<baseline>.nc`` product from the batch offsets.
 
     Parameters
@@ -469,11 +481,12 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         Of the white-noise reference cube.
     n_sample_pixels : int
         Pixels whose own deviation curves the figure draws (evenly spread).
-    group_offsets, group_floors : list of ndarray (group, pixel), optional
-        Each group size's groups fitted as a whole (:func:`group_fits`, sizes
-        of :func:`group_sizes`), pixel. Given, they make the deviations and
-        their limits; the means of batch fits (the paper's) stay as
-        ``deviation_mean_batch_means`` and ``photon_limit_pixel_batch_means``.
+    groups : dict, optional
+        The statistics of the groups fitted as a whole (:func:`group_fits`,
+        with the sizes of :func:`group_sizes` and this function's blocks).
+        Given, they make the deviations and their limits; the means of batch
+        fits (the paper's) stay as ``deviation_mean_batch_means``,
+        ``photon_limit_pixel_batch_means`` and ``slope_batch_means``.
 
     Returns
     -------
@@ -485,7 +498,7 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         ``white_deviation_mean`` and ``white_deviation_block_mean``, and the
         photon-noise limits ``photon_limit_pixel``, ``photon_limit_block``;
         ``slope`` of log deviation_mean against log n_frames; the batch offsets
-        and lengths. With ``group_offsets``, also ``deviation_mean_batch_means``,
+        and lengths. With ``groups``, also ``deviation_mean_batch_means``,
         ``photon_limit_pixel_batch_means`` (the groups as means of batch fits).
     """
     n_batches = offsets.shape[0]
@@ -514,17 +527,17 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
     limit_pixel = np.sqrt(np.array([pixel_variance[:n].mean() for n in used]) / sizes)
     limit_block = np.sqrt(np.array([block_variance[:n].mean() for n in used]) / sizes)
     batch_means = {}
-    if group_offsets is not None:
+    if groups is not None:
         # the contract's curves: each group fitted as a whole; the means of batch fits kept beside them
+        if groups["deviation"].shape != per_pixel.shape or groups["block_deviation"].shape != per_block.shape:
+            raise ValueError(f"group statistics of shape {groups['deviation'].shape} and "
+                             f"{groups['block_deviation'].shape} for {len(sizes)} group sizes, "
+                             f"{per_pixel.shape[1]} pixels and {per_block.shape[1]} blocks")
         batch_means = {"deviation_mean_batch_means": _mean_variance_root(per_pixel),
                        "photon_limit_pixel_batch_means": limit_pixel}
-        per_pixel, per_pixel_allan = _deviations_of_groups([np.where(good, g, 0.0) for g in group_offsets])
-        per_block, per_block_allan = _deviations_of_groups([np.where(good, g, 0.0) @ weights for g in group_offsets])
-        group_variance = [np.where(good, f, 0.0) ** 2 for f in group_floors]
-        limit_pixel = np.sqrt([v.mean() * good.size / good.sum() for v in group_variance])
-        limit_block = np.sqrt([(v @ weights**2).mean() for v in group_variance])
-        per_pixel[:, ~good] = np.nan
-        per_pixel_allan[:, ~good] = np.nan
+        per_pixel, per_pixel_allan = groups["deviation"], groups["allan"]
+        per_block, per_block_allan = groups["block_deviation"], groups["block_allan"]
+        limit_pixel, limit_block = groups["limit_pixel"], groups["limit_block"]
     k_norm = float(np.hypot(*k))
     paper = np.where(good, photon_limit(n_frames, level, amplitude, iota, alpha, detector.gain, read_noise, k_norm),
                      0.0)
@@ -532,10 +545,15 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
     paper_block = np.sqrt(np.mean(paper**2 @ weights**2, axis=1))
     mean = _mean_variance_root(per_pixel)
 
-    def log_slope(values):
-        return float(np.polyfit(np.log(n_frames), np.log(values), 1)[0]) if len(sizes) > 1 else np.nan
+    def log_slope(values, use=None):
+        use = np.ones(len(sizes), bool) if use is None else use
+        return float(np.polyfit(np.log(n_frames[use]), np.log(values[use]), 1)[0]) if use.sum() > 1 else np.nan
 
-    slope = log_slope(mean)
+    # A group fitted as a whole samples the phase evenly once it holds a few periods: from 4 batches on
+    # its deviation falls as N^-1/2 (slope -0.5 for white noise); below, the uneven one-period batches
+    # of an exponential sweep make it steeper.
+    even = sizes >= 4 if groups is not None and np.sum(sizes >= 4) > 1 else None
+    slope = log_slope(mean, even)
 
     def as_maps(values):
         out = np.full((values.shape[0], *detector.shape), np.nan)
@@ -549,7 +567,7 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
             "group_size": (dims, sizes, {"units": "1", "long_name": "batches per group"}),
             "n_groups": (dims, n_batches // sizes, {"units": "1", "long_name": "groups the deviation is taken over"}),
             "deviation": (maps, as_maps(per_pixel),
-                          {"units": "pixel", "long_name": "standard deviation between group means (paper's)"}),
+                          {"units": "pixel", "long_name": "standard deviation between groups (the paper's statistic)"}),
             "allan_deviation": (maps, as_maps(per_pixel_allan),
                                 {"units": "pixel", "long_name": "non-overlapping Allan deviation"}),
             "deviation_mean": (dims, mean, {"units": "pixel", "long_name": "deviation between groups, rms over "
@@ -574,14 +592,15 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
                                            {"units": "pixel", "long_name": "deviation_block_mean of white noise "
                                                                           "of the blocks' single-batch scatter"}),
             "photon_limit_pixel": (dims, limit_pixel, {"units": "pixel", "long_name": "photon-noise limit of "
-                                                       "deviation_mean, from the batch fits' own errors"}),
+                                                       "deviation_mean, from the fits' own errors"}),
             "photon_limit_block": (dims, limit_block, {"units": "pixel", "long_name": "photon-noise limit of "
-                                                       "deviation_block_mean, from the batch fits' own errors"}),
+                                                       "deviation_block_mean, from the fits' own errors"}),
             "photon_limit_pixel_paper": (dims, paper_pixel, {"units": "pixel", "long_name": "paper's photon-noise "
                                                              "limit of one pixel, sqrt(Bi/g+sr^2)/(Aa|K|sqrt(N/2))"}),
             "photon_limit_block_paper": (dims, paper_block, {"units": "pixel", "long_name": "paper's photon-noise "
                                                              f"limit of a {block}x{block}-pixel block"}),
-            "slope": ((), slope, {"units": "1", "long_name": "log-log slope of deviation_mean against n_frames"}),
+            "slope": ((), slope, {"units": "1", "long_name": "log-log slope of deviation_mean against n_frames" + (
+                ", over groups of 4 batches or more" if even is not None else "")}),
             **({} if not batch_means else {"slope_batch_means": (
                 (), log_slope(batch_means["deviation_mean_batch_means"]),
                 {"units": "1", "long_name": "log-log slope of deviation_mean_batch_means against n_frames"})}),
@@ -652,9 +671,12 @@ def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector,
     pixel_factors = np.column_stack([iota, alpha * np.sin(reference_phase), alpha * np.cos(reference_phase)])
     floors = batch_floors(frame_factors, batches, pixel_factors, detector.gain, read_noise, np.hypot(*k))
     sizes = group_sizes(len(batches))
-    group_offsets, group_floors = group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes,
-                                             pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise)
+    good = np.isfinite(offsets).all(axis=0)
+    groups = group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes,
+                        pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise, good=good,
+                        weights=block_weights(rows, cols, good, block=block))
+    del sums  # the groups are reduced: only the batch offsets go on
     log.info("%s: %d group sizes fitted as a whole, from %d to %d batches", label, len(sizes), sizes[0], sizes[-1])
     return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),
                          amplitude=float(np.mean(amplitude)), iota=iota, alpha=alpha, read_noise=read_noise, k=k,
-                         block=block, group_offsets=group_offsets, group_floors=group_floors)
+                         block=block, groups=groups)

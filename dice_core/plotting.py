@@ -192,7 +192,8 @@ def allan_figure(ds, *, title):
                   label="its photon limit")
     for kind, measured, white, colour, label in curves:
         ax.loglog(n, ds[measured].values, color=colour, lw=2, label=label)
-        ax.loglog(n, ds[white].values, color=colour, ls=":", lw=1.2, label=f"white noise, {kind}s")
+        ax.loglog(n, ds[white].values, color=colour, ls=":", lw=1.2,
+                  label=f"white noise of the single-batch scatter, {kind}s")
         ax.loglog(n, ds[f"photon_limit_{kind}"].values, color=colour, ls="--", lw=1, label=f"photon limit, {kind}s")
         ax.loglog(n, ds[f"photon_limit_{kind}_paper"].values, color=colour, ls="-.", lw=0.8, alpha=0.7,
                   label=f"paper's photon limit, {kind}s")

@@ -113,6 +113,33 @@ def test_groups_fitted_as_a_whole_reach_the_global_fits_floor(photon_limited):
     assert float(ds["deviation_mean"][0]) == pytest.approx(float(ds["deviation_mean_batch_means"][0]), rel=1e-6)
 
 
+def test_a_group_fitted_as_a_whole_is_the_fit_of_its_merged_frames(photon_limited):
+    """group_fits from the batches' stored sums equals batch_offsets run with each group as one batch,
+    and the slope of the joint curve over groups of 4 batches or more is white noise's."""
+    ds, manifest, metrology = photon_limited
+    assert float(ds["slope"]) == pytest.approx(-0.5, abs=0.05)
+    offsets_map = metrology["projected_offset"].values
+    rows, cols = np.nonzero(np.isfinite(offsets_map))
+    k = np.array([float(metrology["kx"]), float(metrology["ky"])])
+    phase = metrology["pixel_phase"].values[rows, cols]
+    level, amplitude, fringe_phase = (metrology[v].values for v in ("level", "amplitude", "phase"))
+    factors = np.column_stack([level, amplitude * np.cos(fringe_phase), amplitude * np.sin(fringe_phase)])
+    batches = allan.fringe_batches(fringe_phase)
+    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
+    dark = np.zeros(manifest.detector.shape)
+    offsets, sums = allan.batch_offsets(stream, batches, factors, dark, phase, k, rows, cols, return_sums=True)
+    good = np.isfinite(offsets).all(axis=0)
+    pixel_factors = np.column_stack([np.ones(rows.size), np.sin(phase), np.cos(phase)])
+    weights = allan.block_weights(rows, cols, good)
+    m = 3
+    groups = allan.group_fits(sums, batches, factors, phase, k, rows, cols, [m], pixel_factors=pixel_factors,
+                              gain=10.0, read_noise=np.full(rows.size, 4.0), good=good, weights=weights)
+    merged = np.array([(batches[g * m, 0], batches[(g + 1) * m - 1, 1]) for g in range(len(batches) // m)])
+    direct = allan.batch_offsets(stream, merged, factors, dark, phase, k, rows, cols)
+    # to the float32 rounding of the stored sums: 2e-8 pixel, 1e-3 of the deviation (1.7e-4 pixel)
+    np.testing.assert_allclose(groups["deviation"][0], direct.std(axis=0, ddof=1), rtol=0, atol=1e-7)
+
+
 def test_the_papers_formula_is_optimistic_for_one_period_batches(photon_limited):
     """sqrt(N/2) assumes every phase equally sampled; a one-period batch of an exponential sweep
     samples some phases sparsely, and its fit does worse (documented in docs/metrology.md)."""
