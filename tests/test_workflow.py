@@ -251,6 +251,21 @@ def test_up_to_date_then_dice_core_change_reruns_what_it_affects(workdir):
     assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
 
 
+def test_a_module_change_reruns_the_steps_that_import_it_through_another(workdir):
+    """The plot steps name only plotting and io; io imports manifest: editing manifest re-runs them too."""
+    assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+    module = workdir / "dice_core" / "manifest.py"
+    original = module.read_text()
+    try:
+        module.write_text(original + "\n# a change to the manifest reader\n")
+        plan = snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+    finally:
+        module.write_text(original)
+    rules = {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
+    assert {"plot_dark", "plot_metrology", "fit_fringes"} <= rules
+    assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+
+
 def test_lint_has_nothing_to_say(workdir):
     result = snakemake(workdir, "--lint", "--config", "dataset=ci")
     assert "Lints for" not in result.stdout + result.stderr

@@ -2,6 +2,7 @@
 # functions and the code versions that make a dice_core change re-run what it
 # affects. No numerics here: they live in dice_core.
 
+import ast
 import hashlib
 import os
 import re
@@ -71,15 +72,36 @@ def skipped(what, why):
     print(f"dice: skipping {what}: {why}", file=sys.stderr)
 
 
+def dice_core_imports(path):
+    """Names of the dice_core modules a module's source imports, at its top or inside functions."""
+    names = set()
+    for node in ast.walk(ast.parse(Path(path).read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module == "dice_core":
+            names |= {alias.name for alias in node.names}  # modules and other names; the caller keeps modules
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("dice_core."):
+            names.add(node.module.split(".")[1])
+        elif isinstance(node, ast.Import):
+            names |= {alias.name.split(".")[1] for alias in node.names if alias.name.startswith("dice_core.")}
+    return names
+
+
 def code_version(*modules):
-    """Hash of the dice_core modules a step runs (plus the package itself), passed as a param.
+    """Hash of the dice_core modules a step runs, with every module they import in turn, passed as a param.
 
     Snakemake re-runs a job when its params change, so editing a module
-    re-runs the jobs that use it, and only those.
+    re-runs the jobs that use it, directly or through another module, and
+    only those. The package's ``__init__`` always counts.
     """
-    digest = hashlib.sha256()
     package = Path(util.find_spec("dice_core").origin).parent
-    for name in ("__init__", *modules):
+    todo, closure = ["__init__", *modules], set()
+    while todo:
+        name = todo.pop()
+        if name in closure or not (package / f"{name}.py").is_file():  # a class or function, not a module
+            continue
+        closure.add(name)
+        todo += sorted(dice_core_imports(package / f"{name}.py"))
+    digest = hashlib.sha256()
+    for name in sorted(closure):
         digest.update((package / f"{name}.py").read_bytes())
     return digest.hexdigest()[:16]
 
