@@ -463,3 +463,24 @@ def test_spherical_wave_fringes_are_reduced_at_the_floor_through_the_workflow(wo
     assert max(pair_errors_over_floors(offsets, truth)) < 1.2
     allan = read_product(out / "allan" / "H1H4.nc")
     assert float(allan["deviation_mean"][0]) < 1.5 * float(allan["photon_limit_pixel"][0])
+    # a manifest whose nominal tips are not the bench's (H1H4's 20 mm apart in z, a defocus the fringes
+    # deny): the fit stops with an error naming the manifest and its geometry, and writes nothing
+    document = yaml.safe_load((out / "raw" / "dataset.yaml").read_text())
+    document["name"] = "bench-wrong-tips"
+    document["dark"]["files"] = [str(out / "raw" / f) for f in document["dark"]["files"]]
+    for group in ("flats", "metrology"):
+        for entry in document[group].values() if group == "flats" else document[group]["baselines"].values():
+            entry["files"] = [str(out / "raw" / f) for f in entry["files"]]
+    for position in document["stars"]["positions"]:
+        position["files"] = [str(out / "raw" / f) for f in position["files"]]
+    fibers = document["metrology"]["geometry"]["fibers"]
+    fibers["H1H4a"][2] += 0.01
+    fibers["H1H4b"][2] -= 0.01
+    manifest = workdir / "wrong-tips.yaml"
+    manifest.write_text(yaml.safe_dump(document))
+    result = snakemake(workdir, "results/bench-wrong-tips/metrology/H1H4.nc", "--config", f"dataset={manifest}",
+                       check=False)
+    assert result.returncode != 0
+    log = (workdir / "results" / "bench-wrong-tips" / "logs" / "fit_fringes_H1H4.log").read_text()
+    assert f"{manifest}: metrology.geometry: baseline H1H4: the pixel phases move the tip of fiber H1H4" in log
+    assert not (workdir / "results" / "bench-wrong-tips" / "metrology" / "H1H4.nc").exists()

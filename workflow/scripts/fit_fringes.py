@@ -3,8 +3,8 @@
 import logging
 
 import dice_core
-from dice_core import calibration, fringes, io
-from dice_core.geometry import BaselineGeometry
+from dice_core import DatasetError, calibration, fringes, io
+from dice_core.geometry import BaselineGeometry, GeometryError
 from dice_core.manifest import load_manifest
 
 
@@ -28,11 +28,14 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
              "plane waves" if geometry is None else
              f"spherical waves of fibers {' and '.join(geometry.fibers)}, nominal tips known to "
              f"{geometry.tip_sigma * 1e3:g} mm")
-    solution = fringes.fit_baseline(stream, dark["dark"].values, manifest.detector, flat=flat,
-                                    read_noise=dark["noise"].values, tolerance=options["tolerance"],
-                                    max_passes=options["max_passes"], smooth_degree=options["smooth_degree"],
-                                    workers=workers, geometry=geometry, bad_pixels=bad_pixels,
-                                    label=f"baseline {baseline}")
+    try:
+        solution = fringes.fit_baseline(stream, dark["dark"].values, manifest.detector, flat=flat,
+                                        read_noise=dark["noise"].values, tolerance=options["tolerance"],
+                                        max_passes=options["max_passes"], smooth_degree=options["smooth_degree"],
+                                        workers=workers, geometry=geometry, bad_pixels=bad_pixels,
+                                        label=f"baseline {baseline}")
+    except GeometryError as exc:  # the bench the manifest describes does not fit the fringes: name it
+        raise DatasetError(manifest.path, f"metrology.geometry: {exc}") from exc
     product = fringes.solution_dataset(solution, manifest.detector,
                                        fibers=None if geometry is None else geometry.fibers)
     log.info("baseline %s: K = (%.6f, %.6f) rad/pixel, offsets rms %.3e pixel, photon floor %.3e pixel, "
