@@ -97,15 +97,21 @@ def pair_difference(dx_a, dy_a, dx_b, dy_b, *, modes=()):
     """
     ddx, ddy = np.asarray(dx_b) - np.asarray(dx_a), np.asarray(dy_b) - np.asarray(dy_a)
     if len(modes):
-        good = np.isfinite(ddx) & np.isfinite(ddy)
-        rows, cols = np.nonzero(good)
-        basis = list(_affine_fields(rows, cols))
-        for mode_dx, mode_dy in modes:
-            basis += [np.concatenate([mx[good], my[good]]) for mx, my in zip(mode_dx, mode_dy)]
-        values = remove_modes(np.concatenate([ddx[good], ddy[good]]), np.array(basis))
-        ddx, ddy = np.full(ddx.shape, np.nan), np.full(ddy.shape, np.nan)
-        ddx[good], ddy[good] = values[:rows.size], values[rows.size:]
+        ddx, ddy = _orthogonal(ddx, ddy, np.concatenate([mode_dx for mode_dx, _ in modes]),
+                               np.concatenate([mode_dy for _, mode_dy in modes]))
     return ddx, ddy, float(np.nanstd(ddx)), float(np.nanstd(ddy))
+
+
+def _orthogonal(dx, dy, mode_dx, mode_dy):
+    """dx, dy (row, col) minus their least-squares projection on the affine part of (dx, dy) and on the
+    modes (mode, row, col), over the pixels where both are finite (NaN elsewhere)."""
+    good = np.isfinite(dx) & np.isfinite(dy)
+    rows, cols = np.nonzero(good)
+    basis = np.vstack([_affine_fields(rows, cols), np.concatenate([mode_dx[:, good], mode_dy[:, good]], axis=1)])
+    values = remove_modes(np.concatenate([dx[good], dy[good]]), basis)
+    out_dx, out_dy = np.full(dx.shape, np.nan), np.full(dy.shape, np.nan)
+    out_dx[good], out_dy[good] = values[:rows.size], values[rows.size:]
+    return out_dx, out_dy
 
 
 def _affine_fields(rows, cols):
@@ -153,14 +159,11 @@ def _without_unobservable(dx, dy, first, second, k1, k2, label):
             mx, my = deproject(*(((mode, k1, zeros, k2)) if which == 0 else (zeros, k1, mode, k2)), label=label)
             fields.append(np.concatenate([mx[good], my[good]]))
     modes = orthonormal_modes(np.array(fields).reshape(len(fields), 2 * rows.size), against=affine)
-    # (the affine part removed is that of (dx, dy); each baseline removed the affine part of its projection,
-    # whose image through the per-pixel solve differs from it by the variation of K, 1e-4 across the detector)
-    values = remove_modes(remove_modes(np.concatenate([dx[good], dy[good]]), affine), modes)
-    out_dx, out_dy = np.full(dx.shape, np.nan), np.full(dy.shape, np.nan)
-    out_dx[good], out_dy[good] = values[:rows.size], values[rows.size:]
     mode_dx, mode_dy = np.full((len(modes), *dx.shape), np.nan), np.full((len(modes), *dy.shape), np.nan)
     mode_dx[:, rows, cols], mode_dy[:, rows, cols] = modes[:, :rows.size], modes[:, rows.size:]
-    return out_dx, out_dy, mode_dx, mode_dy
+    # (the affine part removed is that of (dx, dy); each baseline removed the affine part of its projection,
+    # whose image through the per-pixel solve differs from it by the variation of K, 1e-4 across the detector)
+    return (*_orthogonal(dx, dy, mode_dx, mode_dy), mode_dx, mode_dy)
 
 
 def offsets_dataset(first, second, *, label: str = "pair"):

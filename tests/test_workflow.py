@@ -236,34 +236,30 @@ def test_a_mode_added_to_the_sweep_runs_only_its_own_jobs(workdir, out):
     assert (out / "centroids" / "metrology.nc").is_file()
 
 
-def test_up_to_date_then_dice_core_change_reruns_what_it_affects(workdir):
+def rules_planned_after_editing(workdir, module_name):
+    """The rules a dry run plans once ``dice_core/<module_name>.py`` is edited (the edit then undone), the
+    workflow being up to date before and after."""
     assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
-    module = workdir / "dice_core" / "calibration.py"
+    module = workdir / "dice_core" / f"{module_name}.py"
     original = module.read_text()
     try:
-        module.write_text(original + "\n# a change to the numerics\n")
+        module.write_text(original + "\n# a change to the module\n")
         plan = snakemake(workdir, "-n", "--config", "dataset=ci").stdout
     finally:
         module.write_text(original)
-    rules = {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
+    assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+    return {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
+
+
+def test_up_to_date_then_dice_core_change_reruns_what_it_affects(workdir):
+    rules = rules_planned_after_editing(workdir, "calibration")
     assert {"measure_dark", "measure_prnu", "compare_prnu"} <= rules
     assert not any(r.startswith("simulate") for r in rules)
-    assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
 
 
 def test_a_module_change_reruns_the_steps_that_import_it_through_another(workdir):
     """The plot steps name only plotting and io; io imports manifest: editing manifest re-runs them too."""
-    assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
-    module = workdir / "dice_core" / "manifest.py"
-    original = module.read_text()
-    try:
-        module.write_text(original + "\n# a change to the manifest reader\n")
-        plan = snakemake(workdir, "-n", "--config", "dataset=ci").stdout
-    finally:
-        module.write_text(original)
-    rules = {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
-    assert {"plot_dark", "plot_metrology", "fit_fringes"} <= rules
-    assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+    assert {"plot_dark", "plot_metrology", "fit_fringes"} <= rules_planned_after_editing(workdir, "manifest")
 
 
 def test_lint_has_nothing_to_say(workdir):
