@@ -56,6 +56,7 @@ __all__ = [
     "allan_deviation",
     "block_weights",
     "photon_limit",
+    "first_frame_limit",
     "allan_dataset",
 ]
 
@@ -436,6 +437,31 @@ def photon_limit(n_frames, level, amplitude, iota, alpha, gain, read_noise, k_no
     return per_frame[None, :] / np.sqrt(np.asarray(n_frames, dtype=float)[:, None] / 2)
 
 
+def first_frame_limit(n_frames, first_frame, amplitude, alpha, gain, read_noise, k_norm):
+    """Photon-noise limit of the pixels' offsets from the noise measured on one frame, rms over pixels, pixel.
+
+    The paper's "measured photon noise using the first frame of the data
+    cube": each pixel's noise in one frame from that frame's own signal,
+    Delta f = sqrt(f / g + sigma_r^2) (adu, f the frame minus the dark, a
+    negative f counted as 0), propagated with the paper's formula
+    Delta r = Delta f / (A alpha |K| sqrt(N / 2)); the rms over pixels of
+    Delta r. Where :func:`photon_limit` takes the model's level B iota, this
+    takes the counts recorded, fringe included: averaged over pixels that
+    sample the fringe's phases evenly, the two agree.
+
+    Returns
+    -------
+    limit : ndarray (n,)
+        For each ``n_frames``, pixel.
+    noise : float
+        rms over pixels of Delta f, adu.
+    """
+    noise = np.sqrt(np.clip(np.asarray(first_frame, float), 0.0, None) / gain + np.asarray(read_noise, float) ** 2)
+    per_frame = noise / (amplitude * np.asarray(alpha, float) * k_norm)  # pixel, one frame at the best phase
+    limit = np.sqrt(np.mean(per_frame**2)) / np.sqrt(np.asarray(n_frames, dtype=float) / 2)
+    return limit, float(np.sqrt(np.mean(noise**2)))
+
+
 def _deviations(series, sizes):
     """:func:`group_deviation` and :func:`allan_deviation` of ``series`` (sample, ...) at each size (size, ...).
 
@@ -456,7 +482,8 @@ def _mean_variance_root(deviations, axis=-1):
 
 
 def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, amplitude, iota, alpha, read_noise,
-                  k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None) -> xr.Dataset:
+                  k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None,
+                  first_frame=None) -> xr.Dataset:
     """The ``allan/<baseline>.nc`` product from the batch offsets.
 
     Parameters
@@ -487,6 +514,11 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         Given, they make the deviations and their limits; the means of batch
         fits (the paper's) stay as ``deviation_mean_batch_means``,
         ``photon_limit_pixel_batch_means`` and ``slope_batch_means``.
+    first_frame : ndarray (pixel,), optional
+        The acquisition's first frame minus the dark at ``rows``, ``cols``,
+        adu: given, the limit from the noise measured on it
+        (:func:`first_frame_limit`) is added as
+        ``photon_limit_pixel_first_frame``, with ``first_frame_noise``.
 
     Returns
     -------
@@ -500,6 +532,8 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         ``slope`` of log deviation_mean against log n_frames; the batch offsets
         and lengths. With ``groups``, also ``deviation_mean_batch_means``,
         ``photon_limit_pixel_batch_means`` (the groups as means of batch fits).
+        With ``first_frame``, also ``photon_limit_pixel_first_frame``
+        (n_frames) and ``first_frame_noise`` (scalar, adu).
     """
     n_batches = offsets.shape[0]
     sizes = group_sizes(n_batches)
@@ -544,6 +578,18 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
     paper_pixel = np.sqrt(np.sum(paper**2, axis=1) / good.sum())
     paper_block = np.sqrt(np.mean(paper**2 @ weights**2, axis=1))
     mean = _mean_variance_root(per_pixel)
+    first = {}
+    if first_frame is not None:
+        use = good & np.isfinite(first_frame)
+        pixels = [np.broadcast_to(np.asarray(v, float), good.shape)[use] for v in (first_frame, alpha, read_noise)]
+        limit_first, noise_first = first_frame_limit(n_frames, pixels[0], amplitude, pixels[1], detector.gain,
+                                                     pixels[2], k_norm)
+        first = {"photon_limit_pixel_first_frame": (("n_frames",), limit_first, {
+                     "units": "pixel", "long_name": "photon-noise limit of one pixel from the noise measured on the "
+                     "first frame, sqrt(f/g+sr^2)/(Aa|K|sqrt(N/2)), rms over pixels"}),
+                 "first_frame_noise": ((), noise_first, {
+                     "units": "adu", "long_name": "noise of one frame from the first frame's signal f (minus "
+                     "dark), sqrt(f/g+sr^2), rms over pixels"})}
 
     def log_slope(values, use=None):
         use = np.ones(len(sizes), bool) if use is None else use
@@ -599,6 +645,7 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
                                                              "limit of one pixel, sqrt(Bi/g+sr^2)/(Aa|K|sqrt(N/2))"}),
             "photon_limit_block_paper": (dims, paper_block, {"units": "pixel", "long_name": "paper's photon-noise "
                                                              f"limit of a {block}x{block}-pixel block"}),
+            **first,
             "slope": ((), slope, {"units": "1", "long_name": "log-log slope of deviation_mean against n_frames" + (
                 ", over groups of 4 batches or more" if even is not None else "")}),
             **({} if not batch_means else {"slope_batch_means": (
@@ -662,7 +709,10 @@ def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector,
         reference_phase = k[0] * cols + k[1] * rows + np.hypot(*k) * offsets_map[rows, cols]
     level, amplitude = metrology["level"].values, metrology["amplitude"].values
     frame_factors = np.column_stack([level, amplitude * np.cos(phase), amplitude * np.sin(phase)])
-    reference = first_chunk(stream).frames.mean(axis=0)
+    head = first_chunk(stream)
+    reference = head.frames.mean(axis=0)
+    first_frame = (head.frames[0].astype(np.float64) - np.nan_to_num(dark["dark"].values))[rows, cols]
+    del head
     offsets, sums = batch_offsets(stream.centred(reference), batches, frame_factors,
                                   np.nan_to_num(dark["dark"].values), reference_phase, k, rows, cols,
                                   reference=reference, workers=workers, return_sums=True, label=label)
@@ -679,4 +729,4 @@ def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector,
     log.info("%s: %d group sizes fitted as a whole, from %d to %d batches", label, len(sizes), sizes[0], sizes[-1])
     return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),
                          amplitude=float(np.mean(amplitude)), iota=iota, alpha=alpha, read_noise=read_noise, k=k,
-                         block=block, groups=groups)
+                         block=block, groups=groups, first_frame=first_frame)

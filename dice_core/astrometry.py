@@ -526,10 +526,15 @@ def residuals_dataset(datasets: dict, rows, residuals: dict) -> xr.Dataset:
 
     ``datasets``, ``rows`` and ``residuals`` are one method's: its centroid
     datasets by mode, and what :func:`mode_accuracies` returned for them.
+    ``star_x`` and ``star_y`` (mode, star) are each star's mean centroid over
+    the positions where it was measured: the pattern's layout, which the
+    barycentre figure draws downscaled to the residuals.
     """
     modes = list(residuals)
     accuracy_p = {r["mode"]: r["accuracy"] for r in rows if r["grouping"] == "position"}
-    barycentre = [_complete_barycentre_residuals(select_positions(datasets[m])[0]) for m in modes]
+    configurations = [select_positions(datasets[m])[0] for m in modes]
+    barycentre = [_complete_barycentre_residuals(c) for c in configurations]
+    star_mean = np.stack([np.nanmean(c, axis=0) for c in configurations])  # (mode, star, 2)
     return xr.Dataset(
         {"residual": (("mode", "position", "star", "axis"), np.stack([residuals[m][1] for m in modes]),
                       {"units": "pixel", "long_name": "Procrustes residual of each star"}),
@@ -537,6 +542,10 @@ def residuals_dataset(datasets: dict, rows, residuals: dict) -> xr.Dataset:
                       {"units": "pixel", "long_name": "corrected accuracy (p)"}),
          "barycentre_residual": (("mode", "all_position", "star", "axis"), np.stack(barycentre),
                                  {"units": "pixel", "long_name": "star minus the barycentre of the others, minus "
-                                                                 "its mean over positions"})},
+                                                                 "its mean over positions"}),
+         "star_x": (("mode", "star"), star_mean[..., 0],
+                    {"units": "pixel", "long_name": "mean centroid x of each star over the positions"}),
+         "star_y": (("mode", "star"), star_mean[..., 1],
+                    {"units": "pixel", "long_name": "mean centroid y of each star over the positions"})},
         coords={"mode": modes, "position": residuals[modes[0]][0],
                 "all_position": datasets[modes[0]]["position"].values, "axis": ["x", "y"]})

@@ -114,3 +114,34 @@ def test_a_barely_constrained_stretch_ends_with_the_dense_fit_logged(rng, caplog
              np.column_stack([centres - centres.mean(axis=0), np.zeros((3, 3))]))
     dense = np.sqrt(np.mean((c - astrometry._model(*astrometry._dense_procrustes(c, *start))) ** 2))
     assert result.rms == pytest.approx(dense, rel=0.02)
+
+
+def centroid_datasets(rng, n_positions=12, modes=("raw", "flat"), jitter=2e-4):
+    """Centroid products (x, y per position and star) of the simulator's layout, one per mode."""
+    import xarray as xr
+
+    out = {}
+    for mode in modes:
+        c = transformed(rng, n_positions) + jitter * rng.standard_normal((n_positions, 5, 2))
+        out[mode] = xr.Dataset({"x": (("position", "star"), c[..., 0]), "y": (("position", "star"), c[..., 1])},
+                               coords={"position": np.arange(1, n_positions + 1), "star": np.arange(5)},
+                               attrs={"mode": mode, "method": "fourier"})
+    return out
+
+
+def test_residuals_product_holds_each_stars_mean_position(rng):
+    """star_x, star_y: each star's mean centroid over the positions where it was measured, per mode."""
+    datasets = centroid_datasets(rng)
+    datasets["flat"]["x"][10, 2] = np.nan  # star 2 unmeasured at position 11, outside the range used
+    rows, residuals = astrometry.mode_accuracies(datasets, positions=(3, 9), trials=50)
+    product = astrometry.residuals_dataset(datasets, rows, residuals)
+    assert product["star_x"].dims == ("mode", "star") and product["star_x"].attrs["units"] == "pixel"
+    assert product["star_y"].attrs["units"] == "pixel" and "mean centroid" in product["star_y"].attrs["long_name"]
+    for mode, ds in datasets.items():
+        for s in range(5):
+            x, y = ds["x"].values[:, s], ds["y"].values[:, s]
+            assert float(product["star_x"].sel(mode=mode)[s]) == pytest.approx(x[np.isfinite(x)].sum()
+                                                                               / np.isfinite(x).sum(), abs=1e-12)
+            assert float(product["star_y"].sel(mode=mode)[s]) == pytest.approx(y.mean(), abs=1e-12)
+    # the pattern: the central star in the middle of the corners
+    np.testing.assert_allclose(product["star_x"].sel(mode="raw"), LAYOUT[:, 0], atol=3)

@@ -61,6 +61,7 @@ rule plot_centroids:
         pdf=f"{OUT}/figures/centroids_{{mode}}.pdf",
     params:
         code=code_version("plotting", "io"),
+        positions=config["astrometry"]["positions"],  # the used range, marked red
     log:
         f"{OUT}/logs/plot_centroids_{{mode}}.log",
     conda:
