@@ -2,6 +2,7 @@
 
     snakemake --cores 2                                    # simulate and reduce the built-in dataset
     snakemake --cores 2 --config dataset=PATH/dataset.yaml # reduce a dataset in the raw format
+    snakemake --cores 2 paper                              # and regenerate the paper's simulations beside it
 
 Stages are one rule file each under workflow/rules/; the numerics are in dice_core.
 """
@@ -23,6 +24,7 @@ include: "workflow/rules/metrology.smk"
 include: "workflow/rules/centroids.smk"
 include: "workflow/rules/astrometry.smk"
 include: "workflow/rules/figures.smk"
+include: "workflow/rules/paper.smk"
 
 
 rule all:

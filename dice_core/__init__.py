@@ -15,7 +15,11 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;
 - :mod:`dice_core.polynomials` -- 2-D polynomial surfaces shared by the fits;
 - :mod:`dice_core.parallel` -- worker processes and BLAS threads of the streaming reductions;
-- :mod:`dice_core.plotting` -- the paper's figures.
+- :mod:`dice_core.plotting` -- the paper's figures;
+- :mod:`dice_core.paper_method` -- the paper's own fringe reduction as its text describes it, for comparison;
+- :mod:`dice_core.error_budget` -- error-propagation coefficients of the centroids, Monte Carlo and analytic;
+- :mod:`dice_core.studies` -- the simulation studies that sweep points run;
+- :mod:`dice_core.reproduction` -- the paper's numbers beside ours.
 """
 
 from importlib.metadata import PackageNotFoundError, version

@@ -480,3 +480,33 @@ def test_spherical_wave_fringes_are_reduced_at_the_floor_through_the_workflow(wo
     log = (workdir / "results" / "bench-wrong-tips" / "logs" / "fit_fringes_H1H4.log").read_text()
     assert f"{manifest}: metrology.geometry: baseline H1H4: the pixel phases move the tip of fiber H1H4" in log
     assert not (workdir / "results" / "bench-wrong-tips" / "metrology" / "H1H4.nc").exists()
+
+
+def test_a_sweep_point_added_runs_only_its_job_and_one_removed_touches_no_other(workdir):
+    """Sweeps are Paramspace points: each its own job and folder, the summary gathering whichever are listed."""
+    target = "results/sweeps/tiny/summary.csv"
+
+    def sweep(values):
+        (workdir / "sweep.yaml").write_text(yaml.safe_dump({"sweeps": {"tiny": {
+            "study": "error_propagation", "parameter": "source", "values": values,
+            "options": {"trials": 20, "amplitudes": [1e-3]}}}}))
+        run = snakemake(workdir, "--config", "dataset=ci", "--configfile", "sweep.yaml", target)
+        return run.stdout + run.stderr
+
+    points = workdir / "results" / "sweeps" / "tiny"
+    ran = sweep(["prnu", "read"])
+    assert ran.count("rule sweep_point:") == 2
+    before = {p: p.stat().st_mtime_ns for p in points.glob("*/point.nc")}
+    assert sorted(p.parent.name for p in before) == ["source~prnu", "source~read"]
+    ran = sweep(["prnu", "read", "offsets"])
+    assert ran.count("rule sweep_point:") == 1 and "point=source~offsets" in ran and "rule sweep_summary:" in ran
+    assert all(p.stat().st_mtime_ns == mtime for p, mtime in before.items())
+    ran = sweep(["prnu", "offsets"])
+    assert "rule sweep_point:" not in ran and "rule sweep_summary:" in ran
+    assert all(p.stat().st_mtime_ns == mtime for p, mtime in before.items())  # read's product kept, untouched
+    summary = (workdir / target).read_text().splitlines()
+    assert summary[0].startswith("source,") and [line.split(",")[0] for line in summary[1:]] == ["prnu", "offsets"]
+    (workdir / "sweep.yaml").write_text(yaml.safe_dump({"sweeps": {"tiny": {
+        "study": "error_propagation", "points": [{"source": "prnu"}, {"source": "read", "trials": 30}]}}}))
+    bad = snakemake(workdir, "-n", "--config", "dataset=ci", "--configfile", "sweep.yaml", target, check=False)
+    assert bad.returncode != 0 and "every point must set the same parameters" in bad.stdout + bad.stderr

@@ -1,0 +1,296 @@
+"""Simulation studies of the paper's "Numerical simulations" section, one sweep point at a time.
+
+A study is a self-contained simulation with known truth and its reduction:
+the workflow runs one job per point of a sweep (config ``sweeps``), each
+point a set of parameter values applied to the study's own simulated bench.
+
+- :func:`offset_bias`: offset error maps against truth, the paper's method
+  (:mod:`dice_core.paper_method`) beside ours, at one PRNU level (the paper's
+  pixel-offset-bias figure).
+- :func:`error_propagation`: centroid error per unit of one error source
+  (:mod:`dice_core.error_budget`; the paper's table of error coefficients).
+
+Units: pixel, adu, relative where the parameter says so.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from dice_core import fringes, simulation
+from dice_core.io import FrameStream, read_product
+from dice_core.manifest import load_manifest
+from dice_core.paper_method import fit_baseline_paper
+
+__all__ = ["OFFSET_BIAS_BENCH", "STUDIES", "apply_overrides", "offset_bias", "affine_free", "error_propagation",
+           "sweep_dataset", "sweep_from_dataset", "run_point"]
+
+log = logging.getLogger(__name__)
+
+#: The paper's simulated metrology bench (its "Metrology simulation results"): B = 10000 and
+#: A = 6000 adu, 10 e-/adu, laser intensity 1e-2 RSD, fringe phase 1e-2 rad, plane waves, and
+#: only a homogeneous Gaussian PRNU on the pixels: no dust, no bright bands, no PRF width spread,
+#: a uniform fringe envelope and visibility. ``metrology.frames`` sets the photon noise: 30000
+#: frames give the per-pixel floor of about 2e-5 pixel that the paper's maps show.
+OFFSET_BIAS_BENCH = {
+    "name": "offset-bias",
+    "seed": 20150926,
+    "frames_per_file": 10000,
+    "detector": {"shape": [80, 84], "science_rows": [2, 79], "science_cols": [10, 83], "gain": 10.0,
+                 "read_noise": 4.0, "prnu_rms": 2.0e-3, "offset_rms": 1.0e-3, "prf_width_spread": 0.0,
+                 "dust_pixels": 0, "bright_bands": 0},
+    "dark": {"frames": 2},
+    "flats": {"frames": 2},
+    "stars": {"positions": 1, "frames": 1},
+    "metrology": {"frames": 30000, "mean_level": 10000.0, "amplitude": 6000.0, "laser_rsd": 1.0e-2,
+                  "phase_jitter": 1.0e-2, "envelope_sigma": 1.0e6, "visibility_gradient": [0.0, 0.0],
+                  "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}},
+}
+
+
+def apply_overrides(base: dict, overrides: dict) -> dict:
+    """A copy of a nested config with dotted keys set: ``{"detector.prnu_rms": 5e-5}``.
+
+    Raises
+    ------
+    KeyError
+        A dotted key whose parent section the base config does not have.
+    """
+    out = copy.deepcopy(base)
+    for dotted, value in overrides.items():
+        *parents, leaf = dotted.split(".")
+        node = out
+        for part in parents:
+            if not isinstance(node.get(part), dict):
+                raise KeyError(f"{dotted}: the study's config has no section {part!r}")
+            node = node[part]
+        node[leaf] = value.item() if isinstance(value, np.generic) else value
+    return out
+
+
+def affine_free(values: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Values minus their least-squares plane over the pixels given (the offsets' gauge)."""
+    design = np.column_stack([np.ones_like(x), x, y])
+    return values - design @ np.linalg.lstsq(design, values, rcond=None)[0]
+
+
+def _offset_errors(cfg: simulation.SimulationConfig, workdir: Path, baseline: str, iterations: int):
+    """Simulate one baseline into ``workdir``, fit it both ways; errors against truth (science pixels)."""
+    t0 = time.perf_counter()
+    manifest = load_manifest(simulation.simulate_dataset(cfg, workdir))
+    truth = read_product(workdir / "truth.nc").load()
+    log.info("simulated %d frames of %s (PRNU %.1e, photon noise %s) in %.1f s", cfg.metrology.frames, baseline,
+             cfg.detector.prnu_rms, cfg.detector.photon_noise, time.perf_counter() - t0)
+    stream = FrameStream(manifest.baselines[baseline], manifest.detector)
+    dark = truth["bias"].values
+    t0 = time.perf_counter()
+    ours = fringes.fit_baseline(stream, dark, manifest.detector, flat=truth["sensitivity"].values,
+                                read_noise=truth["read_noise"].values, label=f"{baseline} (ours)")
+    t1 = time.perf_counter()
+    paper = fit_baseline_paper(stream, dark, manifest.detector, iterations=iterations,
+                               label=f"{baseline} (paper's method)")
+    log.info("fits: ours %.1f s, the paper's %.1f s", t1 - t0, time.perf_counter() - t1)
+    rows, cols = ours.rows, ours.cols
+    x, y = cols.astype(float), rows.astype(float)
+
+    def error(solution):
+        n = solution.k / np.hypot(*solution.k)
+        true = n[0] * truth["dx"].values[rows, cols] + n[1] * truth["dy"].values[rows, cols]
+        ok = np.isfinite(solution.offsets)
+        out = np.full(rows.size, np.nan)
+        out[ok] = solution.offsets[ok] - affine_free(true[ok], x[ok], y[ok])
+        return out
+
+    return rows, cols, error(ours), error(paper), ours.photon_floor, truth
+
+
+def offset_bias(settings: dict, *, workdir, baseline: str = "H1H4", iterations: int = 4,
+                noiseless_frames: int = 4000, noiseless_draws: int = 8) -> xr.Dataset:
+    """Offset error maps of the paper's method and ours at one point (the pixel-offset-bias figure).
+
+    The bench ``settings`` (a :class:`~dice_core.simulation.SimulationConfig`
+    dict, e.g. :data:`OFFSET_BIAS_BENCH` with a point's overrides) is simulated
+    with its photon and read noise (the maps the paper shows, the same noise
+    for every point of a PRNU sweep), then ``noiseless_draws`` times without
+    any noise (no photon or read noise, a steady laser and phase) at
+    ``noiseless_frames`` frames, each with its own PRNU pattern of the same
+    rms: the bias alone, which does not average down with the frames. The
+    paper's method's bias follows the PRNU pattern's Fourier components at the
+    fringe frequency, so it varies from one pattern to the next: the draws
+    give its rms over patterns. Ours is given the true sensitivities as its
+    reference flat (a perfect flat field); the paper's method uses none, as in
+    the paper.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``error_ours``, ``error_paper`` (row, col): measured minus true
+        projected offsets, pixel, with photon noise; ``bias_ours``,
+        ``bias_paper`` (row, col): the same without noise, first draw;
+        ``photon_floor`` (row, col); their rms over the science area as
+        scalars (``rms_error_ours`` ..., the bias's over all draws); and
+        ``draw_bias_ours``, ``draw_bias_paper`` (draw): each draw's rms, pixel.
+    """
+    cfg = simulation.SimulationConfig.from_dict(settings)
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=workdir, prefix="noisy-") as folder:
+        rows, cols, error_ours, error_paper, floor, truth = _offset_errors(cfg, Path(folder), baseline, iterations)
+    steady = {"metrology.frames": noiseless_frames, "detector.photon_noise": False, "detector.read_noise": 0.0,
+              "detector.dtype": "float32", "metrology.laser_rsd": 0.0, "metrology.amplitude_rsd": 0.0,
+              "metrology.phase_jitter": 0.0}
+    draws = []
+    for draw in range(noiseless_draws):
+        quiet_cfg = simulation.SimulationConfig.from_dict(apply_overrides(settings, {**steady,
+                                                                                    "seed": cfg.seed + draw}))
+        with tempfile.TemporaryDirectory(dir=workdir, prefix="noiseless-") as folder:
+            q_rows, q_cols, *biases, _, _ = _offset_errors(quiet_cfg, Path(folder), baseline, iterations)
+        if not (np.array_equal(rows, q_rows) and np.array_equal(cols, q_cols)):
+            raise RuntimeError("the noisy and noiseless fits cover different pixels")
+        draws.append(biases)
+    (bias_ours, bias_paper), all_biases = draws[0], np.array(draws)  # (draw, method, pixel)
+    shape = cfg.detector.shape
+
+    def as_map(values):
+        out = np.full(shape, np.nan)
+        out[rows, cols] = values
+        return out
+
+    def rms(values):
+        return float(np.sqrt(np.nanmean(np.square(values))))
+
+    maps = {"error_ours": (error_ours, "projected offset error of ours, with photon noise"),
+            "error_paper": (error_paper, "projected offset error of the paper's method, with photon noise"),
+            "bias_ours": (bias_ours, "projected offset error of ours, noiseless"),
+            "bias_paper": (bias_paper, "projected offset error of the paper's method, noiseless"),
+            "photon_floor": (floor, "per-pixel photon-noise floor of the offsets (ours)")}
+    variables = {}
+    for name, (values, what) in maps.items():
+        variables[name] = (("row", "col"), as_map(values), {"units": "pixel", "long_name": what})
+        variables[f"rms_{name}"] = ((), rms(values), {"units": "pixel", "long_name": f"rms over the science area: "
+                                                                                     f"{what}"})
+    for m, method in enumerate(("ours", "paper")):
+        per_draw = np.sqrt(np.nanmean(all_biases[:, m] ** 2, axis=1))
+        variables[f"rms_bias_{method}"] = ((), float(np.sqrt(np.mean(per_draw**2))), {
+            "units": "pixel", "long_name": f"{maps[f'bias_{method}'][1]}: rms over the science area and "
+                                           f"{noiseless_draws} PRNU patterns"})
+        variables[f"draw_bias_{method}"] = (("draw",), per_draw, {
+            "units": "pixel", "long_name": f"{maps[f'bias_{method}'][1]}: rms over the science area, per PRNU pattern"})
+    ds = xr.Dataset(variables, coords={"row": np.arange(shape[0]), "col": np.arange(shape[1])})
+    ds.attrs.update({"prnu_rms": cfg.detector.prnu_rms, "measured_prnu_rms": float(truth["sensitivity"].values[
+        rows, cols].std()), "frames": cfg.metrology.frames, "noiseless_frames": noiseless_frames,
+        "noiseless_draws": noiseless_draws,
+        "baseline": baseline, "paper_iterations": iterations})
+    log.info("PRNU %.1e: rms error ours %.2e, paper's %.2e, floor %.2e; noiseless bias ours %.2e, paper's %.2e pixel",
+             cfg.detector.prnu_rms, ds.rms_error_ours, ds.rms_error_paper, ds.rms_photon_floor, ds.rms_bias_ours,
+             ds.rms_bias_paper)
+    return ds
+
+
+# --------------------------------------------------------------------------- error propagation
+
+def error_propagation(source: str, *, star: dict | None = None, amplitudes=None, trials: int = 400, seed: int = 0,
+                      weighting: str = "pipeline") -> xr.Dataset:
+    """One error source's Monte Carlo and analytic coefficients (:func:`dice_core.error_budget.sweep`).
+
+    ``star`` overrides fields of :class:`dice_core.error_budget.Star` (PSF
+    sigma and window half size in pixel, flux, background and read noise in
+    electrons). Returns the sweep as a dataset (:func:`sweep_dataset`).
+    """
+    from dice_core import error_budget
+
+    t0 = time.perf_counter()
+    result = error_budget.sweep(source, amplitudes, trials=trials, seed=seed, weighting=weighting,
+                                star=error_budget.Star(**(star or {})))
+    log.info("%s: %d amplitudes x %d trials in %.1f s: per-axis coefficient %.4f +- %.4f (analytic %.4f), "
+             "2-D %.4f", source, len(result.runs), trials, time.perf_counter() - t0, result.coefficient,
+             result.error, result.prediction.coefficient, result.coefficient_2d)
+    return sweep_dataset(result)
+
+
+def sweep_dataset(result) -> xr.Dataset:
+    """An :class:`dice_core.error_budget.Sweep` as a dataset: each trial's truth and error, pixel."""
+    import dataclasses
+
+    runs = result.runs
+    data = {name: (("amplitude", "trial"), np.stack([getattr(r, name) for r in runs]),
+                   {"units": "pixel", "long_name": what})
+            for name, what in (("x", "true x"), ("y", "true y"), ("ex", "x error"), ("ey", "y error"))}
+    ds = xr.Dataset(data, coords={"amplitude": ("amplitude", result.amplitudes, {
+        "units": "pixel" if result.source == "offsets" else "1", "long_name": f"{result.source} amplitude"})})
+    ds["coefficient"] = ((), result.coefficient, {"units": "pixel per unit amplitude",
+                                                  "long_name": "per-axis Monte Carlo coefficient"})
+    ds["error"] = ((), result.error, {"units": "pixel per unit amplitude", "long_name": "its 1-sigma error"})
+    ds.attrs.update({"error_source": result.source, "weighting": result.weighting,
+                     "analytic_x": result.prediction.coefficient_x, "analytic_y": result.prediction.coefficient_y,
+                     "cramer_rao": np.nan if result.cramer_rao is None else result.cramer_rao,
+                     })
+    for key, value in dataclasses.asdict(result.star).items():
+        ds.attrs[f"star_{key}"] = value
+    return ds
+
+
+def sweep_from_dataset(ds: xr.Dataset):
+    """The :class:`dice_core.error_budget.Sweep` that :func:`sweep_dataset` wrote."""
+    from dice_core import error_budget
+
+    source, weighting = ds.attrs["error_source"], ds.attrs["weighting"]
+    runs = tuple(error_budget.MonteCarlo(source, float(a), weighting, *(ds[v].values[i] for v in ("x", "y", "ex", "ey")))
+                 for i, a in enumerate(ds["amplitude"].values))
+    star = error_budget.Star(**{f.name: type(f.default)(ds.attrs[f"star_{f.name}"])
+                                for f in __import__("dataclasses").fields(error_budget.Star)})
+    bound = float(ds.attrs["cramer_rao"])
+    return error_budget.Sweep(source, weighting, runs,
+                              error_budget.Analytic(source, weighting, float(ds.attrs["analytic_x"]),
+                                                    float(ds.attrs["analytic_y"])),
+                              None if np.isnan(bound) else bound, star)
+
+
+# --------------------------------------------------------------------------- sweeps
+
+#: Each study's runner: point and settings -> dataset. ``bench`` holds dotted keys of the
+#: study's simulated bench, ``options`` its keyword options; a point's parameters are either.
+STUDIES = ("offset_bias", "error_propagation")
+
+
+def run_point(study: str, point: dict, *, bench: dict | None = None, options: dict | None = None,
+              workdir=None) -> xr.Dataset:
+    """Run one sweep point of a study.
+
+    Parameters
+    ----------
+    study : {"offset_bias", "error_propagation"}
+    point : dict
+        The point's parameters: dotted keys of the study's bench (offset_bias:
+        :data:`OFFSET_BIAS_BENCH`, e.g. ``detector.prnu_rms``; error_propagation:
+        ``star.psf_sigma`` ...) or names of its options (``source``, ``trials`` ...).
+    bench, options : dict
+        The sweep's own settings, under the point's.
+    workdir : path
+        Where a study may put its temporary simulated files.
+    """
+    bench, options = dict(bench or {}), dict(options or {})
+    for key, value in point.items():
+        value = value.item() if isinstance(value, np.generic) else value
+        (bench if "." in key else options)[key] = value
+    if study == "offset_bias":
+        ds = offset_bias(apply_overrides(OFFSET_BIAS_BENCH, bench), workdir=workdir, **options)
+    elif study == "error_propagation":
+        stars = {}
+        for key, value in bench.items():
+            section, _, name = key.partition(".")
+            if section != "star":
+                raise KeyError(f"{key}: the error_propagation study's bench has only star.* keys")
+            stars[name] = value
+        ds = error_propagation(star=stars, **options)
+    else:
+        raise ValueError(f"unknown study {study!r}; studies are {', '.join(STUDIES)}")
+    ds.attrs.update({"study": study, "point": str(point)})
+    return ds

@@ -1,0 +1,104 @@
+"""Simulation studies of the paper: its own offset reduction against ours, the sweep points' products."""
+
+import numpy as np
+import pytest
+
+from dice_core import error_budget, reproduction, studies
+
+
+def bench(prnu):
+    return studies.apply_overrides(studies.OFFSET_BIAS_BENCH, {"detector.prnu_rms": prnu, "metrology.frames": 8000,
+                                                               "frames_per_file": 4000})
+
+
+@pytest.fixture(scope="module")
+def bias_points(tmp_path_factory):
+    """The offset-bias study at the paper's two PRNU levels, 8000 frames with noise, 3 noiseless patterns."""
+    work = tmp_path_factory.mktemp("offset-bias")
+    return {prnu: studies.offset_bias(bench(prnu), workdir=work, noiseless_frames=2000, noiseless_draws=3)
+            for prnu in (5e-5, 2e-3)}
+
+
+def test_ours_stays_at_the_photon_floor_at_both_prnu_levels(bias_points):
+    for ds in bias_points.values():
+        assert float(ds.rms_error_ours) < 1.2 * float(ds.rms_photon_floor)
+        assert float(ds.rms_bias_ours) < 1e-8  # noiseless: no bias at all
+
+
+def test_the_papers_method_leaves_a_bias_that_grows_with_the_prnu(bias_points):
+    low, high = bias_points[5e-5], bias_points[2e-3]
+    assert float(high.rms_bias_paper) > 5 * float(low.rms_bias_paper)
+    assert float(high.rms_bias_paper) > 1e4 * float(high.rms_bias_ours)
+    assert float(high.rms_bias_paper) > 3e-6  # pixel: well above ours, below the paper's 1e-4
+    # each noiseless PRNU pattern has its own bias: a random Fourier component of the pattern
+    assert np.ptp(high.draw_bias_paper.values) > 0.1 * float(high.rms_bias_paper)
+
+
+def test_the_papers_bias_is_a_pattern_at_the_fringe_frequency(bias_points):
+    """Most of the paper's noiseless error projects on cos and sin of the pixel phase and twice it."""
+    ds = bias_points[2e-3]
+    bias = ds.bias_paper.values
+    rows, cols = np.nonzero(np.isfinite(bias))
+    values = bias[rows, cols]
+    period, angle = 2.4, np.radians(2.0)
+    phase = 2 * np.pi / period * (np.cos(angle) * cols + np.sin(angle) * rows)
+    design = np.column_stack([np.cos(phase), np.sin(phase), np.cos(2 * phase), np.sin(2 * phase)])
+    fitted = design @ np.linalg.lstsq(design, values, rcond=None)[0]
+    assert np.sqrt(np.mean(fitted**2)) > 0.5 * np.sqrt(np.mean(values**2))
+
+
+def test_overrides_reach_nested_keys_and_refuse_unknown_sections():
+    settings = studies.apply_overrides(studies.OFFSET_BIAS_BENCH, {"detector.prnu_rms": np.float64(5e-5), "seed": 3})
+    assert settings["detector"]["prnu_rms"] == 5e-5 and type(settings["detector"]["prnu_rms"]) is float
+    assert settings["seed"] == 3 and studies.OFFSET_BIAS_BENCH["detector"]["prnu_rms"] == 2e-3  # a copy
+    with pytest.raises(KeyError, match="no section 'detectr'"):
+        studies.apply_overrides(studies.OFFSET_BIAS_BENCH, {"detectr.prnu_rms": 1.0})
+
+
+def test_an_error_propagation_point_round_trips_through_its_product(tmp_path):
+    from dice_core.io import read_product, write_product
+
+    ds = studies.run_point("error_propagation", {"source": "offsets", "weighting": "uniform"},
+                           bench={"star.psf_sigma": 1.6}, options={"trials": 50, "amplitudes": [1e-3, 1e-2]})
+    write_product(ds, tmp_path / "point.nc", title="point")
+    back = studies.sweep_from_dataset(read_product(tmp_path / "point.nc"))
+    direct = error_budget.sweep("offsets", [1e-3, 1e-2], trials=50, weighting="uniform",
+                                star=error_budget.Star(psf_sigma=1.6))
+    assert back.source == "offsets" and back.weighting == "uniform" and back.star.psf_sigma == 1.6
+    assert back.coefficient == pytest.approx(direct.coefficient, rel=1e-12)
+    assert back.prediction.coefficient == pytest.approx(direct.prediction.coefficient, rel=1e-12)
+    with pytest.raises(KeyError, match="only star"):
+        studies.run_point("error_propagation", {"source": "prnu"}, bench={"detector.gain": 1.0})
+    with pytest.raises(ValueError, match="unknown study"):
+        studies.run_point("nonsense", {})
+
+
+def test_the_combined_table_has_one_row_per_source_with_the_unweighted_fit_beside():
+    sweeps = [error_budget.sweep(s, [1e-3], trials=40, weighting=w) for s in ("prnu", "read")
+              for w in ("pipeline", "uniform")]
+    rows = error_budget.combined_table(sweeps)
+    assert [r["source"] for r in rows] == ["prnu", "read"]
+    assert all(r["weighting"] == "pipeline" for r in rows)
+    uniform = error_budget.error_propagation_table([sw for sw in sweeps if sw.weighting == "uniform"])
+    assert rows[0]["coefficient_uniform"] == uniform[0]["coefficient"]
+    header = error_budget.error_propagation_csv(rows).splitlines()[0].split(",")
+    assert header[:5] == ["source", "normalisation", "coefficient", "error", "paper_coefficient"]
+    assert "coefficient_uniform" in header
+
+
+def test_the_procrustes_deflation_of_the_papers_geometry_is_its_1_4():
+    factor, error = reproduction.procrustes_deflation(33, trials=1000)
+    assert factor == pytest.approx(1.4, abs=0.06) and error < 0.01
+    # about sqrt(2SN / (2SN - 5N - 2S + 4)) for S stars and N positions
+    assert factor == pytest.approx(np.sqrt(330 / (330 - 165 - 10 + 4)), rel=0.02)
+
+
+def test_the_comparison_table_follows_the_contract():
+    import csv
+    import io
+
+    rows = [reproduction.Row("deflation", 1.44, 0.004, "nominal geometry", "a note, with a comma")]
+    parsed = list(csv.DictReader(io.StringIO(reproduction.comparison_csv(rows))))
+    assert list(parsed[0])[:6] == ["quantity", "section", "paper", "ours", "error", "unit"]
+    assert float(parsed[0]["paper"]) == 1.4 and float(parsed[0]["ours"]) == 1.44
+    assert parsed[0]["note"] == "a note, with a comma" and parsed[0]["section"] == "Numerical simulations"

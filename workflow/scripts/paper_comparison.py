@@ -1,0 +1,44 @@
+"""Snakemake step: every regenerated number of the paper beside the paper's, tables/paper_comparison.csv."""
+
+import csv
+import logging
+
+import dice_core
+from dice_core import io, plotting, reproduction
+
+
+def read_csv(path):
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, trials):
+    log = logging.getLogger("dice")
+    points = {}
+    for path in inputs["offset_bias"]:
+        ds = io.read_product(path)
+        points[float(ds.attrs["prnu_rms"])] = ds
+    rows = reproduction.offset_bias_rows(points)
+    rows += reproduction.error_propagation_rows(read_csv(inputs["error_propagation"]))
+    factor, error = reproduction.procrustes_deflation(trials=trials)
+    rows.append(reproduction.Row("deflation", factor, error, "nominal geometry",
+                                 f"{trials} Monte Carlo trials of white jitter"))
+    for path in inputs.get("allan", []):
+        rows += reproduction.allan_rows(io.read_product(path), dataset=dataset)
+    if "accuracy" in inputs:
+        used = "all positions" if positions is None else f"positions {positions[0]}-{positions[1]}"
+        records = [r for r in read_csv(inputs["accuracy"]) if r["method"] == read_csv(inputs["accuracy"])[0]["method"]]
+        rows += reproduction.accuracy_rows(records, dataset=dataset,
+                                           note=f"simulated bench, {used}, method {records[0]['method']}")
+    for row in rows:
+        values = row.as_dict()
+        log.info("%-70s paper %-9.3g ours %.3g +- %.2g %s", values["quantity"], values["paper"], values["ours"],
+                 values["error"], values["unit"])
+    io.write_text(csv_path, reproduction.comparison_csv(rows))
+    plotting.save(plotting.paper_comparison_figure(rows), png, pdf)
+
+
+inputs = {key: (list(value) if not isinstance(value, str) else value) for key, value in snakemake.input.items()}
+dice_core.run_logged(snakemake.log[0], paper_comparison, inputs, snakemake.output.csv, snakemake.output.png,
+                     snakemake.output.pdf, snakemake.params.dataset, snakemake.params.positions,
+                     snakemake.params.trials)
