@@ -45,6 +45,6 @@ if args.csv:
 if args.figure:
     from dice_core import plotting
 
-    fig = error_budget.error_propagation_figure(sweeps)
+    fig = plotting.error_propagation_figure(sweeps)
     fig.savefig(args.figure, dpi=120)
     plotting.plt.close(fig)

@@ -37,8 +37,8 @@ the paper's value.
 - :func:`analytic`: linear propagation through the least-squares fit,
   averaged over sub-pixel positions; :func:`cramer_rao_coefficient`: the
   Fisher bound of the same model, for comparison.
-- :func:`sweep`, :func:`error_propagation_table`, :func:`error_propagation_csv`,
-  :func:`error_propagation_figure`: the paper's table and its figure.
+- :func:`sweep`, :func:`error_propagation_table`, :func:`error_propagation_csv`: the
+  paper's table (its figure is :func:`dice_core.plotting.error_propagation_figure`).
 """
 
 from __future__ import annotations
@@ -79,7 +79,6 @@ __all__ = [
     "combined_table",
     "error_propagation_csv",
     "write_error_propagation_csv",
-    "error_propagation_figure",
 ]
 
 SOURCES = ("prnu", "photon", "offsets", "read")
@@ -663,65 +662,11 @@ def error_propagation_csv(rows) -> str:
 
 
 def write_error_propagation_csv(rows, path) -> Path:
-    """Write :func:`error_propagation_csv` to ``path`` (e.g. ``tables/error_propagation.csv``), making its folder."""
+    """Write :func:`error_propagation_csv` to ``path`` (e.g. ``tables/error_propagation.csv``) atomically,
+    making its folder."""
+    from dice_core.io import write_text
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(error_propagation_csv(rows))
+    write_text(path, error_propagation_csv(rows))
     return path
-
-
-COLOURS = {"prnu": "tab:blue", "photon": "tab:orange", "offsets": "tab:green", "read": "tab:red"}
-
-
-def error_propagation_figure(sweeps, *, title: str | None = None):
-    """Per-axis centroid error (pixel) against each source's amplitude, log-log, one panel per source.
-
-    For each :class:`Sweep`, in its colour: the Monte Carlo rms per-axis
-    errors with their 1-sigma error bars (label ``"<source> MC"``), the
-    analytic prediction (solid, ``"<source> analytic"``) and the paper's
-    coefficient (dashed, ``"<source> paper"``), the lines over the amplitudes
-    swept (a factor 2 beyond each end), and the 5e-6 pixel budget (dotted).
-    Amplitudes are relative, except the offsets' (pixel).
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-    """
-    from dice_core.plotting import plt
-
-    sweeps = list(sweeps)
-    sources = [src for src in SOURCES if any(sw.source == src for sw in sweeps)]
-    cols = min(2, len(sources))
-    rows = -(-len(sources) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.6 * rows), constrained_layout=True, squeeze=False)
-    markers = {"pipeline": ("o", "-"), "uniform": ("s", "-.")}
-    for ax, source in zip(axes.ravel(), sources):
-        colour = COLOURS.get(source)
-        span = None
-        for sw in (sw for sw in sweeps if sw.source == source):
-            a = sw.amplitudes
-            marker, line = markers.get(sw.weighting, ("^", ":"))
-            rms = np.array([r.coefficient * r.amplitude for r in sw.runs])
-            err = np.array([r.error * r.amplitude for r in sw.runs])
-            ax.errorbar(a, rms, yerr=err, fmt=marker, color=colour, ms=4, capsize=2,
-                        mfc=colour if sw.weighting == "pipeline" else "none",
-                        label=f"{sw.weighting} fit, MC ({sw.coefficient:.3f} +- {sw.error:.3f})")
-            span = np.geomspace(a.min() / 2, a.max() * 2, 20)
-            ax.plot(span, sw.prediction.coefficient * span, line, color=colour, lw=1,
-                    label=f"{sw.weighting} fit, analytic ({sw.prediction.coefficient:.3f})")
-        ax.plot(span, PAPER_COEFFICIENTS[source] * span, "--", color="black", lw=0.8, alpha=0.6,
-                label=f"paper ({PAPER_COEFFICIENTS[source]:.2f})")
-        ax.axhline(REQUIRED_ERROR, color="0.5", lw=0.8, ls=":", label="5e-6 pixel")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        unit = "pixel" if SOURCE_UNITS[source] == "pixel" else "relative"
-        ax.set_xlabel(f"{source} amplitude [{unit}]")
-        ax.set_ylabel("centroid error per axis, rms [pixel]")
-        ax.set_title(source, fontsize=9)
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=6)
-    for ax in axes.ravel()[len(sources):]:
-        ax.set_visible(False)
-    fig.suptitle(title or "Error propagation into the Gaussian centroid: Monte Carlo (points), linear propagation "
-                          "(lines), the paper (dashed)", fontsize=9)
-    return fig

@@ -9,7 +9,9 @@ Crouzier et al. (A&A), section "Metrology", "Minimization strategy":
 3. iterations 2 to N (N = 4 in the paper), the wavevector is fixed at its
    mean, and each frame is fitted again with "the pixel locations projected
    onto the wavevector": pixels at their measured phases, their responses
-   still perfect (iota = alpha = 1); then step 2 again;
+   still perfect (iota = alpha = 1); then step 2 again. A measured phase is
+   K.r + K.delta + constant with K the data's own, so the frame fits use K
+   through the phases (the mean of K(t) only starts the plane of step 4);
 4. the offsets are the pixel phases minus the plane of K, normalised to zero
    mean and gradient; there is no gauge constraint beyond these.
 

@@ -16,9 +16,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
+from dice_core import error_budget  # noqa: E402
 from dice_core.manifest import Detector  # noqa: E402
 
-__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure", "barycentre_figure", "offset_bias_figure", "paper_comparison_figure", "save"]
+__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure", "barycentre_figure", "offset_bias_figure", "paper_comparison_figure",
+           "error_propagation_figure", "save"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -457,10 +459,13 @@ def offset_bias_figure(datasets, *, title="Pixel-offset error against truth: the
                 rows_, cols_ = shown.shape
                 im = ax.imshow(shown, origin="lower", cmap="RdBu_r", vmin=-limit, vmax=limit, interpolation="nearest",
                                extent=(c0 - 0.5, c0 + cols_ - 0.5, r0 - 0.5, r0 + rows_ - 0.5))
-                rms = float(ds[f"rms_{name}"])
-                extra = f" = {rms / floor:.2f} x floor" if name.startswith("error") else (
-                    f" (rms over {ds.attrs.get('noiseless_draws', 1)} PRNU patterns)")
-                ax.set_title(f"PRNU {ds.attrs['prnu_rms']:.0e}: {label}\nrms {rms:.2e} pixel{extra}", fontsize=8)
+                shown_rms = float(np.sqrt(np.nanmean(np.square(shown)))) / scale  # of this map
+                if name.startswith("error"):
+                    extra = f" = {shown_rms / floor:.2f} x floor"
+                else:  # the map is the first PRNU pattern; the study also gives the rms over all
+                    extra = (f" (this pattern);\n{float(ds[f'rms_{name}']):.2e} over "
+                             f"{ds.attrs.get('noiseless_draws', 1)} patterns")
+                ax.set_title(f"PRNU {ds.attrs['prnu_rms']:.0e}: {label}\nrms {shown_rms:.2e} pixel{extra}", fontsize=8)
                 ax.set_xlabel("column x [pixel]")
                 ax.set_ylabel("row y [pixel]")
                 fig.colorbar(im, ax=ax, shrink=0.8).set_label("1e-5 pixel")
@@ -479,12 +484,69 @@ def paper_comparison_figure(rows, *, title="Regenerated numbers against the pape
     errors = np.array([r["error"] / r["paper"] if np.isfinite(r["error"]) else 0.0 for r in records])
     y = np.arange(len(records))[::-1]
     colours = ["tab:blue" if r["section"].startswith("Numerical") else "tab:orange" for r in records]
-    ax.barh(y, ratios, color=colours, alpha=0.6)
-    ax.errorbar(ratios, y, xerr=errors, fmt="none", ecolor="black", lw=0.8, capsize=2)
+    for yy, ratio, error, colour in zip(y, ratios, errors, colours):  # markers: bar lengths mean nothing on a log axis
+        low = min(error, 0.9 * ratio)  # a symmetric error bar must not cross zero on a log axis
+        ax.errorbar([ratio], [yy], xerr=[[low], [error]], fmt="o", color=colour, ms=5, ecolor="black", lw=0.8,
+                    capsize=2)
     ax.axvline(1.0, color="black", lw=0.8)
     ax.set_xscale("log")
     ax.set_yticks(y, [f"{r['quantity']} ({r['dataset']})" for r in records], fontsize=7)
     ax.set_xlabel("ours / paper's\nblue: numerical simulations; orange: experimental section, on the simulated bench")
     ax.grid(True, axis="x", which="both", alpha=0.3)
     ax.set_title(title, fontsize=10)
+    return fig
+
+
+_ERROR_SOURCE_COLOURS = {"prnu": "tab:blue", "photon": "tab:orange", "offsets": "tab:green", "read": "tab:red"}
+
+
+def error_propagation_figure(sweeps, *, title: str | None = None):
+    """Per-axis centroid error (pixel) against each source's amplitude, log-log, one panel per source.
+
+    For each :class:`dice_core.error_budget.Sweep`, in its colour: the Monte Carlo rms per-axis
+    errors with their 1-sigma error bars (label ``"<source> MC"``), the
+    analytic prediction (solid, ``"<source> analytic"``) and the paper's
+    coefficient (dashed, ``"<source> paper"``), the lines over the amplitudes
+    swept (a factor 2 beyond each end), and the 5e-6 pixel budget (dotted).
+    Amplitudes are relative, except the offsets' (pixel).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    sweeps = list(sweeps)
+    sources = [src for src in error_budget.SOURCES if any(sw.source == src for sw in sweeps)]
+    cols = min(2, len(sources))
+    rows = -(-len(sources) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.6 * rows), constrained_layout=True, squeeze=False)
+    markers = {"pipeline": ("o", "-"), "uniform": ("s", "-.")}
+    for ax, source in zip(axes.ravel(), sources):
+        colour = _ERROR_SOURCE_COLOURS.get(source)
+        span = None
+        for sw in (sw for sw in sweeps if sw.source == source):
+            a = sw.amplitudes
+            marker, line = markers.get(sw.weighting, ("^", ":"))
+            rms = np.array([r.coefficient * r.amplitude for r in sw.runs])
+            err = np.array([r.error * r.amplitude for r in sw.runs])
+            ax.errorbar(a, rms, yerr=err, fmt=marker, color=colour, ms=4, capsize=2,
+                        mfc=colour if sw.weighting == "pipeline" else "none",
+                        label=f"{sw.weighting} fit, MC ({sw.coefficient:.3f} +- {sw.error:.3f})")
+            span = np.geomspace(a.min() / 2, a.max() * 2, 20)
+            ax.plot(span, sw.prediction.coefficient * span, line, color=colour, lw=1,
+                    label=f"{sw.weighting} fit, analytic ({sw.prediction.coefficient:.3f})")
+        ax.plot(span, error_budget.PAPER_COEFFICIENTS[source] * span, "--", color="black", lw=0.8, alpha=0.6,
+                label=f"paper ({error_budget.PAPER_COEFFICIENTS[source]:.2f})")
+        ax.axhline(error_budget.REQUIRED_ERROR, color="0.5", lw=0.8, ls=":", label="5e-6 pixel")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        unit = "pixel" if error_budget.SOURCE_UNITS[source] == "pixel" else "relative"
+        ax.set_xlabel(f"{source} amplitude [{unit}]")
+        ax.set_ylabel("centroid error per axis, rms [pixel]")
+        ax.set_title(source, fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=6)
+    for ax in axes.ravel()[len(sources):]:
+        ax.set_visible(False)
+    fig.suptitle(title or "Error propagation into the Gaussian centroid: Monte Carlo (points), linear propagation "
+                          "(lines), the paper (dashed)", fontsize=9)
     return fig

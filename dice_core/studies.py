@@ -16,6 +16,8 @@ Units: pixel, adu, relative where the parameter says so.
 from __future__ import annotations
 
 import copy
+import dataclasses
+import json
 import logging
 import tempfile
 import time
@@ -217,8 +219,6 @@ def error_propagation(source: str, *, star: dict | None = None, amplitudes=None,
 
 def sweep_dataset(result) -> xr.Dataset:
     """An :class:`dice_core.error_budget.Sweep` as a dataset: each trial's truth and error, pixel."""
-    import dataclasses
-
     runs = result.runs
     data = {name: (("amplitude", "trial"), np.stack([getattr(r, name) for r in runs]),
                    {"units": "pixel", "long_name": what})
@@ -245,7 +245,7 @@ def sweep_from_dataset(ds: xr.Dataset):
     runs = tuple(error_budget.MonteCarlo(source, float(a), weighting, *(ds[v].values[i] for v in ("x", "y", "ex", "ey")))
                  for i, a in enumerate(ds["amplitude"].values))
     star = error_budget.Star(**{f.name: type(f.default)(ds.attrs[f"star_{f.name}"])
-                                for f in __import__("dataclasses").fields(error_budget.Star)})
+                                for f in dataclasses.fields(error_budget.Star)})
     bound = float(ds.attrs["cramer_rao"])
     return error_budget.Sweep(source, weighting, runs,
                               error_budget.Analytic(source, weighting, float(ds.attrs["analytic_x"]),
@@ -273,15 +273,19 @@ def run_point(study: str, point: dict, *, bench: dict | None = None, options: di
         ``star.psf_sigma`` ...) or names of its options (``source``, ``trials`` ...).
     bench, options : dict
         The sweep's own settings, under the point's.
-    workdir : path
-        Where a study may put its temporary simulated files.
+    workdir : path, optional
+        Where a study may put its temporary simulated files (a temporary folder if not given).
     """
     bench, options = dict(bench or {}), dict(options or {})
     for key, value in point.items():
         value = value.item() if isinstance(value, np.generic) else value
         (bench if "." in key else options)[key] = value
     if study == "offset_bias":
-        ds = offset_bias(apply_overrides(OFFSET_BIAS_BENCH, bench), workdir=workdir, **options)
+        if workdir is None:
+            with tempfile.TemporaryDirectory(prefix="offset-bias-") as folder:
+                ds = offset_bias(apply_overrides(OFFSET_BIAS_BENCH, bench), workdir=folder, **options)
+        else:
+            ds = offset_bias(apply_overrides(OFFSET_BIAS_BENCH, bench), workdir=workdir, **options)
     elif study == "error_propagation":
         stars = {}
         for key, value in bench.items():
@@ -292,5 +296,5 @@ def run_point(study: str, point: dict, *, bench: dict | None = None, options: di
         ds = error_propagation(star=stars, **options)
     else:
         raise ValueError(f"unknown study {study!r}; studies are {', '.join(STUDIES)}")
-    ds.attrs.update({"study": study, "point": str(point)})
+    ds.attrs.update({"study": study, "point": json.dumps(point)})
     return ds

@@ -7,7 +7,8 @@ import io
 import numpy as np
 import pytest
 
-from dice_core import centroids, error_budget as eb
+from dice_core import centroids, plotting
+from dice_core import error_budget as eb
 
 STAR = eb.Star()  # the simulator's star in electrons, the workflow's 15x15 windows
 TRIALS = 400  # per-axis MC errors of 1.4-1.6% relative
@@ -162,7 +163,7 @@ def test_figure_plots_each_sources_points_analytic_and_paper_lines(sweeps):
 
     from dice_core.plotting import plt
 
-    fig = eb.error_propagation_figure(sweeps)
+    fig = plotting.error_propagation_figure(sweeps)
     try:
         axes = [ax for ax in fig.axes if ax.get_visible()]
         assert len(axes) == len(sweeps)

@@ -102,3 +102,21 @@ def test_the_comparison_table_follows_the_contract():
     assert list(parsed[0])[:6] == ["quantity", "section", "paper", "ours", "error", "unit"]
     assert float(parsed[0]["paper"]) == 1.4 and float(parsed[0]["ours"]) == 1.44
     assert parsed[0]["note"] == "a note, with a comma" and parsed[0]["section"] == "Numerical simulations"
+
+
+def test_offset_bias_rows_take_the_noisy_error_at_5e_5_and_the_bias_at_2e_3(bias_points):
+    rows = {row.key: row for row in reproduction.offset_bias_rows(bias_points)}
+    assert rows["bias_paper_5e-5"].ours == float(bias_points[5e-5].rms_error_paper)
+    assert rows["bias_paper_2e-3"].ours == float(bias_points[2e-3].rms_bias_paper)
+    assert rows["bias_paper_2e-3"].error == pytest.approx(np.std(bias_points[2e-3].draw_bias_paper.values, ddof=1))
+
+
+def test_allan_rows_are_scaled_to_the_papers_group_size():
+    import xarray as xr
+
+    allan = xr.Dataset({"deviation_mean": ("n_frames", [4e-4, 2e-4]), "deviation_block_mean": ("n_frames", [4e-5, 2e-5]),
+                        "photon_limit_pixel": ("n_frames", [4e-4, 2e-4]), "photon_limit_block": ("n_frames", [4e-5, 2e-5]),
+                        "slope": ((), -0.5)}, coords={"n_frames": [625, 2500]}, attrs={"baseline": "H1H4"})
+    pixel, block = reproduction.allan_rows(allan, dataset="sim")
+    assert pixel.ours == pytest.approx(2e-4 * np.sqrt(2500 / 1e5)) and block.ours == pytest.approx(2e-5 * 0.158113883)
+    assert pixel.dataset == "sim H1H4" and "2500 frames per group" in pixel.note

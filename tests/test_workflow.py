@@ -490,7 +490,7 @@ def test_a_sweep_point_added_runs_only_its_job_and_one_removed_touches_no_other(
         (workdir / "sweep.yaml").write_text(yaml.safe_dump({"sweeps": {"tiny": {
             "study": "error_propagation", "parameter": "source", "values": values,
             "options": {"trials": 20, "amplitudes": [1e-3]}}}}))
-        run = snakemake(workdir, "--config", "dataset=ci", "--configfile", "sweep.yaml", target)
+        run = snakemake(workdir, target, "--config", "dataset=ci", "--configfile=sweep.yaml")
         return run.stdout + run.stderr
 
     points = workdir / "results" / "sweeps" / "tiny"
@@ -508,5 +508,13 @@ def test_a_sweep_point_added_runs_only_its_job_and_one_removed_touches_no_other(
     assert summary[0].startswith("source,") and [line.split(",")[0] for line in summary[1:]] == ["prnu", "offsets"]
     (workdir / "sweep.yaml").write_text(yaml.safe_dump({"sweeps": {"tiny": {
         "study": "error_propagation", "points": [{"source": "prnu"}, {"source": "read", "trials": 30}]}}}))
-    bad = snakemake(workdir, "-n", "--config", "dataset=ci", "--configfile", "sweep.yaml", target, check=False)
+    bad = snakemake(workdir, target, "-n", "--config", "dataset=ci", "--configfile=sweep.yaml", check=False)
     assert bad.returncode != 0 and "every point must set the same parameters" in bad.stdout + bad.stderr
+
+
+def test_the_paper_target_plans_the_studies_and_the_comparison(workdir):
+    plan = snakemake(workdir, "paper", "-n", "--config", "dataset=ci").stdout
+    for rule in ("sweep_point", "sweep_summary", "plot_offset_bias", "error_propagation_table", "paper_comparison"):
+        assert f"rule {rule}:" in plan
+    assert plan.count("rule sweep_point:") == 10  # 2 PRNU levels, 4 sources x 2 weightings
+    assert "rule fit_fringes:" not in plan  # the ci reduction is done: the paper target adds only its own jobs

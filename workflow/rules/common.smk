@@ -4,14 +4,16 @@
 
 import ast
 import hashlib
+import itertools
 import os
 import re
 import sys
 from importlib import util
 from pathlib import Path
 
+from pandas import DataFrame
 from snakemake.exceptions import WorkflowError
-from snakemake.utils import validate
+from snakemake.utils import Paramspace, validate
 
 from dice_core import DatasetError, simulation
 from dice_core.manifest import load_manifest, parse_manifest
@@ -268,3 +270,68 @@ def astrometry_targets():
 def centroid_products(wildcards):
     """Every centroid product of the sweep: each allowed mode with each method."""
     return [t for t in centroid_targets() if t.endswith(".nc")]
+
+
+# --------------------------------------------------------------------------- sweeps and the paper target
+
+
+SWEEP_ROOT = f"{config['results']}/sweeps"
+
+
+def sweep_space(name, spec):
+    """(Paramspace with one wildcard 'point', column -> parameter key) of a configured sweep."""
+    if "points" in spec:
+        points = [dict(p) for p in spec["points"]]
+    elif "grid" in spec:  # every combination, the first parameter varying slowest
+        keys = list(spec["grid"])
+        points = [dict(zip(keys, combination)) for combination in itertools.product(*spec["grid"].values())]
+    else:
+        points = [{spec["parameter"]: value} for value in spec["values"]]
+    keys = sorted({key for p in points for key in p})
+    if any(set(p) != set(keys) for p in points):
+        raise WorkflowError(f"config sweeps.{name}.points: every point must set the same parameters {keys}")
+    columns = {key.rsplit(".", 1)[-1]: key for key in keys}  # folder names: the key's last part
+    if len(columns) != len(keys):
+        raise WorkflowError(f"config sweeps.{name}: parameters {keys} share a last name; folders would clash")
+    frame = DataFrame([{column: p[key] for column, key in columns.items()} for p in points])
+    if frame.duplicated().any():
+        raise WorkflowError(f"config sweeps.{name}: a point is listed twice")
+    return Paramspace(frame, single_wildcard="point"), columns
+
+
+SWEEPS = {name: (spec, *sweep_space(name, spec)) for name, spec in config.get("sweeps", {}).items()}
+
+
+def sweep_points(name):
+    """The point products of a configured sweep, in the config's order."""
+    if name not in SWEEPS:
+        raise WorkflowError(f"no sweep named {name!r} in config sweeps (sweeps: {', '.join(SWEEPS) or 'none'})")
+    space = SWEEPS[name][1]
+    return [f"{SWEEP_ROOT}/{name}/{point}/point.nc" for point in space.instance_patterns]
+
+
+def point_parameters(wildcards):
+    """The {point} wildcard as the study's parameters (dotted bench keys or option names)."""
+    spec, space, columns = SWEEPS[wildcards.sweep]
+    values = space.instance(wildcards)
+    return {columns[column]: (value.item() if hasattr(value, "item") else value) for column, value in values.items()}
+
+
+def paper_sweep(study):
+    """The sweep that config paper.<study> names, checked to run that study."""
+    name = config["paper"][study]
+    if name not in SWEEPS or SWEEPS[name][0]["study"] != study:
+        raise WorkflowError(f"config paper.{study}: {name!r} is not a sweep of study {study} in config sweeps")
+    return name
+
+
+
+def comparison_inputs(wildcards=None):
+    """What the comparison reads: the studies, and this dataset's accuracy table and Allan products."""
+    inputs = {"offset_bias": sweep_points(paper_sweep("offset_bias")),
+              "error_propagation": f"{OUT}/tables/error_propagation.csv"}
+    if astrometry_targets():
+        inputs["accuracy"] = f"{OUT}/tables/accuracy.csv"
+    if metrology_unavailable() is None:
+        inputs["allan"] = [f"{OUT}/allan/{baseline}.nc" for baseline in MANIFEST.baselines]
+    return inputs

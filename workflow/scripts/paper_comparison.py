@@ -12,7 +12,7 @@ def read_csv(path):
         return list(csv.DictReader(handle))
 
 
-def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, trials):
+def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, trials, method):
     log = logging.getLogger("dice")
     points = {}
     for path in inputs["offset_bias"]:
@@ -27,9 +27,8 @@ def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, trials):
         rows += reproduction.allan_rows(io.read_product(path), dataset=dataset)
     if "accuracy" in inputs:
         used = "all positions" if positions is None else f"positions {positions[0]}-{positions[1]}"
-        records = [r for r in read_csv(inputs["accuracy"]) if r["method"] == read_csv(inputs["accuracy"])[0]["method"]]
-        rows += reproduction.accuracy_rows(records, dataset=dataset,
-                                           note=f"simulated bench, {used}, method {records[0]['method']}")
+        records = [r for r in read_csv(inputs["accuracy"]) if r["method"] == method]
+        rows += reproduction.accuracy_rows(records, dataset=dataset, note=f"simulated bench, {used}, method {method}")
     for row in rows:
         values = row.as_dict()
         log.info("%-70s paper %-9.3g ours %.3g +- %.2g %s", values["quantity"], values["paper"], values["ours"],
@@ -41,4 +40,4 @@ def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, trials):
 inputs = {key: (list(value) if not isinstance(value, str) else value) for key, value in snakemake.input.items()}
 dice_core.run_logged(snakemake.log[0], paper_comparison, inputs, snakemake.output.csv, snakemake.output.png,
                      snakemake.output.pdf, snakemake.params.dataset, snakemake.params.positions,
-                     snakemake.params.trials)
+                     snakemake.params.trials, snakemake.params.method)
