@@ -20,7 +20,7 @@ from dice_core import error_budget  # noqa: E402
 from dice_core.manifest import Detector  # noqa: E402
 
 __all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure", "barycentre_figure", "offset_bias_figure", "paper_comparison_figure",
-           "error_propagation_figure", "save"]
+           "error_propagation_figure", "star_accuracy_figure", "save"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -549,4 +549,30 @@ def error_propagation_figure(sweeps, *, title: str | None = None):
         ax.set_visible(False)
     fig.suptitle(title or "Error propagation into the Gaussian centroid: Monte Carlo (points), linear propagation "
                           "(lines), the paper (dashed)", fontsize=9)
+    return fig
+
+
+def star_accuracy_figure(datasets, points, *, title="Centroid accuracy with perfect calibrations"):
+    """Each calibration mode's error against truth (solid) and Procrustes accuracy (dashed, with its error),
+    pixel, against a star_accuracy sweep's parameter (or the point's number when several vary)."""
+    keys = sorted({k for p in points for k in p})
+    numeric = len(keys) == 1 and all(isinstance(p[keys[0]], (int, float)) for p in points)
+    x = [p[keys[0]] for p in points] if numeric else list(range(len(points)))
+    order = sorted(range(len(points)), key=lambda i: x[i])
+    fig, ax = plt.subplots(figsize=(8, 5), constrained_layout=True)
+    for k, mode in enumerate(datasets[0]["mode"].values):
+        colour = f"C{k}"
+        xs = [x[i] for i in order]
+        ax.plot(xs, [float(datasets[i]["truth_error"].sel(mode=mode)) for i in order], "o-", color=colour,
+                label=f"{mode}: against truth")
+        ax.errorbar(xs, [float(datasets[i]["accuracy_position"].sel(mode=mode)) for i in order],
+                    yerr=[float(datasets[i]["error_position"].sel(mode=mode)) for i in order], fmt="s--",
+                    color=colour, ms=4, capsize=2, alpha=0.7, label=f"{mode}: Procrustes accuracy (p)")
+    ax.set_yscale("log")
+    ax.set_xlabel(keys[0] if numeric else "point (" + ", ".join(keys) + ")")
+    ax.set_ylabel("centroid error [pixel]")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    ax.set_title(f"{title}: {datasets[0].attrs.get('method', '')} centroids, "
+                 f"{datasets[0].attrs.get('positions', '?')} positions, perfect flat and offsets", fontsize=9)
     return fig

@@ -9,6 +9,9 @@ point a set of parameter values applied to the study's own simulated bench.
   pixel-offset-bias figure).
 - :func:`error_propagation`: centroid error per unit of one error source
   (:mod:`dice_core.error_budget`; the paper's table of error coefficients).
+- :func:`star_accuracy`: centroid accuracy of each calibration mode with
+  perfect calibrations, against truth and by Procrustes (e.g. against the
+  PRF width spread, which neither calibration sees).
 
 Units: pixel, adu, relative where the parameter says so.
 """
@@ -31,7 +34,7 @@ from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
 from dice_core.paper_method import fit_baseline_paper
 
-__all__ = ["OFFSET_BIAS_BENCH", "STUDIES", "apply_overrides", "offset_bias", "affine_free", "error_propagation",
+__all__ = ["OFFSET_BIAS_BENCH", "STAR_ACCURACY_BENCH", "STUDIES", "star_accuracy", "apply_overrides", "offset_bias", "affine_free", "error_propagation",
            "sweep_dataset", "sweep_from_dataset", "run_point"]
 
 log = logging.getLogger(__name__)
@@ -253,11 +256,107 @@ def sweep_from_dataset(ds: xr.Dataset):
                               None if np.isnan(bound) else bound, star)
 
 
+# --------------------------------------------------------------------------- star accuracy
+
+#: The default preset's detector and stars, without noise, with perfect calibrations: what limits the
+#: centroids when the flat and the metrology are exact (e.g. the PRF width spread, which neither sees).
+#: No tip-tilt (the roll stays, which Procrustes absorbs): the Procrustes accuracies see only the pixels. Set ``detector.photon_noise:
+#: true`` (with a read noise) for the noisy case, ``stars.tip_tilt_pv`` for the stage.
+STAR_ACCURACY_BENCH = {
+    "name": "star-accuracy",
+    "seed": 20150926,
+    "detector": {"shape": [80, 84], "science_rows": [2, 79], "science_cols": [10, 83], "prnu_rms": 2.0e-3,
+                 "offset_rms": 1.0e-3, "prf_width_spread": 0.01, "photon_noise": False, "read_noise": 0.0,
+                 "dtype": "float32"},
+    "dark": {"frames": 2},
+    "flats": {"frames": 2},
+    "metrology": {"frames": 2, "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}},  # unused
+    "stars": {"positions": 12, "frames": 16, "tip_tilt_pv": 0.0},  # a roll only: Procrustes absorbs it
+}
+
+STAR_ACCURACY_MODES = ("raw", "flat", "metrology", "flat+metrology")
+
+
+def _position_chunks(cfg, truth, index: int):
+    """A star position's simulated frames as :class:`dice_core.io.Chunk` s, in memory (no file)."""
+    from dice_core.io import Chunk
+
+    start = 0
+    for frames in simulation.acquisition_chunks(cfg, truth, "position", index, 0, cfg.stars.frames):
+        frames = np.asarray(frames, dtype=np.float64)
+        yield Chunk(start, frames, np.zeros(frames.shape, bool), False)
+        start += frames.shape[0]
+
+
+def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "gaussian", half_size: int = 7,
+                  batches: int = 4, groups: int = 3, trials: int = 500) -> xr.Dataset:
+    """Centroid accuracy of each calibration mode with perfect calibrations, against truth and by Procrustes.
+
+    The bench ``settings`` (:data:`STAR_ACCURACY_BENCH` with a point's
+    overrides) is simulated in memory, star positions only, with its true
+    sensitivities as the flat and its true pixel offsets as the metrology:
+    each mode's error is then what the calibrations it uses cannot remove.
+    The dark is the true bias and the frames are not quantised (the
+    workflow's uint16 files add about 0.3 adu rms).
+
+    Returns
+    -------
+    xarray.Dataset
+        Per mode: ``truth_error`` (rms over positions, stars and both axes of
+        the centroid minus the true position, each position's mean
+        displacement removed, pixel); ``accuracy_position``,
+        ``error_position``, ``accuracy_group``, ``error_group`` (the accuracy
+        table's Procrustes numbers, pixel).
+    """
+    from dice_core import astrometry, centroids, stacks
+    from dice_core.manifest import parse_manifest
+
+    cfg = simulation.SimulationConfig.from_dict(settings)
+    truth = simulation.make_truth(cfg)
+    manifest = parse_manifest(simulation.dataset_layout(cfg), Path.cwd() / "star-accuracy.yaml")
+    positions = [p.index for p in manifest.positions]
+    t0 = time.perf_counter()
+    position_stacks = [stacks.stack_position(_position_chunks(cfg, truth, i), cfg.stars.frames, batches, position=i,
+                                             label=f"position {i}") for i in positions]
+    log.info("simulated %d positions of %d frames in %.1f s (PRF width spread %.3g, photon noise %s)",
+             len(positions), cfg.stars.frames, time.perf_counter() - t0, cfg.detector.prf_width_spread,
+             cfg.detector.photon_noise)
+    read_noise = np.maximum(truth["read_noise"].values, 1e-3)  # the noise weights need a floor
+    datasets, truth_errors = {}, []
+    for mode in modes:
+        use_flat, use_metrology = centroids.mode_corrections(mode)
+        result = centroids.measure_positions(
+            position_stacks, positions, manifest.star_approx, manifest.detector, truth["bias"].values,
+            read_noise=read_noise, prnu=truth["sensitivity"].values if use_flat else None,
+            dx=truth["dx"].values if use_metrology else None, dy=truth["dy"].values if use_metrology else None,
+            method=method, half_size=half_size, label=f"mode {mode}", log=log)
+        datasets[mode] = centroids.centroids_dataset(result, positions, mode=mode, method=method)
+        errors = np.stack([result.x - truth["star_x"].values, result.y - truth["star_y"].values])
+        errors -= np.nanmean(errors, axis=2, keepdims=True)  # each position's common displacement
+        truth_errors.append(float(np.sqrt(np.nanmean(errors**2))))
+    rows, _ = astrometry.mode_accuracies(datasets, groups=groups, trials=trials)
+    table = {(r["mode"], r["grouping"]): r for r in rows}
+    dims = ("mode",)
+    ds = xr.Dataset({"truth_error": (dims, truth_errors, {"units": "pixel", "long_name": "rms centroid error against "
+                                                          "truth, each position's mean displacement removed"})},
+                    coords={"mode": list(modes)})
+    for grouping in ("position", "group"):
+        for field_, what in (("accuracy", "corrected Procrustes accuracy"), ("error", "its 1-sigma error")):
+            ds[f"{field_}_{grouping}"] = (dims, [table[m, grouping][field_] for m in modes], {
+                "units": "pixel", "long_name": f"{what} over {grouping}s"})
+    ds.attrs.update({"method": method, "prf_width_spread": cfg.detector.prf_width_spread,
+                     "positions": len(positions), "frames": cfg.stars.frames})
+    for mode, value in zip(modes, truth_errors):
+        log.info("mode %-15s error against truth %.2e pixel, accuracy (p) %.2e +- %.1e pixel", mode, value,
+                 table[mode, "position"]["accuracy"], table[mode, "position"]["error"])
+    return ds
+
+
 # --------------------------------------------------------------------------- sweeps
 
 #: Each study's runner: point and settings -> dataset. ``bench`` holds dotted keys of the
 #: study's simulated bench, ``options`` its keyword options; a point's parameters are either.
-STUDIES = ("offset_bias", "error_propagation")
+STUDIES = ("offset_bias", "error_propagation", "star_accuracy")
 
 
 def run_point(study: str, point: dict, *, bench: dict | None = None, options: dict | None = None,
@@ -266,11 +365,12 @@ def run_point(study: str, point: dict, *, bench: dict | None = None, options: di
 
     Parameters
     ----------
-    study : {"offset_bias", "error_propagation"}
+    study : {"offset_bias", "error_propagation", "star_accuracy"}
     point : dict
         The point's parameters: dotted keys of the study's bench (offset_bias:
         :data:`OFFSET_BIAS_BENCH`, e.g. ``detector.prnu_rms``; error_propagation:
-        ``star.psf_sigma`` ...) or names of its options (``source``, ``trials`` ...).
+        ``star.psf_sigma`` ...; star_accuracy: :data:`STAR_ACCURACY_BENCH`, e.g.
+        ``detector.prf_width_spread``) or names of its options (``source``, ``trials``, ``method`` ...).
     bench, options : dict
         The sweep's own settings, under the point's.
     workdir : path, optional
@@ -294,6 +394,8 @@ def run_point(study: str, point: dict, *, bench: dict | None = None, options: di
                 raise KeyError(f"{key}: the error_propagation study's bench has only star.* keys")
             stars[name] = value
         ds = error_propagation(star=stars, **options)
+    elif study == "star_accuracy":
+        ds = star_accuracy(apply_overrides(STAR_ACCURACY_BENCH, bench), **options)
     else:
         raise ValueError(f"unknown study {study!r}; studies are {', '.join(STUDIES)}")
     ds.attrs.update({"study": study, "point": json.dumps(point)})

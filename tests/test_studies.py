@@ -120,3 +120,14 @@ def test_allan_rows_are_scaled_to_the_papers_group_size():
     pixel, block = reproduction.allan_rows(allan, dataset="sim")
     assert pixel.ours == pytest.approx(2e-4 * np.sqrt(2500 / 1e5)) and block.ours == pytest.approx(2e-5 * 0.158113883)
     assert pixel.dataset == "sim H1H4" and "2500 frames per group" in pixel.note
+
+
+def test_star_accuracy_shows_the_prf_width_spread_that_neither_calibration_sees():
+    """Noiseless, perfect flat and offsets: flat+metrology is exact without a width spread, and a 1% spread
+    leaves several 1e-5 pixel (docs/centroids.md); each calibration removes what it targets."""
+    exact, spread = (studies.run_point("star_accuracy", {"detector.prf_width_spread": w}, options={"trials": 200})
+                     for w in (0.0, 0.01))
+    error = {mode: float(exact.truth_error.sel(mode=mode)) for mode in exact.mode.values}
+    assert error["flat+metrology"] < 1e-5 < 1e-4 < error["flat"] < error["raw"]
+    assert float(spread.truth_error.sel(mode="flat+metrology")) > 3e-5
+    assert float(exact.accuracy_position.sel(mode="flat+metrology")) < float(exact.accuracy_position.sel(mode="flat"))

@@ -44,6 +44,24 @@ rule sweep_summary:
         "../scripts/sweep_summary.py"
 
 
+rule plot_star_accuracy:
+    input:
+        points=lambda w: sweep_points(w.sweep),
+    output:
+        png=f"{SWEEP_ROOT}/{{sweep}}/accuracy.png",
+        pdf=f"{SWEEP_ROOT}/{{sweep}}/accuracy.pdf",
+    params:
+        code=code_version("plotting", "io"),
+    wildcard_constraints:
+        sweep="|".join(re.escape(n) for n, (spec, *_) in SWEEPS.items() if spec["study"] == "star_accuracy") or "(?!)",
+    log:
+        f"{SWEEP_ROOT}/{{sweep}}/accuracy.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/plot_star_accuracy.py"
+
+
 rule plot_offset_bias:
     input:
         points=lambda w: sweep_points(paper_sweep("offset_bias")),
