@@ -101,7 +101,7 @@ DEFAULT_AMPLITUDES = {"prnu": (1e-4, 1e-3, 1e-2), "photon": (1e-4, 1e-3, 1e-2),
 CSV_COLUMNS = ("source", "normalisation", "coefficient", "error", "paper_coefficient", "coefficient_2d",
                "error_2d", "coefficient_x", "coefficient_y", "analytic", "analytic_2d", "cramer_rao",
                "convention_matching_paper", "paper_ratio_per_axis", "paper_ratio_2d", "requirement_for_5e-6",
-               "paper_requirement", "source_units", "weighting", "amplitudes", "coefficient_by_amplitude",
+               "paper_requirement", "source_units", "coefficient_units", "weighting", "amplitudes", "coefficient_by_amplitude",
                "trials")
 #: The columns a second weighting adds to a row of :func:`combined_table` (suffixed by its name).
 SECOND_WEIGHTING_COLUMNS = ("coefficient", "error", "coefficient_2d", "analytic", "convention_matching_paper",
@@ -615,6 +615,7 @@ def error_propagation_table(sweeps=None, *, trials: int = 400, seed: int = 0, st
             "requirement_for_5e-6": REQUIRED_ERROR / sw.coefficient,
             "paper_requirement": PAPER_REQUIREMENTS.get(sw.source),
             "source_units": SOURCE_UNITS[sw.source],
+            "coefficient_units": "pixel" if SOURCE_UNITS[sw.source] == "1" else f"pixel per {SOURCE_UNITS[sw.source]}",
             "weighting": sw.weighting,
             "amplitudes": ";".join(f"{a:g}" for a in sw.amplitudes),
             "coefficient_by_amplitude": ";".join(f"{r.coefficient:.4f}" for r in sw.runs),
@@ -631,6 +632,10 @@ def combined_table(sweeps, *, primary: str = "pipeline", tolerance: float = 0.1)
     weightings = [w for w in WEIGHTINGS if any(sw.weighting == w for sw in sweeps)]
     if primary not in weightings:
         raise ValueError(f"no sweep with the {primary!r} weighting among {weightings}")
+    pairs = [(sw.source, sw.weighting) for sw in sweeps]
+    if len(set(pairs)) != len(pairs):
+        raise ValueError("more than one sweep for a (source, weighting): the table has one row per source, "
+                         f"one value per weighting; got {pairs}")
     tables = {w: {row["source"]: row for row in error_propagation_table([sw for sw in sweeps if sw.weighting == w],
                                                                        tolerance=tolerance)}
               for w in weightings}

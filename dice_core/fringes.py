@@ -418,6 +418,27 @@ def photon_floor(G_phys, FtF, third, gain, read_noise, k_norm):
     return np.sqrt(photon + read) / k_norm
 
 
+def perfect_pixel_design(k0, xc, yc):
+    """Pass 1's frame design: perfect pixels (iota = alpha = 1, no offsets) and K free, linearised about k0.
+
+    sin(theta + phi + dK.r) ~ sin(theta + phi) + (dK.r)(u1 cos theta - u2 sin theta), with
+    theta = k0.r over the pixels' centred positions ``xc``, ``yc`` (pixel). Returns G (pixel, 3), the
+    factors (1, sin theta, cos theta), and the four K regressors (pixel, 4) of :func:`wavevector_per_frame`.
+    """
+    theta = k0[0] * xc + k0[1] * yc
+    G = np.column_stack([np.ones(xc.size), np.sin(theta), np.cos(theta)])
+    extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
+    return G, extra
+
+
+def wavevector_per_frame(coef, k0):
+    """K(t) (frame, 2), rad/pixel, from pass 1's frame coefficients (frame, 7) on :func:`perfect_pixel_design`."""
+    u1, u2 = coef[:, 1], coef[:, 2]
+    amp2 = u1**2 + u2**2
+    return np.column_stack([k0[0] + (coef[:, 3] * u1 - coef[:, 4] * u2) / amp2,
+                            k0[1] + (coef[:, 5] * u1 - coef[:, 6] * u2) / amp2])
+
+
 def _phase_coverage(phase, bins=16):
     """Fraction of 2 pi visited by the wrapped phase, in ``bins`` equal sectors."""
     sectors = np.floor(np.mod(phase, 2 * np.pi) / (2 * np.pi) * bins).astype(int)
@@ -527,12 +548,10 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     with lane_executor(workers, len(lanes)) as executor:
         log.info("%s: each pass reads %d part(s) of the frames, in %d process(es)", label, len(lanes),
                  lane_workers(workers, len(lanes)))
-        # Pass 1: perfect pixels; K free per frame, linearised about k0:
-        # sin(theta + phi + dK.r) ~ sin(theta + phi) + (dK.r)(u1 alpha cos theta - u2 alpha sin theta).
-        theta0 = k0[0] * xc + k0[1] * yc
-        G = np.column_stack([np.ones(idx.size), np.sin(theta0), np.cos(theta0)])
+        # Pass 1: perfect pixels; K free per frame, linearised about k0
+        G, extra = perfect_pixel_design(k0, xc, yc)
         G[bad.ravel()[idx]] = 0.0  # bad pixels out of the frame fits from the first pass on
-        extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
+        extra[bad.ravel()[idx]] = 0.0
         coef, FtI, FtF, third, saturated, lane_threads, parts = _pass(lanes, dark0, idx, G, extra=extra,
                                                                       reference=reference, centred=centred,
                                                                       executor=executor)
@@ -547,8 +566,7 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
         if coverage < 1:
             raise FringeError(f"{label}: the phase sweep covers only {coverage * 360:.0f} of 360 degrees; "
                               "every pixel must see at least a full fringe period")
-        k_frame = np.column_stack([k0[0] + (coef[:, 3] * u1 - coef[:, 4] * u2) / amp2,
-                                   k0[1] + (coef[:, 5] * u1 - coef[:, 6] * u2) / amp2])
+        k_frame = wavevector_per_frame(coef, k0)
         log.info("%s: pass 1, K(t) mean (%.6f, %.6f), rms (%.2e, %.2e) rad/pixel", label,
                  *k_frame.mean(axis=0), *k_frame.std(axis=0))
 

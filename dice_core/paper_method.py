@@ -38,7 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dice_core.fringes import FringeError, _pass, initial_wavevector, projected_offsets
+from dice_core.fringes import (FringeError, _pass, initial_wavevector, perfect_pixel_design, projected_offsets,
+                               wavevector_per_frame)
 from dice_core.io import first_chunk
 
 __all__ = ["PaperSolution", "fit_baseline_paper"]
@@ -88,15 +89,9 @@ def fit_baseline_paper(stream, dark, detector, *, iterations: int = 4, label: st
     xc, yc = x - x.mean(), y - y.mean()
     k0 = initial_wavevector(first.frames[0] - dark0, mask)
     # Iteration 1: perfect pixels, K free per frame (linearised about the FFT estimate of frame 0)
-    theta = k0[0] * xc + k0[1] * yc
-    G = np.column_stack([np.ones(idx.size), np.sin(theta), np.cos(theta)])
-    extra = np.column_stack([xc * G[:, 2], xc * G[:, 1], yc * G[:, 2], yc * G[:, 1]])
+    G, extra = perfect_pixel_design(k0, xc, yc)
     coef, FtI, FtF, *_ = _pass([stream], dark0, idx, G, extra=extra, reference=reference)
-    u1, u2 = coef[:, 1], coef[:, 2]
-    amp2 = u1**2 + u2**2
-    k_frame = np.column_stack([k0[0] + (coef[:, 3] * u1 - coef[:, 4] * u2) / amp2,
-                               k0[1] + (coef[:, 5] * u1 - coef[:, 6] * u2) / amp2])
-    k_mean = k_frame.mean(axis=0)
+    k_mean = wavevector_per_frame(coef, k0).mean(axis=0)
     for iteration in range(1, iterations + 1):
         if iteration > 1:
             # the pixels at their measured phases, with perfect responses (iota = alpha = 1)

@@ -20,7 +20,7 @@ from dice_core import error_budget  # noqa: E402
 from dice_core.manifest import Detector  # noqa: E402
 
 __all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure", "barycentre_figure", "offset_bias_figure", "paper_comparison_figure",
-           "error_propagation_figure", "star_accuracy_figure", "save"]
+           "error_propagation_figure", "star_accuracy_figure", "reduction_sweep_figure", "save"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -575,4 +575,41 @@ def star_accuracy_figure(datasets, points, *, title="Centroid accuracy with perf
     ax.legend(fontsize=7, ncol=2)
     ax.set_title(f"{title}: {datasets[0].attrs.get('method', '')} centroids, "
                  f"{datasets[0].attrs.get('positions', '?')} positions, perfect flat and offsets", fontsize=9)
+    return fig
+
+
+def reduction_sweep_figure(rows, parameters, *, title="Accuracy against the swept parameter"):
+    """A reduction sweep's accuracies (pixel, with errors) of each mode and grouping against its parameter.
+
+    ``rows``: records of the points' ``tables/accuracy.csv`` with the point's ``parameters`` as keys
+    (strings or numbers); the first method's rows are drawn.
+    """
+    method = rows[0]["method"]
+    rows = [r for r in rows if r["method"] == method]
+    numeric = len(parameters) == 1
+    if numeric:
+        try:
+            x_of = {id(r): float(r[parameters[0]]) for r in rows}
+        except (TypeError, ValueError):
+            numeric = False
+    points = list(dict.fromkeys(tuple(str(r[p]) for p in parameters) for r in rows))
+    if not numeric:
+        x_of = {id(r): points.index(tuple(str(r[p]) for p in parameters)) for r in rows}
+    fig, ax = plt.subplots(figsize=(8, 5), constrained_layout=True)
+    modes = list(dict.fromkeys(r["mode"] for r in rows))
+    for k, mode in enumerate(modes):
+        for grouping, style in (("position", "o-"), ("group", "s--")):
+            chosen = sorted((r for r in rows if r["mode"] == mode and r["grouping"] == grouping), key=lambda r: x_of[id(r)])
+            if chosen:
+                ax.errorbar([x_of[id(r)] for r in chosen], [float(r["accuracy"]) for r in chosen],
+                            yerr=[float(r["error"]) for r in chosen], fmt=style, color=f"C{k}", ms=4, capsize=2,
+                            alpha=1.0 if grouping == "position" else 0.6, label=f"{mode} ({grouping[0]})")
+    if not numeric:
+        ax.set_xticks(range(len(points)), [", ".join(p) for p in points], fontsize=7)
+    ax.set_yscale("log")
+    ax.set_xlabel(parameters[0] if numeric else ", ".join(parameters))
+    ax.set_ylabel("corrected Procrustes accuracy [pixel]")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    ax.set_title(f"{title}: {method} centroids, (p) over positions, (g) over groups", fontsize=9)
     return fig

@@ -289,17 +289,29 @@ class SimulationConfig:
         return json.loads(json.dumps(dataclasses.asdict(self)))
 
 
-def load_preset(path) -> SimulationConfig:
-    """Read a simulation preset (YAML of :class:`SimulationConfig` keys; missing keys take defaults)."""
+def load_preset(path, overrides: dict | None = None) -> SimulationConfig:
+    """Read a simulation preset (YAML of :class:`SimulationConfig` keys; missing keys take defaults).
+
+    ``overrides`` sets dotted keys on top of the file's (``{"detector.prf_width_spread": 0.02}``).
+    """
     path = Path(path)
     try:
         values = yaml.safe_load(path.read_text()) or {}
     except (OSError, yaml.YAMLError) as exc:
         raise ValueError(f"{path}: cannot read simulation preset ({exc})") from None
+    for dotted, value in (overrides or {}).items():
+        *parents, leaf = dotted.split(".")
+        node = values
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ValueError(f"{path}: override {dotted}: {part} is not a section")
+        node[leaf] = value
     try:
         return SimulationConfig.from_dict(values)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{path}: {exc}") from None
+        where = f" with overrides {overrides}" if overrides else ""
+        raise ValueError(f"{path}{where}: {exc}") from None
 
 
 # --------------------------------------------------------------------------- layout

@@ -63,10 +63,15 @@ OFFSET_BIAS_BENCH = {
 def apply_overrides(base: dict, overrides: dict) -> dict:
     """A copy of a nested config with dotted keys set: ``{"detector.prnu_rms": 5e-5}``.
 
+    A string where the base holds a number is read as one (YAML 1.1 reads
+    ``2e-3``, with no dot, as a string).
+
     Raises
     ------
     KeyError
         A dotted key whose parent section the base config does not have.
+    ValueError
+        A string that is not a number where the base holds a number.
     """
     out = copy.deepcopy(base)
     for dotted, value in overrides.items():
@@ -76,7 +81,15 @@ def apply_overrides(base: dict, overrides: dict) -> dict:
             if not isinstance(node.get(part), dict):
                 raise KeyError(f"{dotted}: the study's config has no section {part!r}")
             node = node[part]
-        node[leaf] = value.item() if isinstance(value, np.generic) else value
+        value = value.item() if isinstance(value, np.generic) else value
+        current = node.get(leaf)
+        if isinstance(current, (int, float)) and not isinstance(current, bool) and isinstance(value, str):
+            # YAML 1.1 reads 2e-3 (no dot) as a string: a number where the bench holds one
+            try:
+                value = float(value)
+            except ValueError:
+                raise ValueError(f"{dotted}: {value!r} is not a number, which the study's bench expects") from None
+        node[leaf] = value
     return out
 
 
@@ -105,15 +118,17 @@ def _offset_errors(cfg: simulation.SimulationConfig, workdir: Path, baseline: st
     rows, cols = ours.rows, ours.cols
     x, y = cols.astype(float), rows.astype(float)
 
-    def error(solution):
+    def error(solution, offsets):
         n = solution.k / np.hypot(*solution.k)
         true = n[0] * truth["dx"].values[rows, cols] + n[1] * truth["dy"].values[rows, cols]
-        ok = np.isfinite(solution.offsets)
+        ok = np.isfinite(offsets)
         out = np.full(rows.size, np.nan)
-        out[ok] = solution.offsets[ok] - affine_free(true[ok], x[ok], y[ok])
+        out[ok] = offsets[ok] - affine_free(true[ok], x[ok], y[ok])
         return out
 
-    return rows, cols, error(ours), error(paper), ours.photon_floor, truth
+    # ours without a flat: the same factorisation under the PRNU-free gauge (no extra pass)
+    errors = (error(ours, ours.offsets), error(paper, paper.offsets), error(ours, ours.offsets_prnu_free))
+    return rows, cols, errors, ours.photon_floor, truth
 
 
 def offset_bias(settings: dict, *, workdir, baseline: str = "H1H4", iterations: int = 4,
@@ -131,7 +146,8 @@ def offset_bias(settings: dict, *, workdir, baseline: str = "H1H4", iterations: 
     fringe frequency, so it varies from one pattern to the next: the draws
     give its rms over patterns. Ours is given the true sensitivities as its
     reference flat (a perfect flat field); the paper's method uses none, as in
-    the paper.
+    the paper, and so does ``*_ours_no_flat``: ours under the PRNU-free gauge
+    (the pixel contrast's smoothness) from the same fit.
 
     Returns
     -------
@@ -141,13 +157,15 @@ def offset_bias(settings: dict, *, workdir, baseline: str = "H1H4", iterations: 
         ``bias_paper`` (row, col): the same without noise, first draw;
         ``photon_floor`` (row, col); their rms over the science area as
         scalars (``rms_error_ours`` ..., the bias's over all draws); and
-        ``draw_bias_ours``, ``draw_bias_paper`` (draw): each draw's rms, pixel.
+        ``draw_bias_ours``, ``draw_bias_paper``, ``draw_bias_ours_no_flat`` (draw):
+        each draw's rms, pixel; ``*_ours_no_flat``: ours without a flat.
     """
     cfg = simulation.SimulationConfig.from_dict(settings)
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=workdir, prefix="noisy-") as folder:
-        rows, cols, error_ours, error_paper, floor, truth = _offset_errors(cfg, Path(folder), baseline, iterations)
+        rows, cols, (error_ours, error_paper, error_free), floor, truth = _offset_errors(cfg, Path(folder), baseline,
+                                                                                        iterations)
     steady = {"metrology.frames": noiseless_frames, "detector.photon_noise": False, "detector.read_noise": 0.0,
               "detector.dtype": "float32", "metrology.laser_rsd": 0.0, "metrology.amplitude_rsd": 0.0,
               "metrology.phase_jitter": 0.0}
@@ -156,11 +174,11 @@ def offset_bias(settings: dict, *, workdir, baseline: str = "H1H4", iterations: 
         quiet_cfg = simulation.SimulationConfig.from_dict(apply_overrides(settings, {**steady,
                                                                                     "seed": cfg.seed + draw}))
         with tempfile.TemporaryDirectory(dir=workdir, prefix="noiseless-") as folder:
-            q_rows, q_cols, *biases, _, _ = _offset_errors(quiet_cfg, Path(folder), baseline, iterations)
+            q_rows, q_cols, biases, _, _ = _offset_errors(quiet_cfg, Path(folder), baseline, iterations)
         if not (np.array_equal(rows, q_rows) and np.array_equal(cols, q_cols)):
             raise RuntimeError("the noisy and noiseless fits cover different pixels")
         draws.append(biases)
-    (bias_ours, bias_paper), all_biases = draws[0], np.array(draws)  # (draw, method, pixel)
+    (bias_ours, bias_paper, bias_free), all_biases = draws[0], np.array(draws)  # (draw, method, pixel)
     shape = cfg.detector.shape
 
     def as_map(values):
@@ -175,13 +193,17 @@ def offset_bias(settings: dict, *, workdir, baseline: str = "H1H4", iterations: 
             "error_paper": (error_paper, "projected offset error of the paper's method, with photon noise"),
             "bias_ours": (bias_ours, "projected offset error of ours, noiseless"),
             "bias_paper": (bias_paper, "projected offset error of the paper's method, noiseless"),
+            "error_ours_no_flat": (error_free, "projected offset error of ours without a flat (PRNU-free gauge), "
+                                               "with photon noise"),
+            "bias_ours_no_flat": (bias_free, "projected offset error of ours without a flat (PRNU-free gauge), "
+                                             "noiseless"),
             "photon_floor": (floor, "per-pixel photon-noise floor of the offsets (ours)")}
     variables = {}
     for name, (values, what) in maps.items():
         variables[name] = (("row", "col"), as_map(values), {"units": "pixel", "long_name": what})
         variables[f"rms_{name}"] = ((), rms(values), {"units": "pixel", "long_name": f"rms over the science area: "
                                                                                      f"{what}"})
-    for m, method in enumerate(("ours", "paper")):
+    for m, method in enumerate(("ours", "paper", "ours_no_flat")):
         per_draw = np.sqrt(np.nanmean(all_biases[:, m] ** 2, axis=1))
         variables[f"rms_bias_{method}"] = ((), float(np.sqrt(np.mean(per_draw**2))), {
             "units": "pixel", "long_name": f"{maps[f'bias_{method}'][1]}: rms over the science area and "
@@ -193,9 +215,10 @@ def offset_bias(settings: dict, *, workdir, baseline: str = "H1H4", iterations: 
         rows, cols].std()), "frames": cfg.metrology.frames, "noiseless_frames": noiseless_frames,
         "noiseless_draws": noiseless_draws,
         "baseline": baseline, "paper_iterations": iterations})
-    log.info("PRNU %.1e: rms error ours %.2e, paper's %.2e, floor %.2e; noiseless bias ours %.2e, paper's %.2e pixel",
-             cfg.detector.prnu_rms, ds.rms_error_ours, ds.rms_error_paper, ds.rms_photon_floor, ds.rms_bias_ours,
-             ds.rms_bias_paper)
+    log.info("PRNU %.1e: rms error ours %.2e (without a flat %.2e), paper's %.2e, floor %.2e; noiseless bias ours "
+             "%.2e (without a flat %.2e), paper's %.2e pixel", cfg.detector.prnu_rms, ds.rms_error_ours,
+             ds.rms_error_ours_no_flat, ds.rms_error_paper, ds.rms_photon_floor, ds.rms_bias_ours,
+             ds.rms_bias_ours_no_flat, ds.rms_bias_paper)
     return ds
 
 

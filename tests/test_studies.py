@@ -23,6 +23,9 @@ def test_ours_stays_at_the_photon_floor_at_both_prnu_levels(bias_points):
     for ds in bias_points.values():
         assert float(ds.rms_error_ours) < 1.2 * float(ds.rms_photon_floor)
         assert float(ds.rms_bias_ours) < 1e-8  # noiseless: no bias at all
+        # without a flat (the PRNU-free gauge): no help from the truth, no PRNU-dependent bias either
+        assert float(ds.rms_error_ours_no_flat) < 1.2 * float(ds.rms_photon_floor)
+        assert float(ds.rms_bias_ours_no_flat) < 1e-7
 
 
 def test_the_papers_method_leaves_a_bias_that_grows_with_the_prnu(bias_points):
@@ -51,6 +54,9 @@ def test_overrides_reach_nested_keys_and_refuse_unknown_sections():
     settings = studies.apply_overrides(studies.OFFSET_BIAS_BENCH, {"detector.prnu_rms": np.float64(5e-5), "seed": 3})
     assert settings["detector"]["prnu_rms"] == 5e-5 and type(settings["detector"]["prnu_rms"]) is float
     assert settings["seed"] == 3 and studies.OFFSET_BIAS_BENCH["detector"]["prnu_rms"] == 2e-3  # a copy
+    assert studies.apply_overrides(studies.OFFSET_BIAS_BENCH, {"detector.prnu_rms": "2e-3"})["detector"]["prnu_rms"] == 2e-3
+    with pytest.raises(ValueError, match="detector.prnu_rms: 'high' is not a number"):
+        studies.apply_overrides(studies.OFFSET_BIAS_BENCH, {"detector.prnu_rms": "high"})
     with pytest.raises(KeyError, match="no section 'detectr'"):
         studies.apply_overrides(studies.OFFSET_BIAS_BENCH, {"detectr.prnu_rms": 1.0})
 

@@ -518,3 +518,37 @@ def test_the_paper_target_plans_the_studies_and_the_comparison(workdir):
         assert f"rule {rule}:" in plan
     assert plan.count("rule sweep_point:") == 10  # 2 PRNU levels, 4 sources x 2 weightings
     assert "rule fit_fringes:" not in plan  # the ci reduction is done: the paper target adds only its own jobs
+
+
+def test_a_reduction_sweep_reruns_the_workflow_per_point_in_its_own_folder(workdir, out):
+    """Study reduction: each point is the whole workflow again (a Snakemake module) with the point's config,
+    reading the run's raw files; a point added runs only its own jobs; the run's own products are untouched."""
+    target = "results/sweeps/half/summary.csv"
+
+    def sweep(values, *extra):
+        (workdir / "reduction.yaml").write_text(yaml.safe_dump({"sweeps": {"half": {
+            "study": "reduction", "parameter": "centroids.half_size", "values": values}}}))
+        run = snakemake(workdir, target, *extra, "--config", "dataset=ci", "--configfile=reduction.yaml")
+        return run.stdout + run.stderr
+
+    main_products = {p: p.stat().st_mtime_ns for p in out.rglob("*.nc")}
+    ran = sweep([5, 7])
+    assert "rule simulate_" not in ran and "rule sweep_half_0_measure_centroids:" in ran
+    summary = (workdir / target).read_text().splitlines()
+    assert summary[0].startswith("centroids.half_size,") and {line.split(",")[0] for line in summary[1:]} == {"5", "7"}
+    point = workdir / "results" / "sweeps" / "half" / "half_size~5" / "sim-ci"
+    with open(point / "tables" / "accuracy.csv") as handle:
+        assert handle.readline().startswith("flat,metrology,grouping,accuracy,error")
+    assert read_product(point / "centroids" / "raw.nc").attrs["configuration"].count('"half_size": 5') == 1
+    before = {p: p.stat().st_mtime_ns for p in (workdir / "results" / "sweeps" / "half").rglob("*.nc")}
+    plan = sweep([5, 7, 6], "-n")
+    planned = {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
+    assert planned and all(r.startswith("sweep_half_2_") for r in planned - {"reduction_sweep_summary"})
+    assert all(p.stat().st_mtime_ns == t for p, t in before.items())
+    assert all(p.stat().st_mtime_ns == t for p, t in main_products.items())
+    # a simulation key makes the point simulate its own dataset, in its own folder
+    (workdir / "reduction.yaml").write_text(yaml.safe_dump({"sweeps": {"wide": {
+        "study": "reduction", "parameter": "simulation.detector.prf_width_spread", "values": [0.03]}}}))
+    plan = snakemake(workdir, "results/sweeps/wide/summary.csv", "-n", "--config", "dataset=ci",
+                     "--configfile=reduction.yaml").stdout
+    assert "rule sweep_wide_0_simulate_truth:" in plan and "results/sweeps/wide/prf_width_spread~0.03/sim-ci/raw" in plan

@@ -5,6 +5,7 @@
 import ast
 import hashlib
 import itertools
+import json
 import os
 import re
 import sys
@@ -48,16 +49,19 @@ def load_dataset(value):
         raise WorkflowError(f"config dataset={value!r} is neither a manifest path (*.yaml) "
                             f"nor a simulation preset {known}")
     try:
-        sim = simulation.load_preset(preset)
+        sim = simulation.load_preset(preset, overrides=config.get("simulation") or {})
     except ValueError as exc:
         raise WorkflowError(str(exc)) from None
-    manifest_path = Path(config["results"]) / sim.name / "raw" / "dataset.yaml"
-    return parse_manifest(simulation.dataset_layout(sim), manifest_path), sim
+    raw = config.get("raw") or Path(config["results"]) / sim.name / "raw"
+    return parse_manifest(simulation.dataset_layout(sim), Path(raw) / "dataset.yaml"), sim
 
 
 MANIFEST, SIMULATION = load_dataset(str(config["dataset"]))
 OUT = f"{config['results']}/{MANIFEST.name}"
-RAW = f"{OUT}/raw"
+# A sweep point of the reduction alone reads its dataset's raw files where the main run simulates them
+# (config raw), instead of simulating them again.
+RAW = local_path(config["raw"]) if config.get("raw") else f"{OUT}/raw"
+SIMULATE = SIMULATION is not None and not config.get("raw")
 MANIFEST_FILE = local_path(MANIFEST.path)
 
 
@@ -293,6 +297,9 @@ def sweep_space(name, spec):
     columns = {key.rsplit(".", 1)[-1]: key for key in keys}  # folder names: the key's last part
     if len(columns) != len(keys):
         raise WorkflowError(f"config sweeps.{name}: parameters {keys} share a last name; folders would clash")
+    if any(isinstance(v, (list, dict)) for p in points for v in p.values()):
+        raise WorkflowError(f"config sweeps.{name}: a parameter's value must be a number, a string or a boolean "
+                            "(one folder per point)")
     frame = DataFrame([{column: p[key] for column, key in columns.items()} for p in points])
     if frame.duplicated().any():
         raise WorkflowError(f"config sweeps.{name}: a point is listed twice")
@@ -300,6 +307,8 @@ def sweep_space(name, spec):
 
 
 SWEEPS = {name: (spec, *sweep_space(name, spec)) for name, spec in config.get("sweeps", {}).items()}
+REDUCTION_SWEEPS = [name for name, (spec, *_) in SWEEPS.items() if spec["study"] == "reduction"]
+STUDY_SWEEPS = [name for name in SWEEPS if name not in REDUCTION_SWEEPS]
 
 
 def sweep_points(name):
@@ -335,3 +344,50 @@ def comparison_inputs(wildcards=None):
     if metrology_unavailable() is None:
         inputs["allan"] = [f"{OUT}/allan/{baseline}.nc" for baseline in MANIFEST.baselines]
     return inputs
+
+
+
+def deep_update(base, dotted):
+    """A copy of a nested dict with dotted keys set (``{"centroids.half_size": 5}``)."""
+    out = json.loads(json.dumps(base))
+    for key, value in dotted.items():
+        *parents, leaf = key.split(".")
+        node = out
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return out
+
+
+def sweep_instances(name):
+    """[(parameters by their dotted keys, the point's folder)] of a configured sweep, in order."""
+    spec, space, columns = SWEEPS[name]
+    rows = space.dataframe.to_dict("records")
+    return [({columns[c]: (v.item() if hasattr(v, "item") else v) for c, v in row.items()}, folder)
+            for row, folder in zip(rows, space.instance_patterns)]
+
+
+def reduction_point_config(name, point, folder):
+    """The workflow config of one point of a reduction sweep: the run's config with the point's keys set.
+
+    ``simulation.<key>`` sets a key of the simulation preset (the dataset is simulated again, in the point's
+    folder); any other dotted key sets the reduction's config, and the point then reads the run's raw files.
+    """
+    spec = SWEEPS[name][0]
+    simulated = {k.split(".", 1)[1]: v for k, v in point.items() if k.startswith("simulation.")}
+    reduction = {k: v for k, v in point.items() if not k.startswith("simulation.")}
+    if simulated and SIMULATION is None:
+        raise WorkflowError(f"config sweeps.{name}: simulation.* parameters need a simulation preset as the dataset")
+    point_config = deep_update({k: v for k, v in config.items() if k != "sweeps"}, reduction)
+    point_config["sweeps"] = {n: s for n, (s, *_) in SWEEPS.items() if s["study"] != "reduction"}
+    point_config["simulation"] = {**(config.get("simulation") or {}), **simulated}
+    point_config["results"] = f"{SWEEP_ROOT}/{name}/{folder}"
+    if not simulated:
+        point_config["raw"] = RAW
+    return point_config
+
+
+def reduction_point_tables(wildcards):
+    """Each point's tables/accuracy.csv of a reduction sweep, in the config's order."""
+    return [f"{SWEEP_ROOT}/{wildcards.sweep}/{folder}/{MANIFEST.name}/tables/accuracy.csv"
+            for _, folder in sweep_instances(wildcards.sweep)]

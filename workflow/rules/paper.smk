@@ -13,6 +13,10 @@ if SWEEPS:
 rule sweep_point:
     output:
         point=f"{SWEEP_ROOT}/{{sweep}}/{{point}}/point.nc",
+    wildcard_constraints:  # only the configured points: another folder is no job, not a cryptic error
+        sweep="|".join(map(re.escape, STUDY_SWEEPS)) or "(?!)",
+        point="|".join(sorted({re.escape(pattern) for name in STUDY_SWEEPS
+                               for pattern in SWEEPS[name][1].instance_patterns})) or "(?!)",
     params:
         study=lambda w: SWEEPS[w.sweep][0]["study"],
         parameters=point_parameters,
@@ -29,11 +33,53 @@ rule sweep_point:
         "../scripts/sweep_point.py"
 
 
+if REDUCTION_SWEEPS:
+    # Each point of a reduction sweep is the whole workflow again (a Snakemake module) with the point's
+    # config, its products under results/sweeps/<sweep>/<point>/. Modules cannot be declared in a loop,
+    # so their declarations are written out, then included; the file changes only with the sweeps.
+    declarations = []
+    for name in REDUCTION_SWEEPS:
+        for k, (point, folder) in enumerate(sweep_instances(name)):
+            module_name = f"sweep_{name}_{k}"
+            declarations += [f"module {module_name}:", f"    snakefile: {workflow.main_snakefile!r}",
+                             f"    config: {reduction_point_config(name, point, folder)!r}", "",
+                             f"use rule * from {module_name} as {module_name}_*", "", ""]
+    generated = Path(".snakemake/dice/reduction_sweeps.smk")
+    generated.parent.mkdir(parents=True, exist_ok=True)
+    text = "# Written by workflow/rules/paper.smk from config sweeps; do not edit.\n\n" + "\n".join(declarations)
+    if not generated.is_file() or generated.read_text() != text:
+        generated.write_text(text)
+
+    include: str(generated.resolve())
+
+
+rule reduction_sweep_summary:
+    input:
+        tables=reduction_point_tables,
+    output:
+        csv=f"{SWEEP_ROOT}/{{sweep}}/summary.csv",
+        png=f"{SWEEP_ROOT}/{{sweep}}/accuracy.png",
+        pdf=f"{SWEEP_ROOT}/{{sweep}}/accuracy.pdf",
+    params:
+        points=lambda w: [point for point, _ in sweep_instances(w.sweep)],
+        code=code_version("plotting", "io"),
+    wildcard_constraints:
+        sweep="|".join(map(re.escape, REDUCTION_SWEEPS)) or "(?!)",
+    log:
+        f"{SWEEP_ROOT}/{{sweep}}/summary.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/reduction_sweep_summary.py"
+
+
 rule sweep_summary:
     input:
         points=lambda w: sweep_points(w.sweep),
     output:
         csv=f"{SWEEP_ROOT}/{{sweep}}/summary.csv",
+    wildcard_constraints:
+        sweep="|".join(map(re.escape, STUDY_SWEEPS)) or "(?!)",
     params:
         code=code_version("io"),
     log:

@@ -1,7 +1,7 @@
 # Simulated testbed (only when config dataset names a preset): truth first, then
 # one job per FITS file, then the manifest that makes it a dataset.
 
-if SIMULATION is not None:
+if SIMULATE:
     SIM_CONFIG = SIMULATION.to_dict()
     SIM_FILES = list(simulation.file_jobs(SIMULATION))
 

@@ -17,7 +17,11 @@ def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, trials, met
     points = {}
     for path in inputs["offset_bias"]:
         ds = io.read_product(path)
-        points[float(ds.attrs["prnu_rms"])] = ds
+        prnu = float(ds.attrs["prnu_rms"])
+        if prnu in points:
+            raise ValueError(f"{path}: a second point at PRNU RSD {prnu:g}: the paper's offset-bias sweep (config "
+                             "paper.offset_bias) must vary the PRNU alone")
+        points[prnu] = ds
     rows = reproduction.offset_bias_rows(points)
     rows += reproduction.error_propagation_rows(read_csv(inputs["error_propagation"]))
     factor, error = reproduction.procrustes_deflation(trials=trials)
