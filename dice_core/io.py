@@ -363,10 +363,22 @@ class FrameStream:
                 _check_checksums(cube, checksum.value())
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)  # the only way to read it is to set it; put it back at once
+    os.umask(mask)
+    return mask
+
+
 def _atomic_target(path: Path):
+    """A fresh temporary file beside ``path``, with the mode a plain ``open`` would give ``path``.
+
+    mkstemp creates it 0600 whatever the umask, and the rename would keep that: the products (shared
+    with outside tools and other users) get 0666 minus the umask instead, as the figures do.
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
     os.close(fd)
+    os.chmod(tmp, 0o666 & ~_umask())
     return Path(tmp)
 
 

@@ -20,7 +20,7 @@ from dice_core import error_budget  # noqa: E402
 from dice_core.manifest import Detector  # noqa: E402
 
 __all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure", "barycentre_figure", "offset_bias_figure", "paper_comparison_figure",
-           "error_propagation_figure", "star_accuracy_figure", "reduction_sweep_figure", "save"]
+           "error_propagation_figure", "star_accuracy_figure", "reduction_sweep_figure", "reproduction_pdf", "save"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -613,3 +613,43 @@ def reduction_sweep_figure(rows, parameters, *, title="Accuracy against the swep
     ax.legend(fontsize=7, ncol=2)
     ax.set_title(f"{title}: {method} centroids, (p) over positions, (g) over groups", fontsize=9)
     return fig
+
+
+def reproduction_pdf(path, pages, *, title: str, summary_lines=()):
+    """A PDF of figures with their captions (A4 portrait, one figure per page), after a title page.
+
+    ``pages``: (PNG path, caption text) in order; ``summary_lines``: the title page's text (e.g. the
+    comparison table, one line per number). Written through a temporary name, then renamed.
+    """
+    import os
+    import textwrap
+
+    from matplotlib.backends.backend_pdf import PdfPages
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.part")
+    try:
+        with PdfPages(tmp) as pdf:
+            fig = plt.figure(figsize=(8.27, 11.69))
+            fig.text(0.06, 0.96, title, fontsize=13, va="top", weight="bold")
+            fig.text(0.06, 0.92, "\n".join(summary_lines), fontsize=5.6, va="top", family="monospace")
+            pdf.savefig(fig)
+            plt.close(fig)
+            for png, caption in pages:
+                image = plt.imread(png)
+                fig = plt.figure(figsize=(8.27, 11.69))
+                height, width = image.shape[:2]
+                ax_height = min(0.72, 0.88 * height / width * 8.27 / 11.69)
+                ax = fig.add_axes([0.06, 0.96 - ax_height, 0.88, ax_height])
+                ax.imshow(image)
+                ax.axis("off")
+                fig.text(0.06, 0.94 - ax_height, f"{Path(png).stem}\n\n" + textwrap.fill(caption, 110), fontsize=7.5,
+                         va="top")
+                pdf.savefig(fig)
+                plt.close(fig)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path

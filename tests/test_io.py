@@ -273,3 +273,21 @@ def test_text_is_written_atomically_and_a_failure_keeps_the_old_file(tmp_path):
     with pytest.raises(TypeError):
         write_text(path, None)  # not text: nothing is written
     assert path.read_text() == "a,b\n1,2\n" and list(path.parent.iterdir()) == [path]
+
+
+def test_products_tables_and_cubes_honour_the_umask(tmp_path):
+    import os
+
+    import xarray as xr
+
+    from dice_core.io import write_cube, write_product, write_text
+
+    previous = os.umask(0o027)
+    try:
+        write_text(tmp_path / "table.csv", "a,b\n")
+        write_product(xr.Dataset({"v": ((), 1.0, {"units": "1"})}), tmp_path / "product.nc", title="t")
+        write_cube(tmp_path / "cube.fits", [np.zeros((2, 3, 4), np.float32)], shape=(3, 4), n_frames=2)
+    finally:
+        os.umask(previous)
+    for name in ("table.csv", "product.nc", "cube.fits"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o640, name

@@ -181,3 +181,21 @@ def test_allan_figure_draws_the_first_frame_limit_in_red(rng):
     fig = plotting.allan_figure(ds.drop_vars(["photon_limit_pixel_first_frame", "first_frame_noise"]), title="t")
     assert not lines(fig.axes[0], "first frame")
     plotting.save(fig, None)
+
+
+def test_the_reproduction_pdf_has_a_title_page_and_one_page_per_figure(tmp_path):
+    import re
+
+    from dice_core import plotting
+
+    pngs = []
+    for k in range(2):
+        fig, ax = plotting.plt.subplots()
+        ax.plot([0, 1], [k, 1 - k])
+        pngs.append(tmp_path / f"figure_{k}.png")
+        plotting.save(fig, pngs[-1])
+    path = plotting.reproduction_pdf(tmp_path / "report" / "paper.pdf", [(p, "a caption " * 40) for p in pngs],
+                                     title="test", summary_lines=["quantity paper ours"])
+    data = path.read_bytes()
+    assert data.startswith(b"%PDF") and len(re.findall(rb"/Type\s*/Page\b", data)) == 3
+    assert not list((tmp_path / "report").glob(".*.part"))  # written through a temporary name

@@ -74,8 +74,15 @@ wildcard_constraints:
     method="fourier|gaussian",
 
 
+_SKIPPED = set()
+
+
 def skipped(what, why):
-    print(f"dice: skipping {what}: {why}", file=sys.stderr)
+    """Say once what this dataset does not allow (the target functions are called more than once)."""
+    message = f"dice: skipping {what}: {why}"
+    if message not in _SKIPPED:
+        _SKIPPED.add(message)
+        print(message, file=sys.stderr)
 
 
 def dice_core_imports(path):
@@ -391,3 +398,23 @@ def reduction_point_tables(wildcards):
     """Each point's tables/accuracy.csv of a reduction sweep, in the config's order."""
     return [f"{SWEEP_ROOT}/{wildcards.sweep}/{folder}/{MANIFEST.name}/tables/accuracy.csv"
             for _, folder in sweep_instances(wildcards.sweep)]
+
+
+def paper_pdf_pages():
+    """(figure, its caption file) of the PDF reproduction report: the paper's simulations, then this dataset's
+    figures that the paper shows, those the dataset allows."""
+    captions = Path(workflow.basedir) / "workflow" / "report"
+    pages = [(f"{OUT}/figures/{stem}.png", str(captions / f"{stem}.rst"))
+             for stem in ("paper_comparison", "offset_bias", "error_propagation")]
+    if metrology_unavailable() is None:
+        first = next(iter(MANIFEST.baselines))
+        pages += [(f"{OUT}/figures/metrology_{first}.png", str(captions / "metrology.rst")),
+                  (f"{OUT}/figures/allan_{first}.png", str(captions / "allan.rst"))]
+        if MANIFEST.pairs:
+            pages.append((f"{OUT}/figures/offsets_{next(iter(MANIFEST.pairs))}.png", str(captions / "offsets.rst")))
+    if astrometry_targets():
+        modes = [m for m in ("flat+metrology", "raw") if f"{OUT}/figures/centroids_{m}.png" in centroid_targets()]
+        pages += [(f"{OUT}/figures/centroids_{m}.png", str(captions / "centroids.rst")) for m in modes[:1]]
+        pages += [(f"{OUT}/figures/barycentre_residuals.png", str(captions / "barycentre_residuals.rst")),
+                  (f"{OUT}/figures/procrustes_residuals.png", str(captions / "procrustes_residuals.rst"))]
+    return pages

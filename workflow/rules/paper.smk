@@ -165,8 +165,27 @@ rule paper_comparison:
         "../scripts/paper_comparison.py"
 
 
+rule paper_pdf:
+    input:
+        figures=lambda w: [png for png, _ in paper_pdf_pages()],
+        comparison=rules.paper_comparison.output.csv,
+    output:
+        pdf=f"{OUT}/report/paper_reproduction.pdf",
+    params:
+        captions=lambda w: [caption for _, caption in paper_pdf_pages()],
+        dataset=MANIFEST.name,
+        code=code_version("plotting"),
+    log:
+        f"{OUT}/logs/paper_pdf.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/paper_pdf.py"
+
+
 rule paper:
     input:
+        rules.paper_pdf.output,
         calibration_targets(),
         metrology_targets(),
         centroid_targets(),
