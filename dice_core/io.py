@@ -18,7 +18,7 @@ import copy
 import datetime as _dt
 import json
 import os
-import tempfile
+import secrets
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -363,23 +363,20 @@ class FrameStream:
                 _check_checksums(cube, checksum.value())
 
 
-def _umask() -> int:
-    mask = os.umask(0o022)  # the only way to read it is to set it; put it back at once
-    os.umask(mask)
-    return mask
-
-
 def _atomic_target(path: Path):
     """A fresh temporary file beside ``path``, with the mode a plain ``open`` would give ``path``.
 
-    mkstemp creates it 0600 whatever the umask, and the rename would keep that: the products (shared
-    with outside tools and other users) get 0666 minus the umask instead, as the figures do.
+    Created with mode 0666 and O_EXCL, so that the kernel applies the umask (and any default ACL), as
+    for the figures; mkstemp's 0600 would survive the rename and keep the products from other users.
     """
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    os.close(fd)
-    os.chmod(tmp, 0o666 & ~_umask())
-    return Path(tmp)
+    while True:
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.part"
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+        except FileExistsError:
+            continue
+        return tmp
 
 
 def write_cube(path, chunks, *, shape, n_frames, dtype="uint16", header=None):

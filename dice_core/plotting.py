@@ -490,6 +490,8 @@ def paper_comparison_figure(rows, *, title="Regenerated numbers against the pape
                     capsize=2)
     ax.axvline(1.0, color="black", lw=0.8)
     ax.set_xscale("log")
+    ticks = [t for t in (0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 20) if 0.5 * ratios.min() <= t <= 2 * ratios.max()]
+    ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
     ax.set_yticks(y, [f"{r['quantity']} ({r['dataset']})" for r in records], fontsize=7)
     ax.set_xlabel("ours / paper's\nblue: numerical simulations; orange: experimental section, on the simulated bench")
     ax.grid(True, axis="x", which="both", alpha=0.3)

@@ -33,6 +33,7 @@ import dataclasses
 import json
 import logging
 import math
+import re
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -289,6 +290,9 @@ class SimulationConfig:
         return json.loads(json.dumps(dataclasses.asdict(self)))
 
 
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+
+
 def load_preset(path, overrides: dict | None = None) -> SimulationConfig:
     """Read a simulation preset (YAML of :class:`SimulationConfig` keys; missing keys take defaults).
 
@@ -306,6 +310,8 @@ def load_preset(path, overrides: dict | None = None) -> SimulationConfig:
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
                 raise ValueError(f"{path}: override {dotted}: {part} is not a section")
+        if isinstance(value, str) and _NUMBER.fullmatch(value):  # YAML 1.1 reads 2e-3 (no dot) as a string
+            value = float(value)
         node[leaf] = value
     try:
         return SimulationConfig.from_dict(values)

@@ -532,16 +532,19 @@ def test_a_reduction_sweep_reruns_the_workflow_per_point_in_its_own_folder(workd
         return run.stdout + run.stderr
 
     main_products = {p: p.stat().st_mtime_ns for p in out.rglob("*.nc")}
-    ran = sweep([5, 7])
+    ran = sweep([3, 4])  # windows of 7x7 and 9x9 pixels (the ci preset's stars allow 9x9 at most)
     assert "rule simulate_" not in ran and "rule sweep_half_0_measure_centroids:" in ran
     summary = (workdir / target).read_text().splitlines()
-    assert summary[0].startswith("centroids.half_size,") and {line.split(",")[0] for line in summary[1:]} == {"5", "7"}
-    point = workdir / "results" / "sweeps" / "half" / "half_size~5" / "sim-ci"
-    with open(point / "tables" / "accuracy.csv") as handle:
-        assert handle.readline().startswith("flat,metrology,grouping,accuracy,error")
-    assert read_product(point / "centroids" / "raw.nc").attrs["configuration"].count('"half_size": 5') == 1
+    assert summary[0].startswith("centroids.half_size,") and {line.split(",")[0] for line in summary[1:]} == {"3", "4"}
+    assert "accuracy [pixel]" in summary[0].split(",")
+    points = workdir / "results" / "sweeps" / "half"
+    tables = [(points / f"half_size~{h}" / "sim-ci" / "tables" / "accuracy.csv").read_text() for h in (3, 4)]
+    assert all(t.startswith("flat,metrology,grouping,accuracy,error") for t in tables)
+    assert tables[0] != tables[1]  # the parameter reached the centroids
+    assert read_product(points / "half_size~3" / "sim-ci" / "centroids" / "raw.nc").attrs["configuration"].count(
+        '"half_size": 3') == 1
     before = {p: p.stat().st_mtime_ns for p in (workdir / "results" / "sweeps" / "half").rglob("*.nc")}
-    plan = sweep([5, 7, 6], "-n")
+    plan = sweep([3, 4, 2], "-n")
     planned = {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
     assert planned and all(r.startswith("sweep_half_2_") for r in planned - {"reduction_sweep_summary"})
     assert all(p.stat().st_mtime_ns == t for p, t in before.items())

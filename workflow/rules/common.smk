@@ -381,6 +381,10 @@ def reduction_point_config(name, point, folder):
     folder); any other dotted key sets the reduction's config, and the point then reads the run's raw files.
     """
     spec = SWEEPS[name][0]
+    reserved = [k for k in point if k.split(".")[0] in ("dataset", "raw", "results", "sweeps", "paper")]
+    if reserved or spec.get("bench") or spec.get("options"):
+        raise WorkflowError(f"config sweeps.{name}: a reduction sweep varies the reduction's config or "
+                            f"simulation.<key>, not {reserved or 'bench or options'}")
     simulated = {k.split(".", 1)[1]: v for k, v in point.items() if k.startswith("simulation.")}
     reduction = {k: v for k, v in point.items() if not k.startswith("simulation.")}
     if simulated and SIMULATION is None:
@@ -389,8 +393,7 @@ def reduction_point_config(name, point, folder):
     point_config["sweeps"] = {n: s for n, (s, *_) in SWEEPS.items() if s["study"] != "reduction"}
     point_config["simulation"] = {**(config.get("simulation") or {}), **simulated}
     point_config["results"] = f"{SWEEP_ROOT}/{name}/{folder}"
-    if not simulated:
-        point_config["raw"] = RAW
+    point_config["raw"] = None if simulated else RAW  # a simulated point's own raw files, in its folder
     return point_config
 
 

@@ -33,22 +33,30 @@ rule sweep_point:
         "../scripts/sweep_point.py"
 
 
-if REDUCTION_SWEEPS:
+# Rules of the run as a whole, not of one point: a point's module leaves them out.
+RUN_LEVEL_RULES = ("all", "paper", "paper_pdf", "paper_comparison", "plot_offset_bias", "error_propagation_table",
+                   "sweep_point", "sweep_summary", "plot_star_accuracy", "reduction_sweep_summary")
+REDUCTION_CONFIGS = {f"sweep_{name}_{k}": reduction_point_config(name, point, folder)
+                     for name in REDUCTION_SWEEPS for k, (point, folder) in enumerate(sweep_instances(name))}
+
+if REDUCTION_CONFIGS:
     # Each point of a reduction sweep is the whole workflow again (a Snakemake module) with the point's
     # config, its products under results/sweeps/<sweep>/<point>/. Modules cannot be declared in a loop,
-    # so their declarations are written out, then included; the file changes only with the sweeps.
+    # so their declarations are written out (the configs stay here, named), then included; the file is
+    # named by its content, so that runs with other sweeps in the same folder never share one.
     declarations = []
-    for name in REDUCTION_SWEEPS:
-        for k, (point, folder) in enumerate(sweep_instances(name)):
-            module_name = f"sweep_{name}_{k}"
-            declarations += [f"module {module_name}:", f"    snakefile: {workflow.main_snakefile!r}",
-                             f"    config: {reduction_point_config(name, point, folder)!r}", "",
-                             f"use rule * from {module_name} as {module_name}_*", "", ""]
-    generated = Path(".snakemake/dice/reduction_sweeps.smk")
-    generated.parent.mkdir(parents=True, exist_ok=True)
+    for module_name in REDUCTION_CONFIGS:
+        declarations += [f"module {module_name}:", f"    snakefile: {workflow.main_snakefile!r}",
+                         f"    config: REDUCTION_CONFIGS[{module_name!r}]", "",
+                         f"use rule * from {module_name} exclude {', '.join(RUN_LEVEL_RULES)} as {module_name}_*",
+                         "", ""]
     text = "# Written by workflow/rules/paper.smk from config sweeps; do not edit.\n\n" + "\n".join(declarations)
-    if not generated.is_file() or generated.read_text() != text:
-        generated.write_text(text)
+    generated = Path(".snakemake/dice") / f"reduction_sweeps_{hashlib.sha256(text.encode()).hexdigest()[:12]}.smk"
+    if not generated.is_file():
+        generated.parent.mkdir(parents=True, exist_ok=True)
+        partial = generated.with_name(f".{generated.name}.{os.getpid()}.part")
+        partial.write_text(text)
+        os.replace(partial, generated)
 
     include: str(generated.resolve())
 
@@ -168,11 +176,11 @@ rule paper_comparison:
 rule paper_pdf:
     input:
         figures=lambda w: [png for png, _ in paper_pdf_pages()],
+        captions=lambda w: [caption for _, caption in paper_pdf_pages()],  # an edited caption rebuilds it
         comparison=rules.paper_comparison.output.csv,
     output:
         pdf=f"{OUT}/report/paper_reproduction.pdf",
     params:
-        captions=lambda w: [caption for _, caption in paper_pdf_pages()],
         dataset=MANIFEST.name,
         code=code_version("plotting"),
     log:

@@ -11,15 +11,20 @@ def reduction_sweep_summary(tables, points, csv_path, png, pdf, sweep):
     rows = []
     for point, path in zip(points, tables):
         with open(path, newline="") as handle:
-            for record in csv.DictReader(handle):
-                rows.append({**point, **record})
+            records = list(csv.DictReader(handle))
+        if not records:
+            raise ValueError(f"{path}: an empty accuracy table")
+        rows += [{**point, **record} for record in records]
+    figure = plotting.reduction_sweep_figure(rows, list(points[0]), title=f"sweep {sweep}")
+    units = {"accuracy": "accuracy [pixel]", "error": "error [pixel]", "rms_residual": "rms_residual [pixel]"}
+    rows = [{units.get(k, k): v for k, v in row.items()} for row in rows]
     columns = list(points[0]) + [c for c in rows[0] if c not in points[0]]
     buffer = text_io.StringIO()
     writer = csv.DictWriter(buffer, columns, lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
     io.write_text(csv_path, buffer.getvalue())
-    plotting.save(plotting.reduction_sweep_figure(rows, list(points[0]), title=f"sweep {sweep}"), png, pdf)
+    plotting.save(figure, png, pdf)
 
 
 dice_core.run_logged(snakemake.log[0], reduction_sweep_summary, list(snakemake.input.tables),

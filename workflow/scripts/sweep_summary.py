@@ -1,4 +1,4 @@
-"""Snakemake step: one row per point of a sweep, its parameters and every scalar result (CSV)."""
+"""Snakemake step: one row per point of a sweep, its parameters and every scalar (or per-mode) result (CSV)."""
 
 import csv
 import io as text_io
@@ -13,8 +13,13 @@ def sweep_summary(points, output):
     for path in points:
         ds = io.read_product(path)
         point = json.loads(ds.attrs["configuration"])["point"]
-        row = {**point, **{f"{name} [{var.attrs['units']}]": float(var.values)
-                           for name, var in ds.data_vars.items() if var.ndim == 0}}
+        row = dict(point)
+        for name, var in ds.data_vars.items():
+            if var.ndim == 0:
+                row[f"{name} [{var.attrs['units']}]"] = float(var.values)
+            elif var.dims == ("mode",):  # a study's per-mode results (star_accuracy)
+                row.update({f"{name}[{mode}] [{var.attrs['units']}]": float(value)
+                            for mode, value in zip(ds["mode"].values, var.values)})
         rows.append(row)
         columns += [c for c in row if c not in columns]
     buffer = text_io.StringIO()
