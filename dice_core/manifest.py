@@ -1,6 +1,6 @@
 """Read and validate a DICE raw dataset manifest (``dataset.yaml``, format dice-dataset/1).
 
-The format is the contract of ``shared/spec/dataset-format.md``. Validation is
+The format is the contract of ``docs/dataset-format.md``. Validation is
 in two layers: the JSON schema ``schemas/dataset.schema.yaml`` checks types and
 keys, then :func:`load_manifest` checks what a schema cannot (science area
 inside the detector, pairs naming known baselines, distinct star positions,
