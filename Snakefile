@@ -28,9 +28,9 @@ include: "workflow/rules/paper.smk"
 
 
 rule all:
+    default_target: True
     input:
         calibration_targets(),
         metrology_targets(),
         centroid_targets(),
         astrometry_targets(),
-    default_target: True

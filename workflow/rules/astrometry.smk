@@ -8,13 +8,13 @@ rule accuracy_table:
         csv=f"{OUT}/tables/accuracy.csv",
         tex=f"{OUT}/tables/accuracy.tex",
         residuals=f"{OUT}/tables/procrustes_residuals.nc",
-    params:
-        code=code_version("io", "astrometry"),
-        options=lambda w: config["astrometry"],
     log:
         f"{OUT}/logs/accuracy_table.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("io", "astrometry"),
+        options=lambda w: config["astrometry"],
     script:
         "../scripts/accuracy_table.py"
 
@@ -23,17 +23,23 @@ rule plot_procrustes_residuals:
     input:
         residuals=rules.accuracy_table.output.residuals,
     output:
-        png=report(f"{OUT}/figures/procrustes_residuals.png", category="Astrometry",
-                   caption="../report/procrustes_residuals.rst"),
+        png=report(
+            f"{OUT}/figures/procrustes_residuals.png",
+            category="Astrometry",
+            caption="../report/procrustes_residuals.rst",
+        ),
         pdf=f"{OUT}/figures/procrustes_residuals.pdf",
-        barycentre_png=report(f"{OUT}/figures/barycentre_residuals.png", category="Astrometry",
-                              caption="../report/barycentre_residuals.rst"),
+        barycentre_png=report(
+            f"{OUT}/figures/barycentre_residuals.png",
+            category="Astrometry",
+            caption="../report/barycentre_residuals.rst",
+        ),
         barycentre_pdf=f"{OUT}/figures/barycentre_residuals.pdf",
-    params:
-        code=code_version("plotting", "io"),
     log:
         f"{OUT}/logs/plot_procrustes_residuals.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "io"),
     script:
         "../scripts/plot_procrustes_residuals.py"

@@ -8,14 +8,14 @@ rule measure_dark:
         cubes=acquisition_files(MANIFEST.dark) if MANIFEST.dark else [],
     output:
         dark=f"{OUT}/calibration/dark.nc",
-    params:
-        code=code_version("io", "manifest", "calibration", "polynomials"),
     log:
         f"{OUT}/logs/measure_dark.log",
     benchmark:
         f"{OUT}/benchmarks/measure_dark.tsv"
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
         "../scripts/measure_dark.py"
 
@@ -27,14 +27,14 @@ rule measure_prnu:
         cubes=flat_files,
     output:
         prnu=f"{OUT}/calibration/flats/prnu_{{flat}}.nc",
-    params:
-        code=code_version("io", "manifest", "calibration", "polynomials"),
     log:
         f"{OUT}/logs/measure_prnu_{{flat}}.log",
     benchmark:
         f"{OUT}/benchmarks/measure_prnu_{{flat}}.tsv"
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
         "../scripts/measure_prnu.py"
 
@@ -44,13 +44,13 @@ rule select_reference_prnu:
         prnu=f"{OUT}/calibration/flats/prnu_{MANIFEST.reference_flat}.nc",
     output:
         prnu=f"{OUT}/calibration/prnu.nc",
-    params:
-        reference=MANIFEST.reference_flat,
-        code=code_version("io"),
     log:
         f"{OUT}/logs/select_reference_prnu.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        reference=MANIFEST.reference_flat,
+        code=code_version("io"),
     script:
         "../scripts/select_reference_prnu.py"
 
@@ -62,12 +62,12 @@ rule compare_prnu:
         manifest=MANIFEST_FILE,
     output:
         difference=f"{OUT}/calibration/prnu_difference_{{flat}}.nc",
-    params:
-        code=code_version("io", "manifest", "calibration", "polynomials"),
     log:
         f"{OUT}/logs/compare_prnu_{{flat}}.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
         "../scripts/compare_prnu.py"
 
@@ -79,11 +79,11 @@ rule find_bad_pixels:
         prnu=rules.select_reference_prnu.output.prnu,
     output:
         bad_pixels=f"{OUT}/calibration/bad_pixels.nc",
-    params:
-        code=code_version("io", "manifest", "calibration", "polynomials"),
     log:
         f"{OUT}/logs/find_bad_pixels.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
         "../scripts/find_bad_pixels.py"

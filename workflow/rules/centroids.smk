@@ -9,15 +9,15 @@ rule stack_position:
         cubes=position_files,
     output:
         stack=f"{OUT}/stars/{{position}}.nc",
-    params:
-        batches=config["centroids"]["batches"],
-        code=code_version("io", "manifest", "stacks"),
     log:
         f"{OUT}/logs/stack_position_{{position}}.log",
     benchmark:
         f"{OUT}/benchmarks/stack_position_{{position}}.tsv"
     conda:
         "../envs/dice.yaml"
+    params:
+        batches=config["centroids"]["batches"],
+        code=code_version("io", "manifest", "stacks"),
     script:
         "../scripts/stack_position.py"
 
@@ -30,15 +30,15 @@ rule measure_centroids:
         stacks=position_stacks,
     output:
         centroids=f"{OUT}/centroids/{{mode}}.nc",
-    params:
-        code=code_version("io", "manifest", "calibration", "centroids", "polynomials", "stacks"),
-        options=centroid_options,
     log:
         f"{OUT}/logs/measure_centroids_{{mode}}.log",
     benchmark:
         f"{OUT}/benchmarks/measure_centroids_{{mode}}.tsv"
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("io", "manifest", "calibration", "centroids", "polynomials", "stacks"),
+        options=centroid_options,
     script:
         "../scripts/measure_centroids.py"
 
@@ -56,15 +56,14 @@ rule plot_centroids:
     input:
         centroids=rules.measure_centroids.output.centroids,
     output:
-        png=report(f"{OUT}/figures/centroids_{{mode}}.png", category="Pseudo stars",
-                   caption="../report/centroids.rst"),
+        png=report(f"{OUT}/figures/centroids_{{mode}}.png", category="Pseudo stars", caption="../report/centroids.rst"),
         pdf=f"{OUT}/figures/centroids_{{mode}}.pdf",
-    params:
-        code=code_version("plotting", "io"),
-        positions=config["astrometry"]["positions"],  # the used range, marked red
     log:
         f"{OUT}/logs/plot_centroids_{{mode}}.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "io"),
+        positions=config["astrometry"]["positions"],  # the used range, marked red
     script:
         "../scripts/plot_centroids.py"

@@ -19,7 +19,6 @@ from snakemake.utils import Paramspace, validate
 from dice_core import DatasetError, simulation
 from dice_core.manifest import load_manifest, parse_manifest
 
-
 validate(config, schema="../schemas/config.schema.yaml")
 
 PRESETS = Path(workflow.basedir) / "config" / "presets"
@@ -46,8 +45,9 @@ def load_dataset(value):
     preset = PRESETS / f"{value}.yaml"
     if not preset.is_file():
         known = sorted(p.stem for p in PRESETS.glob("*.yaml"))
-        raise WorkflowError(f"config dataset={value!r} is neither a manifest path (*.yaml) "
-                            f"nor a simulation preset {known}")
+        raise WorkflowError(
+            f"config dataset={value!r} is neither a manifest path (*.yaml) " f"nor a simulation preset {known}"
+        )
     try:
         sim = simulation.load_preset(preset, overrides=config.get("simulation") or {})
     except ValueError as exc:
@@ -194,13 +194,19 @@ def metrology_targets():
         return []
     targets = []
     for baseline in MANIFEST.baselines:
-        targets += [f"{OUT}/metrology/{baseline}.nc", *figure_pair(f"metrology_{baseline}").values(),
-                    f"{OUT}/allan/{baseline}.nc", *figure_pair(f"allan_{baseline}").values()]
+        targets += [
+            f"{OUT}/metrology/{baseline}.nc",
+            *figure_pair(f"metrology_{baseline}").values(),
+            f"{OUT}/allan/{baseline}.nc",
+            *figure_pair(f"allan_{baseline}").values(),
+        ]
     for pair in MANIFEST.pairs:
         targets += [f"{OUT}/calibration/offsets_{pair}.nc", *figure_pair(f"offsets_{pair}").values()]
     for pair in list(MANIFEST.pairs)[1:]:
-        targets += [f"{OUT}/calibration/offsets_difference_{pair}.nc",
-                    *figure_pair(f"offsets_difference_{pair}").values()]
+        targets += [
+            f"{OUT}/calibration/offsets_difference_{pair}.nc",
+            *figure_pair(f"offsets_difference_{pair}").values(),
+        ]
     if not MANIFEST.pairs:
         skipped("deprojection", "the dataset names no pair of baselines")
     return targets
@@ -210,8 +216,10 @@ def centroid_pair():
     """The metrology pair whose offsets the metrology modes use."""
     pair = config["centroids"]["pair"] or MANIFEST.reference_pair
     if pair is not None and pair not in MANIFEST.pairs:
-        raise WorkflowError(f"centroids.pair {pair!r} is not a pair of {MANIFEST.path} "
-                            f"(pairs: {', '.join(MANIFEST.pairs) or 'none'})")
+        raise WorkflowError(
+            f"centroids.pair {pair!r} is not a pair of {MANIFEST.path} "
+            f"(pairs: {', '.join(MANIFEST.pairs) or 'none'})"
+        )
     return pair
 
 
@@ -274,8 +282,12 @@ def astrometry_targets():
     """The accuracy table of the centroid modes this dataset allows, and its figure."""
     if not centroid_targets():
         return []
-    return [f"{OUT}/tables/accuracy.csv", f"{OUT}/tables/accuracy.tex", *figure_pair("procrustes_residuals").values(),
-            *figure_pair("barycentre_residuals").values()]
+    return [
+        f"{OUT}/tables/accuracy.csv",
+        f"{OUT}/tables/accuracy.tex",
+        *figure_pair("procrustes_residuals").values(),
+        *figure_pair("barycentre_residuals").values(),
+    ]
 
 
 def centroid_products(wildcards):
@@ -305,8 +317,10 @@ def sweep_space(name, spec):
     if len(columns) != len(keys):
         raise WorkflowError(f"config sweeps.{name}: parameters {keys} share a last name; folders would clash")
     if any(isinstance(v, (list, dict)) for p in points for v in p.values()):
-        raise WorkflowError(f"config sweeps.{name}: a parameter's value must be a number, a string or a boolean "
-                            "(one folder per point)")
+        raise WorkflowError(
+            f"config sweeps.{name}: a parameter's value must be a number, a string or a boolean "
+            "(one folder per point)"
+        )
     frame = DataFrame([{column: p[key] for column, key in columns.items()} for p in points])
     if frame.duplicated().any():
         raise WorkflowError(f"config sweeps.{name}: a point is listed twice")
@@ -341,17 +355,17 @@ def paper_sweep(study):
     return name
 
 
-
 def comparison_inputs(wildcards=None):
     """What the comparison reads: the studies, and this dataset's accuracy table and Allan products."""
-    inputs = {"offset_bias": sweep_points(paper_sweep("offset_bias")),
-              "error_propagation": f"{OUT}/tables/error_propagation.csv"}
+    inputs = {
+        "offset_bias": sweep_points(paper_sweep("offset_bias")),
+        "error_propagation": f"{OUT}/tables/error_propagation.csv",
+    }
     if astrometry_targets():
         inputs["accuracy"] = f"{OUT}/tables/accuracy.csv"
     if metrology_unavailable() is None:
         inputs["allan"] = [f"{OUT}/allan/{baseline}.nc" for baseline in MANIFEST.baselines]
     return inputs
-
 
 
 def deep_update(base, dotted):
@@ -370,8 +384,10 @@ def sweep_instances(name):
     """[(parameters by their dotted keys, the point's folder)] of a configured sweep, in order."""
     spec, space, columns = SWEEPS[name]
     rows = space.dataframe.to_dict("records")
-    return [({columns[c]: (v.item() if hasattr(v, "item") else v) for c, v in row.items()}, folder)
-            for row, folder in zip(rows, space.instance_patterns)]
+    return [
+        ({columns[c]: (v.item() if hasattr(v, "item") else v) for c, v in row.items()}, folder)
+        for row, folder in zip(rows, space.instance_patterns)
+    ]
 
 
 def reduction_point_config(name, point, folder):
@@ -383,8 +399,10 @@ def reduction_point_config(name, point, folder):
     spec = SWEEPS[name][0]
     reserved = [k for k in point if k.split(".")[0] in ("dataset", "raw", "results", "sweeps", "paper")]
     if reserved or spec.get("bench") or spec.get("options"):
-        raise WorkflowError(f"config sweeps.{name}: a reduction sweep varies the reduction's config or "
-                            f"simulation.<key>, not {reserved or 'bench or options'}")
+        raise WorkflowError(
+            f"config sweeps.{name}: a reduction sweep varies the reduction's config or "
+            f"simulation.<key>, not {reserved or 'bench or options'}"
+        )
     simulated = {k.split(".", 1)[1]: v for k, v in point.items() if k.startswith("simulation.")}
     reduction = {k: v for k, v in point.items() if not k.startswith("simulation.")}
     if simulated and SIMULATION is None:
@@ -399,25 +417,33 @@ def reduction_point_config(name, point, folder):
 
 def reduction_point_tables(wildcards):
     """Each point's tables/accuracy.csv of a reduction sweep, in the config's order."""
-    return [f"{SWEEP_ROOT}/{wildcards.sweep}/{folder}/{MANIFEST.name}/tables/accuracy.csv"
-            for _, folder in sweep_instances(wildcards.sweep)]
+    return [
+        f"{SWEEP_ROOT}/{wildcards.sweep}/{folder}/{MANIFEST.name}/tables/accuracy.csv"
+        for _, folder in sweep_instances(wildcards.sweep)
+    ]
 
 
 def paper_pdf_pages():
     """(figure, its caption file) of the PDF reproduction report: the paper's simulations, then this dataset's
     figures that the paper shows, those the dataset allows."""
     captions = Path(workflow.basedir) / "workflow" / "report"
-    pages = [(f"{OUT}/figures/{stem}.png", str(captions / f"{stem}.rst"))
-             for stem in ("paper_comparison", "offset_bias", "error_propagation")]
+    pages = [
+        (f"{OUT}/figures/{stem}.png", str(captions / f"{stem}.rst"))
+        for stem in ("paper_comparison", "offset_bias", "error_propagation")
+    ]
     if metrology_unavailable() is None:
         first = next(iter(MANIFEST.baselines))
-        pages += [(f"{OUT}/figures/metrology_{first}.png", str(captions / "metrology.rst")),
-                  (f"{OUT}/figures/allan_{first}.png", str(captions / "allan.rst"))]
+        pages += [
+            (f"{OUT}/figures/metrology_{first}.png", str(captions / "metrology.rst")),
+            (f"{OUT}/figures/allan_{first}.png", str(captions / "allan.rst")),
+        ]
         if MANIFEST.pairs:
             pages.append((f"{OUT}/figures/offsets_{next(iter(MANIFEST.pairs))}.png", str(captions / "offsets.rst")))
     if astrometry_targets():
         modes = [m for m in ("flat+metrology", "raw") if f"{OUT}/figures/centroids_{m}.png" in centroid_targets()]
         pages += [(f"{OUT}/figures/centroids_{m}.png", str(captions / "centroids.rst")) for m in modes[:1]]
-        pages += [(f"{OUT}/figures/barycentre_residuals.png", str(captions / "barycentre_residuals.rst")),
-                  (f"{OUT}/figures/procrustes_residuals.png", str(captions / "procrustes_residuals.rst"))]
+        pages += [
+            (f"{OUT}/figures/barycentre_residuals.png", str(captions / "barycentre_residuals.rst")),
+            (f"{OUT}/figures/procrustes_residuals.png", str(captions / "procrustes_residuals.rst")),
+        ]
     return pages

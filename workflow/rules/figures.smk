@@ -10,12 +10,12 @@ rule plot_dark:
         dark_pdf=f"{OUT}/figures/dark.pdf",
         noise_png=report(f"{OUT}/figures/dark_noise.png", category="Dark", caption="../report/dark_noise.rst"),
         noise_pdf=f"{OUT}/figures/dark_noise.pdf",
-    params:
-        code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_dark.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "manifest", "io"),
     script:
         "../scripts/plot_dark.py"
 
@@ -27,12 +27,12 @@ rule plot_prnu:
     output:
         png=report(f"{OUT}/figures/prnu_{{flat}}.png", category="PRNU", caption="../report/prnu.rst"),
         pdf=f"{OUT}/figures/prnu_{{flat}}.pdf",
-    params:
-        code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_prnu_{{flat}}.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "manifest", "io"),
     script:
         "../scripts/plot_prnu.py"
 
@@ -42,15 +42,16 @@ rule plot_prnu_difference:
         difference=rules.compare_prnu.output.difference,
         manifest=MANIFEST_FILE,
     output:
-        png=report(f"{OUT}/figures/prnu_difference_{{flat}}.png", category="PRNU",
-                   caption="../report/prnu_difference.rst"),
+        png=report(
+            f"{OUT}/figures/prnu_difference_{{flat}}.png", category="PRNU", caption="../report/prnu_difference.rst"
+        ),
         pdf=f"{OUT}/figures/prnu_difference_{{flat}}.pdf",
-    params:
-        code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_prnu_difference_{{flat}}.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "manifest", "io"),
     script:
         "../scripts/plot_prnu_difference.py"
 
@@ -60,15 +61,14 @@ rule plot_metrology:
         metrology=rules.fit_fringes.output.metrology,
         manifest=MANIFEST_FILE,
     output:
-        png=report(f"{OUT}/figures/metrology_{{baseline}}.png", category="Metrology",
-                   caption="../report/metrology.rst"),
+        png=report(f"{OUT}/figures/metrology_{{baseline}}.png", category="Metrology", caption="../report/metrology.rst"),
         pdf=f"{OUT}/figures/metrology_{{baseline}}.pdf",
-    params:
-        code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_metrology_{{baseline}}.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "manifest", "io"),
     script:
         "../scripts/plot_metrology.py"
 
@@ -79,12 +79,12 @@ rule plot_allan:
     output:
         png=report(f"{OUT}/figures/allan_{{baseline}}.png", category="Metrology", caption="../report/allan.rst"),
         pdf=f"{OUT}/figures/allan_{{baseline}}.pdf",
-    params:
-        code=code_version("plotting", "io"),
     log:
         f"{OUT}/logs/plot_allan_{{baseline}}.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "io"),
     script:
         "../scripts/plot_allan.py"
 
@@ -96,12 +96,12 @@ rule plot_offsets:
     output:
         png=report(f"{OUT}/figures/offsets_{{pair}}.png", category="Metrology", caption="../report/offsets.rst"),
         pdf=f"{OUT}/figures/offsets_{{pair}}.pdf",
-    params:
-        code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_offsets_{{pair}}.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "manifest", "io"),
     script:
         "../scripts/plot_offsets.py"
 
@@ -111,14 +111,17 @@ rule plot_offsets_difference:
         difference=rules.compare_pairs.output.difference,
         manifest=MANIFEST_FILE,
     output:
-        png=report(f"{OUT}/figures/offsets_difference_{{pair}}.png", category="Metrology",
-                   caption="../report/offsets_difference.rst"),
+        png=report(
+            f"{OUT}/figures/offsets_difference_{{pair}}.png",
+            category="Metrology",
+            caption="../report/offsets_difference.rst",
+        ),
         pdf=f"{OUT}/figures/offsets_difference_{{pair}}.pdf",
-    params:
-        code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_offsets_difference_{{pair}}.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "manifest", "io"),
     script:
         "../scripts/plot_offsets_difference.py"

@@ -4,7 +4,6 @@
 
 # threads: worker processes reading parts of the frames, one BLAS thread each (dice_core.parallel).
 rule fit_fringes:
-    threads: 2
     input:
         manifest=MANIFEST_FILE,
         dark=rules.measure_dark.output.dark,
@@ -13,15 +12,16 @@ rule fit_fringes:
         cubes=baseline_files,
     output:
         metrology=f"{OUT}/metrology/{{baseline}}.nc",
-    params:
-        code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
-        options=config["metrology"],  # a changed option (tip_sigma, tolerance...) reruns the fits
     log:
         f"{OUT}/logs/fit_fringes_{{baseline}}.log",
     benchmark:
         f"{OUT}/benchmarks/fit_fringes_{{baseline}}.tsv"
     conda:
         "../envs/dice.yaml"
+    threads: 2
+    params:
+        code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
+        options=config["metrology"],  # a changed option (tip_sigma, tolerance...) reruns the fits
     script:
         "../scripts/fit_fringes.py"
 
@@ -32,13 +32,13 @@ rule deproject_offsets:
         second=lambda w: f"{OUT}/metrology/{pair_baselines(w)[1]}.nc",
     output:
         offsets=f"{OUT}/calibration/offsets_{{pair}}.nc",
-    params:
-        baselines=pair_baselines,
-        code=code_version("io", "deprojection", "geometry"),
     log:
         f"{OUT}/logs/deproject_offsets_{{pair}}.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        baselines=pair_baselines,
+        code=code_version("io", "deprojection", "geometry"),
     script:
         "../scripts/deproject_offsets.py"
 
@@ -49,19 +49,18 @@ rule compare_pairs:
         other=f"{OUT}/calibration/offsets_{{pair}}.nc",
     output:
         difference=f"{OUT}/calibration/offsets_difference_{{pair}}.nc",
-    params:
-        reference=MANIFEST.reference_pair,
-        code=code_version("io", "deprojection", "geometry"),
     log:
         f"{OUT}/logs/compare_pairs_{{pair}}.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        reference=MANIFEST.reference_pair,
+        code=code_version("io", "deprojection", "geometry"),
     script:
         "../scripts/compare_pairs.py"
 
 
 rule allan_deviation:
-    threads: 2
     input:
         manifest=MANIFEST_FILE,
         metrology=rules.fit_fringes.output.metrology,
@@ -69,13 +68,14 @@ rule allan_deviation:
         cubes=baseline_files,
     output:
         allan=f"{OUT}/allan/{{baseline}}.nc",
-    params:
-        code=code_version("io", "manifest", "allan", "fringes", "geometry", "parallel", "polynomials"),
     log:
         f"{OUT}/logs/allan_deviation_{{baseline}}.log",
     benchmark:
         f"{OUT}/benchmarks/allan_deviation_{{baseline}}.tsv"
     conda:
         "../envs/dice.yaml"
+    threads: 2
+    params:
+        code=code_version("io", "manifest", "allan", "fringes", "geometry", "parallel", "polynomials"),
     script:
         "../scripts/allan_deviation.py"

@@ -13,31 +13,46 @@ if SWEEPS:
 rule sweep_point:
     output:
         point=f"{SWEEP_ROOT}/{{sweep}}/{{point}}/point.nc",
+    log:
+        f"{SWEEP_ROOT}/{{sweep}}/{{point}}/point.log",
+    benchmark:
+        f"{SWEEP_ROOT}/{{sweep}}/{{point}}/benchmark.tsv"
     wildcard_constraints:  # only the configured points: another folder is no job, not a cryptic error
         sweep="|".join(map(re.escape, STUDY_SWEEPS)) or "(?!)",
-        point="|".join(sorted({re.escape(pattern) for name in STUDY_SWEEPS
-                               for pattern in SWEEPS[name][1].instance_patterns})) or "(?!)",
+        point="|".join(
+            sorted({re.escape(pattern) for name in STUDY_SWEEPS for pattern in SWEEPS[name][1].instance_patterns})
+        )
+        or "(?!)",
+    conda:
+        "../envs/dice.yaml"
     params:
         study=lambda w: SWEEPS[w.sweep][0]["study"],
         parameters=point_parameters,
         bench=lambda w: SWEEPS[w.sweep][0].get("bench", {}),
         options=lambda w: SWEEPS[w.sweep][0].get("options", {}),
         code=code_version("studies"),
-    log:
-        f"{SWEEP_ROOT}/{{sweep}}/{{point}}/point.log",
-    benchmark:
-        f"{SWEEP_ROOT}/{{sweep}}/{{point}}/benchmark.tsv"
-    conda:
-        "../envs/dice.yaml"
     script:
         "../scripts/sweep_point.py"
 
 
 # Rules of the run as a whole, not of one point: a point's module leaves them out.
-RUN_LEVEL_RULES = ("all", "paper", "paper_pdf", "paper_comparison", "plot_offset_bias", "error_propagation_table",
-                   "sweep_point", "sweep_summary", "plot_star_accuracy", "reduction_sweep_summary")
-REDUCTION_CONFIGS = {f"sweep_{name}_{k}": reduction_point_config(name, point, folder)
-                     for name in REDUCTION_SWEEPS for k, (point, folder) in enumerate(sweep_instances(name))}
+RUN_LEVEL_RULES = (
+    "all",
+    "paper",
+    "paper_pdf",
+    "paper_comparison",
+    "plot_offset_bias",
+    "error_propagation_table",
+    "sweep_point",
+    "sweep_summary",
+    "plot_star_accuracy",
+    "reduction_sweep_summary",
+)
+REDUCTION_CONFIGS = {
+    f"sweep_{name}_{k}": reduction_point_config(name, point, folder)
+    for name in REDUCTION_SWEEPS
+    for k, (point, folder) in enumerate(sweep_instances(name))
+}
 
 if REDUCTION_CONFIGS:
     # Each point of a reduction sweep is the whole workflow again (a Snakemake module) with the point's
@@ -46,10 +61,15 @@ if REDUCTION_CONFIGS:
     # named by its content, so that runs with other sweeps in the same folder never share one.
     declarations = []
     for module_name in REDUCTION_CONFIGS:
-        declarations += [f"module {module_name}:", f"    snakefile: {workflow.main_snakefile!r}",
-                         f"    config: REDUCTION_CONFIGS[{module_name!r}]", "",
-                         f"use rule * from {module_name} exclude {', '.join(RUN_LEVEL_RULES)} as {module_name}_*",
-                         "", ""]
+        declarations += [
+            f"module {module_name}:",
+            f"    snakefile: {workflow.main_snakefile!r}",
+            f"    config: REDUCTION_CONFIGS[{module_name!r}]",
+            "",
+            f"use rule * from {module_name} exclude {', '.join(RUN_LEVEL_RULES)} as {module_name}_*",
+            "",
+            "",
+        ]
     text = "# Written by workflow/rules/paper.smk from config sweeps; do not edit.\n\n" + "\n".join(declarations)
     generated = Path(".snakemake/dice") / f"reduction_sweeps_{hashlib.sha256(text.encode()).hexdigest()[:12]}.smk"
     if not generated.is_file():
@@ -68,15 +88,15 @@ rule reduction_sweep_summary:
         csv=f"{SWEEP_ROOT}/{{sweep}}/summary.csv",
         png=f"{SWEEP_ROOT}/{{sweep}}/accuracy.png",
         pdf=f"{SWEEP_ROOT}/{{sweep}}/accuracy.pdf",
+    log:
+        f"{SWEEP_ROOT}/{{sweep}}/summary.log",
+    wildcard_constraints:
+        sweep="|".join(map(re.escape, REDUCTION_SWEEPS)) or "(?!)",
+    conda:
+        "../envs/dice.yaml"
     params:
         points=lambda w: [point for point, _ in sweep_instances(w.sweep)],
         code=code_version("plotting", "io"),
-    wildcard_constraints:
-        sweep="|".join(map(re.escape, REDUCTION_SWEEPS)) or "(?!)",
-    log:
-        f"{SWEEP_ROOT}/{{sweep}}/summary.log",
-    conda:
-        "../envs/dice.yaml"
     script:
         "../scripts/reduction_sweep_summary.py"
 
@@ -86,14 +106,14 @@ rule sweep_summary:
         points=lambda w: sweep_points(w.sweep),
     output:
         csv=f"{SWEEP_ROOT}/{{sweep}}/summary.csv",
-    wildcard_constraints:
-        sweep="|".join(map(re.escape, STUDY_SWEEPS)) or "(?!)",
-    params:
-        code=code_version("io"),
     log:
         f"{SWEEP_ROOT}/{{sweep}}/summary.log",
+    wildcard_constraints:
+        sweep="|".join(map(re.escape, STUDY_SWEEPS)) or "(?!)",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("io"),
     script:
         "../scripts/sweep_summary.py"
 
@@ -104,14 +124,14 @@ rule plot_star_accuracy:
     output:
         png=f"{SWEEP_ROOT}/{{sweep}}/accuracy.png",
         pdf=f"{SWEEP_ROOT}/{{sweep}}/accuracy.pdf",
-    params:
-        code=code_version("plotting", "io"),
-    wildcard_constraints:
-        sweep="|".join(re.escape(n) for n, (spec, *_) in SWEEPS.items() if spec["study"] == "star_accuracy") or "(?!)",
     log:
         f"{SWEEP_ROOT}/{{sweep}}/accuracy.log",
+    wildcard_constraints:
+        sweep="|".join(re.escape(n) for n, (spec, *_) in SWEEPS.items() if spec["study"] == "star_accuracy") or "(?!)",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "io"),
     script:
         "../scripts/plot_star_accuracy.py"
 
@@ -120,15 +140,16 @@ rule plot_offset_bias:
     input:
         points=lambda w: sweep_points(paper_sweep("offset_bias")),
     output:
-        png=report(f"{OUT}/figures/offset_bias.png", category="Numerical simulations",
-                   caption="../report/offset_bias.rst"),
+        png=report(
+            f"{OUT}/figures/offset_bias.png", category="Numerical simulations", caption="../report/offset_bias.rst"
+        ),
         pdf=f"{OUT}/figures/offset_bias.pdf",
-    params:
-        code=code_version("plotting", "io"),
     log:
         f"{OUT}/logs/plot_offset_bias.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "io"),
     script:
         "../scripts/plot_offset_bias.py"
 
@@ -138,15 +159,18 @@ rule error_propagation_table:
         points=lambda w: sweep_points(paper_sweep("error_propagation")),
     output:
         csv=f"{OUT}/tables/error_propagation.csv",
-        png=report(f"{OUT}/figures/error_propagation.png", category="Numerical simulations",
-                   caption="../report/error_propagation.rst"),
+        png=report(
+            f"{OUT}/figures/error_propagation.png",
+            category="Numerical simulations",
+            caption="../report/error_propagation.rst",
+        ),
         pdf=f"{OUT}/figures/error_propagation.pdf",
-    params:
-        code=code_version("studies", "error_budget", "io"),
     log:
         f"{OUT}/logs/error_propagation_table.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("studies", "error_budget", "io"),
     script:
         "../scripts/error_propagation_table.py"
 
@@ -156,19 +180,22 @@ rule paper_comparison:
         unpack(comparison_inputs),
     output:
         csv=f"{OUT}/tables/paper_comparison.csv",
-        png=report(f"{OUT}/figures/paper_comparison.png", category="Paper comparison",
-                   caption="../report/paper_comparison.rst"),
+        png=report(
+            f"{OUT}/figures/paper_comparison.png",
+            category="Paper comparison",
+            caption="../report/paper_comparison.rst",
+        ),
         pdf=f"{OUT}/figures/paper_comparison.pdf",
+    log:
+        f"{OUT}/logs/paper_comparison.log",
+    conda:
+        "../envs/dice.yaml"
     params:
         code=code_version("reproduction", "plotting", "io"),
         dataset=MANIFEST.name,
         positions=config["astrometry"]["positions"],
         trials=config["astrometry"]["trials"],
         method=config["centroids"]["methods"][0],  # the method of centroids/<mode>.nc
-    log:
-        f"{OUT}/logs/paper_comparison.log",
-    conda:
-        "../envs/dice.yaml"
     script:
         "../scripts/paper_comparison.py"
 
@@ -180,13 +207,13 @@ rule paper_pdf:
         comparison=rules.paper_comparison.output.csv,
     output:
         pdf=f"{OUT}/report/paper_reproduction.pdf",
-    params:
-        dataset=MANIFEST.name,
-        code=code_version("plotting"),
     log:
         f"{OUT}/logs/paper_pdf.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        dataset=MANIFEST.name,
+        code=code_version("plotting"),
     script:
         "../scripts/paper_pdf.py"
 

@@ -8,13 +8,13 @@ if SIMULATE:
     rule simulate_truth:
         output:
             truth=f"{RAW}/truth.nc",
-        params:
-            simulation=SIM_CONFIG,
-            code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
         log:
             f"{OUT}/logs/simulate_truth.log",
         conda:
             "../envs/dice.yaml"
+        params:
+            simulation=SIM_CONFIG,
+            code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
         script:
             "../scripts/simulate_truth.py"
 
@@ -23,17 +23,17 @@ if SIMULATE:
             truth=rules.simulate_truth.output.truth,
         output:
             cube=f"{RAW}/{{relpath}}.fits",
-        params:
-            simulation=SIM_CONFIG,
-            code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
-        wildcard_constraints:
-            relpath="(dark|flat|metrology|stars)/[A-Za-z0-9._-]+",
         log:
             f"{OUT}/logs/simulate/{{relpath}}.log",
         benchmark:
             f"{OUT}/benchmarks/simulate/{{relpath}}.tsv"
+        wildcard_constraints:
+            relpath="(dark|flat|metrology|stars)/[A-Za-z0-9._-]+",
         conda:
             "../envs/dice.yaml"
+        params:
+            simulation=SIM_CONFIG,
+            code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
         script:
             "../scripts/simulate_file.py"
 
@@ -43,12 +43,12 @@ if SIMULATE:
             cubes=[f"{RAW}/{f}" for f in SIM_FILES],
         output:
             manifest=f"{RAW}/dataset.yaml",
-        params:
-            simulation=SIM_CONFIG,
-            code=code_version("geometry", "simulation", "manifest"),
         log:
             f"{OUT}/logs/simulate_manifest.log",
         conda:
             "../envs/dice.yaml"
+        params:
+            simulation=SIM_CONFIG,
+            code=code_version("geometry", "simulation", "manifest"),
         script:
             "../scripts/simulate_manifest.py"
