@@ -267,6 +267,13 @@ def test_lint_has_nothing_to_say(workdir):
     assert "Lints for" not in result.stdout + result.stderr
 
 
+def test_rule_files_are_formatted_by_snakefmt():
+    """CI's `snakefmt --check`, with the repository's settings (pyproject.toml, [tool.snakefmt])."""
+    result = subprocess.run([sys.executable, "-m", "snakefmt", "--check", "Snakefile", "workflow"], cwd=REPO,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
 def test_missing_manifest_is_a_clear_error(workdir, tmp_path):
     missing = tmp_path / "nowhere" / "dataset.yaml"
     result = snakemake(workdir, "-n", "--config", f"dataset={missing}", check=False)
