@@ -4,14 +4,18 @@ The copy carries its own dice_core, first on PYTHONPATH, so that a test can
 edit a module and watch which jobs Snakemake would re-run.
 """
 
+import base64
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+import xarray as xr
 import yaml
 
 from dice_core.calibration import remove_gradient
@@ -32,7 +36,7 @@ def snakemake(workdir, *args, check=True):
 
 
 def copy_repository(root):
-    for item in ("Snakefile", "workflow", "config", "dice_core"):
+    for item in ("Snakefile", "workflow", "config", "profiles", "dice_core"):
         source = REPO / item
         if source.is_dir():
             shutil.copytree(source, root / item, ignore=shutil.ignore_patterns("__pycache__"))
@@ -272,6 +276,66 @@ def test_rule_files_are_formatted_by_snakefmt():
     result = subprocess.run([sys.executable, "-m", "snakefmt", "--check", "Snakefile", "workflow"], cwd=REPO,
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def incomplete_outputs(root):
+    """Outputs on disk that Snakemake still marks incomplete: their job started and was not seen to end."""
+    found = []
+    for marker in (root / ".snakemake" / "incomplete").rglob("*"):
+        try:
+            path = base64.urlsafe_b64decode(marker.name).decode()
+        except ValueError:  # not a marker (migration_underway)
+            continue
+        if marker.is_file() and (root / path).is_file():
+            found.append(path)
+    return found
+
+
+def snakemake_locks(root):
+    return sorted((root / ".snakemake" / "locks").glob("*.lock"))
+
+
+def test_a_killed_run_is_finished_by_running_the_same_command_again(out, tmp_path):
+    """kill -9 of Snakemake and its jobs leaves an output marked incomplete and Snakemake's lock; the same
+    command, run again once, finishes the run (README, "After a crash") with the uninterrupted run's products.
+    While the run is alive, its lock still keeps a second run out."""
+    root = copy_repository(tmp_path)
+    args = ("--config", "dataset=ci")
+    run = subprocess.Popen([sys.executable, "-m", "snakemake", "--cores", "2", *args], cwd=root,
+                           env={**os.environ, "PYTHONPATH": str(root)}, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not snakemake_locks(root):
+            assert run.poll() is None and time.monotonic() < deadline, "the run ended before taking its lock"
+            time.sleep(0.05)
+        second = snakemake(root, *args, check=False)
+        assert second.returncode != 0 and "cannot be locked" in second.stdout + second.stderr
+        assert run.poll() is None and snakemake_locks(root)  # refused while the first was alive; lock kept
+        # kill in the window between a job's output appearing and Snakemake recording the job as done
+        while not incomplete_outputs(root):
+            assert run.poll() is None and time.monotonic() < deadline, "no job was caught before its end"
+            time.sleep(0.01)
+    finally:
+        os.killpg(run.pid, signal.SIGKILL)  # Snakemake and its jobs, as kill -9 of a process group
+        run.wait()
+    killed_during = incomplete_outputs(root)
+    assert killed_during and snakemake_locks(root)
+
+    again = snakemake(root, *args)  # the README's command, as it was
+    said = again.stdout + again.stderr
+    assert "removed the lock of a run" in said
+    assert "IncompleteFilesException" not in said and "cannot be locked" not in said
+    assert not incomplete_outputs(root) and not snakemake_locks(root)
+    ours, theirs = root / "results" / "sim-ci", out
+    products = sorted(p.relative_to(ours) for p in ours.rglob("*") if p.suffix in (".nc", ".fits", ".csv"))
+    assert {Path(p).relative_to("results/sim-ci") for p in killed_during} <= set(products)
+    assert len(products) > 40
+    for product in products:
+        if product.suffix == ".nc":
+            xr.testing.assert_equal(read_product(ours / product), read_product(theirs / product))
+        else:
+            assert (ours / product).read_bytes() == (theirs / product).read_bytes(), product
 
 
 def test_missing_manifest_is_a_clear_error(workdir, tmp_path):

@@ -1,0 +1,63 @@
+# A run that was killed (kill -9, a closed terminal, the machine down) leaves
+# Snakemake's lock behind in .snakemake/locks/, and the next run stops with
+# "Directory cannot be locked" until `snakemake --unlock`. Snakemake's lock is
+# a plain file: it cannot tell a dead run from a live one. The kernel can: each
+# run of this workflow holds an flock on .snakemake/dice/running for its whole
+# life, which the kernel releases when the process ends, however it ends. A run
+# that gets that flock knows that no other run of the workflow is alive in this
+# folder on this machine, so the Snakemake locks it finds are stale and it
+# removes them; a run that does not get it leaves them to Snakemake, which
+# refuses to start on files that the live run is making. --nolock would instead
+# let two live runs write the same products.
+
+import fcntl
+import socket
+import sys
+from pathlib import Path
+
+
+def take_run_lock(state=".snakemake"):
+    """Hold this run's flock and remove Snakemake's locks when they are stale.
+
+    Returns the open, flocked guard file (keep it for the life of the run), or
+    None where this process is not the run itself (a job's Snakemake
+    subprocess), another run of the workflow is alive, or the filesystem has no
+    flock. The guard file records the machine of the last run that held it: a
+    lock left by a run on another machine sharing this folder, whose flock this
+    machine may not see, is left alone.
+    """
+    if not getattr(workflow, "is_main_process", True):
+        return None
+    state = Path(state)
+    path = state / "dice" / "running"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    guard = open(path, "a+")
+    try:
+        fcntl.flock(guard, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # held by a live run (EWOULDBLOCK), or no flock on this filesystem
+        guard.close()
+        return None
+    guard.seek(0)
+    last_machine = guard.read().strip()
+    machine = socket.gethostname()
+    locks = sorted((state / "locks").glob("*.lock"))
+    if locks and last_machine != machine:
+        # left by a run elsewhere (or by a version of the workflow before this guard): Snakemake
+        # says whether they block this run, and --unlock removes them
+        return guard
+    for lock in locks:
+        lock.unlink(missing_ok=True)
+    if locks:
+        print(
+            "dice: removed the lock of a run that ended without releasing it (killed?); "
+            "no other run of this workflow is alive here",
+            file=sys.stderr,
+        )
+    guard.seek(0)
+    guard.truncate()
+    guard.write(machine + "\n")
+    guard.flush()
+    return guard
+
+
+RUN_LOCK = take_run_lock()
