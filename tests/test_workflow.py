@@ -8,6 +8,7 @@ import base64
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -336,6 +337,22 @@ def test_a_killed_run_is_finished_by_running_the_same_command_again(out, tmp_pat
             xr.testing.assert_equal(read_product(ours / product), read_product(theirs / product))
         else:
             assert (ours / product).read_bytes() == (theirs / product).read_bytes(), product
+
+
+def test_a_stale_lock_is_removed_only_when_its_run_was_on_this_machine(tmp_path):
+    """A run elsewhere on a shared folder may be alive without this machine seeing its flock: its lock stays
+    (Snakemake then asks for --unlock). A lock left by a run of this machine goes."""
+    root = copy_repository(tmp_path)
+    lock, guard = root / ".snakemake" / "locks" / "0.output.lock", root / ".snakemake" / "dice" / "running"
+    lock.parent.mkdir(parents=True)
+    guard.parent.mkdir(parents=True)
+    lock.write_text("results/sim-ci/raw/truth.nc\n")
+    guard.write_text("another-machine\n")
+    said = snakemake(root, "-n", "--config", "dataset=ci").stderr
+    assert lock.is_file() and "removed the lock" not in said and guard.read_text() == "another-machine\n"
+    guard.write_text(socket.gethostname() + "\n")
+    said = snakemake(root, "-n", "--config", "dataset=ci").stderr
+    assert not lock.exists() and "removed the lock of a run" in said
 
 
 def test_missing_manifest_is_a_clear_error(workdir, tmp_path):
