@@ -57,6 +57,9 @@ __all__ = [
     "block_weights",
     "photon_limit",
     "first_frame_limit",
+    "AllanStatistics",
+    "allan_statistics",
+    "statistics_dataset",
     "allan_dataset",
 ]
 
@@ -481,10 +484,170 @@ def _mean_variance_root(deviations, axis=-1):
     return np.sqrt(np.nanmean(np.square(deviations), axis=axis))
 
 
+@dataclass
+class AllanStatistics:
+    """The statistics of :func:`allan_statistics`: plain arrays, pixel arrays over ``rows``, ``cols``.
+
+    Each attribute is named as the ``allan/<baseline>.nc`` variable it becomes
+    (:func:`allan_dataset` adds units, long names and maps); deviations and
+    limits in pixel, slopes without unit. The optional ones are None when their
+    input was not given.
+
+    Attributes
+    ----------
+    group_size, n_groups, n_frames : ndarray (size,)
+        Batches per group, groups the deviations are taken over, mean frames per group.
+    frames_per_batch : float
+    deviation, allan_deviation : ndarray (size, pixel)
+        Per pixel (the groups fitted as a whole when given, else means of batch fits).
+    deviation_mean, allan_deviation_mean, deviation_block_mean, allan_deviation_block_mean : ndarray (size,)
+        Root of the mean variance over pixels, and over blocks of pixel-averaged offsets.
+    white_deviation_mean, white_deviation_block_mean : ndarray (size,)
+        The same of white noise with the single-batch scatter of the pixels, of the blocks.
+    photon_limit_pixel, photon_limit_block : ndarray (size,)
+        Photon-noise limits from the fits' own errors.
+    photon_limit_pixel_paper, photon_limit_block_paper : ndarray (size,)
+        The paper's formula (:func:`photon_limit`).
+    slope : float
+        Log-log slope of ``deviation_mean`` against ``n_frames``.
+    slope_over_even_groups : bool
+        Whether ``slope`` is taken over the groups of 4 batches or more only.
+    sample_pixel : ndarray (sample,)
+        Pixels (indices into ``rows``, ``cols``) whose curves ``sample_deviation`` (size, sample) holds.
+    batch_start, batch_frames : ndarray (batch,)
+        First frame and frames of each batch.
+    batch_offset : ndarray (batch, pixel)
+        The batch offsets.
+    deviation_mean_batch_means, photon_limit_pixel_batch_means, slope_batch_means : optional
+        With the groups fitted as a whole: the groups as means of batch fits (the paper's) beside them.
+    photon_limit_pixel_first_frame : ndarray (size,), optional
+        With a first frame: the limit from the noise measured on it, and ``first_frame_noise`` (adu).
+    first_frame_noise : float, optional
+    """
+
+    group_size: np.ndarray
+    n_groups: np.ndarray
+    n_frames: np.ndarray
+    frames_per_batch: float
+    deviation: np.ndarray
+    allan_deviation: np.ndarray
+    deviation_mean: np.ndarray
+    allan_deviation_mean: np.ndarray
+    deviation_block_mean: np.ndarray
+    allan_deviation_block_mean: np.ndarray
+    white_deviation_mean: np.ndarray
+    white_deviation_block_mean: np.ndarray
+    photon_limit_pixel: np.ndarray
+    photon_limit_block: np.ndarray
+    photon_limit_pixel_paper: np.ndarray
+    photon_limit_block_paper: np.ndarray
+    slope: float
+    slope_over_even_groups: bool
+    sample_pixel: np.ndarray
+    sample_deviation: np.ndarray
+    batch_start: np.ndarray
+    batch_frames: np.ndarray
+    batch_offset: np.ndarray
+    deviation_mean_batch_means: np.ndarray | None = None
+    photon_limit_pixel_batch_means: np.ndarray | None = None
+    slope_batch_means: float | None = None
+    photon_limit_pixel_first_frame: np.ndarray | None = None
+    first_frame_noise: float | None = None
+
+
+def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, amplitude, iota, alpha, read_noise, k,
+                     block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None,
+                     first_frame=None) -> AllanStatistics:
+    """Deviations, their white-noise references and photon-noise limits from the batch offsets (arrays only).
+
+    Parameters are those of :func:`allan_dataset`, with the detector's
+    ``gain`` (e-/adu) for the detector; the pixels are ``rows``, ``cols``.
+
+    Returns
+    -------
+    AllanStatistics
+    """
+    n_batches = offsets.shape[0]
+    sizes = group_sizes(n_batches)
+    frames_per_batch = float(np.mean(batches[:, 1] - batches[:, 0]))
+    n_frames = sizes * frames_per_batch
+    good = np.isfinite(offsets).all(axis=0)
+    weights = block_weights(rows, cols, good, block=block)
+    blocks = np.where(good, offsets, 0.0) @ weights
+    # white noise of the same per-pixel (and per-block) scatter as the data at one batch per group
+    rng = np.random.default_rng(seed)
+    white = rng.standard_normal(offsets.shape) * np.std(offsets, axis=0, ddof=1)
+    white_blocks = rng.standard_normal(blocks.shape) * np.std(blocks, axis=0, ddof=1)
+
+    per_pixel, per_pixel_allan = _deviations(offsets, sizes)  # groups as means of their batch fits
+    per_block, per_block_allan = _deviations(blocks, sizes)
+    white_pixel, _ = _deviations(white, sizes)
+    white_block, _ = _deviations(white_blocks, sizes)
+    # The limits: the variance of a group mean is the sum of its batches' variances over m^2,
+    # averaged over groups (as the deviation between group means is), then over pixels or blocks:
+    # the mean batch variance over the batches the groups use, over m.
+    variance = np.where(good, floors, 0.0) ** 2
+    pixel_variance = variance.mean(axis=1) * good.size / good.sum()  # (batch,): mean over good pixels
+    block_variance = (variance @ weights**2).mean(axis=1)  # independent pixels in a block
+    used = (n_batches // sizes) * sizes
+    limit_pixel = np.sqrt(np.array([pixel_variance[:n].mean() for n in used]) / sizes)
+    limit_block = np.sqrt(np.array([block_variance[:n].mean() for n in used]) / sizes)
+    batch_means = {}
+    if groups is not None:
+        # the contract's curves: each group fitted as a whole; the means of batch fits kept beside them
+        if groups["deviation"].shape != per_pixel.shape or groups["block_deviation"].shape != per_block.shape:
+            raise ValueError(f"group statistics of shape {groups['deviation'].shape} and "
+                             f"{groups['block_deviation'].shape} for {len(sizes)} group sizes, "
+                             f"{per_pixel.shape[1]} pixels and {per_block.shape[1]} blocks")
+        batch_means = {"deviation_mean_batch_means": _mean_variance_root(per_pixel),
+                       "photon_limit_pixel_batch_means": limit_pixel}
+        per_pixel, per_pixel_allan = groups["deviation"], groups["allan"]
+        per_block, per_block_allan = groups["block_deviation"], groups["block_allan"]
+        limit_pixel, limit_block = groups["limit_pixel"], groups["limit_block"]
+    k_norm = float(np.hypot(*k))
+    paper = np.where(good, photon_limit(n_frames, level, amplitude, iota, alpha, gain, read_noise, k_norm), 0.0)
+    first = {}
+    if first_frame is not None:
+        use = good & np.isfinite(first_frame)
+        pixels = [np.broadcast_to(np.asarray(v, float), good.shape)[use] for v in (first_frame, alpha, read_noise)]
+        first["photon_limit_pixel_first_frame"], first["first_frame_noise"] = first_frame_limit(
+            n_frames, pixels[0], amplitude, pixels[1], gain, pixels[2], k_norm)
+
+    def log_slope(values, use=None):
+        use = np.ones(len(sizes), bool) if use is None else use
+        return float(np.polyfit(np.log(n_frames[use]), np.log(values[use]), 1)[0]) if use.sum() > 1 else np.nan
+
+    # A group fitted as a whole samples the phase evenly once it holds a few periods: from 4 batches on
+    # its deviation falls as N^-1/2 (slope -0.5 for white noise); below, the uneven one-period batches
+    # of an exponential sweep make it steeper.
+    even = sizes >= 4 if groups is not None and np.sum(sizes >= 4) > 1 else None
+    mean = _mean_variance_root(per_pixel)
+    if batch_means:
+        batch_means["slope_batch_means"] = log_slope(batch_means["deviation_mean_batch_means"])
+    sample = np.flatnonzero(good)[np.linspace(0, good.sum() - 1, min(n_sample_pixels, good.sum())).astype(int)]
+    return AllanStatistics(
+        group_size=sizes, n_groups=n_batches // sizes, n_frames=n_frames, frames_per_batch=frames_per_batch,
+        deviation=per_pixel, allan_deviation=per_pixel_allan, deviation_mean=mean,
+        allan_deviation_mean=_mean_variance_root(per_pixel_allan),
+        deviation_block_mean=_mean_variance_root(per_block),
+        allan_deviation_block_mean=_mean_variance_root(per_block_allan),
+        white_deviation_mean=_mean_variance_root(white_pixel), white_deviation_block_mean=_mean_variance_root(white_block),
+        photon_limit_pixel=limit_pixel, photon_limit_block=limit_block,
+        photon_limit_pixel_paper=np.sqrt(np.sum(paper**2, axis=1) / good.sum()),
+        photon_limit_block_paper=np.sqrt(np.mean(paper**2 @ weights**2, axis=1)),
+        slope=log_slope(mean, even), slope_over_even_groups=even is not None,
+        sample_pixel=sample, sample_deviation=per_pixel[:, sample],
+        batch_start=batches[:, 0], batch_frames=batches[:, 1] - batches[:, 0], batch_offset=offsets,
+        **batch_means, **first)
+
+
 def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, amplitude, iota, alpha, read_noise,
                   k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None,
                   first_frame=None) -> xr.Dataset:
     """The ``allan/<baseline>.nc`` product from the batch offsets.
+
+    The statistics are :func:`allan_statistics`'s; this adds the maps, units
+    and long names (:func:`statistics_dataset`).
 
     Parameters
     ----------
@@ -535,136 +698,82 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         With ``first_frame``, also ``photon_limit_pixel_first_frame``
         (n_frames) and ``first_frame_noise`` (scalar, adu).
     """
-    n_batches = offsets.shape[0]
-    sizes = group_sizes(n_batches)
-    frames_per_batch = float(np.mean(batches[:, 1] - batches[:, 0]))
-    n_frames = sizes * frames_per_batch
-    good = np.isfinite(offsets).all(axis=0)
-    weights = block_weights(rows, cols, good, block=block)
-    blocks = np.where(good, offsets, 0.0) @ weights
-    # white noise of the same per-pixel (and per-block) scatter as the data at one batch per group
-    rng = np.random.default_rng(seed)
-    white = rng.standard_normal(offsets.shape) * np.std(offsets, axis=0, ddof=1)
-    white_blocks = rng.standard_normal(blocks.shape) * np.std(blocks, axis=0, ddof=1)
+    statistics = allan_statistics(offsets, floors, batches, rows, cols, gain=detector.gain, level=level,
+                                  amplitude=amplitude, iota=iota, alpha=alpha, read_noise=read_noise, k=k,
+                                  block=block, seed=seed, n_sample_pixels=n_sample_pixels, groups=groups,
+                                  first_frame=first_frame)
+    return statistics_dataset(statistics, rows, cols, detector.shape, block=block)
 
-    per_pixel, per_pixel_allan = _deviations(offsets, sizes)  # groups as means of their batch fits
-    per_block, per_block_allan = _deviations(blocks, sizes)
-    white_pixel, _ = _deviations(white, sizes)
-    white_block, _ = _deviations(white_blocks, sizes)
-    # The limits: the variance of a group mean is the sum of its batches' variances over m^2,
-    # averaged over groups (as the deviation between group means is), then over pixels or blocks:
-    # the mean batch variance over the batches the groups use, over m.
-    variance = np.where(good, floors, 0.0) ** 2
-    pixel_variance = variance.mean(axis=1) * good.size / good.sum()  # (batch,): mean over good pixels
-    block_variance = (variance @ weights**2).mean(axis=1)  # independent pixels in a block
-    used = (n_batches // sizes) * sizes
-    limit_pixel = np.sqrt(np.array([pixel_variance[:n].mean() for n in used]) / sizes)
-    limit_block = np.sqrt(np.array([block_variance[:n].mean() for n in used]) / sizes)
-    batch_means = {}
-    if groups is not None:
-        # the contract's curves: each group fitted as a whole; the means of batch fits kept beside them
-        if groups["deviation"].shape != per_pixel.shape or groups["block_deviation"].shape != per_block.shape:
-            raise ValueError(f"group statistics of shape {groups['deviation'].shape} and "
-                             f"{groups['block_deviation'].shape} for {len(sizes)} group sizes, "
-                             f"{per_pixel.shape[1]} pixels and {per_block.shape[1]} blocks")
-        batch_means = {"deviation_mean_batch_means": _mean_variance_root(per_pixel),
-                       "photon_limit_pixel_batch_means": limit_pixel}
-        per_pixel, per_pixel_allan = groups["deviation"], groups["allan"]
-        per_block, per_block_allan = groups["block_deviation"], groups["block_allan"]
-        limit_pixel, limit_block = groups["limit_pixel"], groups["limit_block"]
-    k_norm = float(np.hypot(*k))
-    paper = np.where(good, photon_limit(n_frames, level, amplitude, iota, alpha, detector.gain, read_noise, k_norm),
-                     0.0)
-    paper_pixel = np.sqrt(np.sum(paper**2, axis=1) / good.sum())
-    paper_block = np.sqrt(np.mean(paper**2 @ weights**2, axis=1))
-    mean = _mean_variance_root(per_pixel)
-    first = {}
-    if first_frame is not None:
-        use = good & np.isfinite(first_frame)
-        pixels = [np.broadcast_to(np.asarray(v, float), good.shape)[use] for v in (first_frame, alpha, read_noise)]
-        limit_first, noise_first = first_frame_limit(n_frames, pixels[0], amplitude, pixels[1], detector.gain,
-                                                     pixels[2], k_norm)
-        first = {"photon_limit_pixel_first_frame": (("n_frames",), limit_first, {
-                     "units": "pixel", "long_name": "photon-noise limit of one pixel from the noise measured on the "
-                     "first frame, sqrt(f/g+sr^2)/(Aa|K|sqrt(N/2)), rms over pixels"}),
-                 "first_frame_noise": ((), noise_first, {
-                     "units": "adu", "long_name": "noise of one frame from the first frame's signal f (minus "
-                     "dark), sqrt(f/g+sr^2), rms over pixels"})}
 
-    def log_slope(values, use=None):
-        use = np.ones(len(sizes), bool) if use is None else use
-        return float(np.polyfit(np.log(n_frames[use]), np.log(values[use]), 1)[0]) if use.sum() > 1 else np.nan
+def _allan_variables(statistics: AllanStatistics, block: int) -> dict:
+    """Each variable of the product: (dims, units, long_name), in the product's order; those of the
+    statistics that are None left out."""
+    grouped = statistics.deviation_mean_batch_means is not None
+    n, maps = ("n_frames",), ("n_frames", "row", "col")
+    blocks = f"{block}x{block}-pixel"
+    variables = {
+        "group_size": (n, "1", "batches per group"),
+        "n_groups": (n, "1", "groups the deviation is taken over"),
+        "deviation": (maps, "pixel", "standard deviation between groups (the paper's statistic)"),
+        "allan_deviation": (maps, "pixel", "non-overlapping Allan deviation"),
+        "deviation_mean": (n, "pixel", "deviation between groups, rms over pixels" + (
+            ", each group fitted as a whole" if grouped else ", each group the mean of its batch fits")),
+        "deviation_mean_batch_means": (n, "pixel", "deviation between groups as means of their batch fits (the "
+                                                   "paper's), rms over pixels"),
+        "photon_limit_pixel_batch_means": (n, "pixel", "photon-noise limit of deviation_mean_batch_means"),
+        "allan_deviation_mean": (n, "pixel", "Allan deviation, rms over pixels"),
+        "deviation_block_mean": (n, "pixel", f"deviation of {blocks} block means, rms over blocks"),
+        "allan_deviation_block_mean": (n, "pixel", f"Allan deviation of {blocks} block means, rms over blocks"),
+        "white_deviation_mean": (n, "pixel", "deviation_mean of white noise of the data's single-batch scatter"),
+        "white_deviation_block_mean": (n, "pixel", "deviation_block_mean of white noise of the blocks' "
+                                                   "single-batch scatter"),
+        "photon_limit_pixel": (n, "pixel", "photon-noise limit of deviation_mean, from the fits' own errors"),
+        "photon_limit_block": (n, "pixel", "photon-noise limit of deviation_block_mean, from the fits' own errors"),
+        "photon_limit_pixel_paper": (n, "pixel", "paper's photon-noise limit of one pixel, "
+                                                 "sqrt(Bi/g+sr^2)/(Aa|K|sqrt(N/2))"),
+        "photon_limit_block_paper": (n, "pixel", f"paper's photon-noise limit of a {blocks} block"),
+        "photon_limit_pixel_first_frame": (n, "pixel", "photon-noise limit of one pixel from the noise measured on "
+                                                       "the first frame, sqrt(f/g+sr^2)/(Aa|K|sqrt(N/2)), rms over "
+                                                       "pixels"),
+        "first_frame_noise": ((), "adu", "noise of one frame from the first frame's signal f (minus dark), "
+                                         "sqrt(f/g+sr^2), rms over pixels"),
+        "slope": ((), "1", "log-log slope of deviation_mean against n_frames" + (
+            ", over groups of 4 batches or more" if statistics.slope_over_even_groups else "")),
+        "slope_batch_means": ((), "1", "log-log slope of deviation_mean_batch_means against n_frames"),
+        "sample_pixel": (("sample",), "1", "index of pixels drawn in the figure"),
+        "sample_deviation": (("n_frames", "sample"), "pixel", "deviation of the sample pixels"),
+        "batch_start": (("batch",), "1", "first frame of the batch"),
+        "batch_frames": (("batch",), "1", "frames in the batch"),
+        "batch_offset": (("batch", "row", "col"), "pixel", "projected offset of each batch minus the global "
+                                                           "solution's, affine part removed"),
+    }
+    return {name: spec for name, spec in variables.items() if getattr(statistics, name) is not None}
 
-    # A group fitted as a whole samples the phase evenly once it holds a few periods: from 4 batches on
-    # its deviation falls as N^-1/2 (slope -0.5 for white noise); below, the uneven one-period batches
-    # of an exponential sweep make it steeper.
-    even = sizes >= 4 if groups is not None and np.sum(sizes >= 4) > 1 else None
-    slope = log_slope(mean, even)
+
+def statistics_dataset(statistics: AllanStatistics, rows, cols, shape, *, block: int = 10) -> xr.Dataset:
+    """The ``allan/<baseline>.nc`` product of :func:`allan_statistics`: pixel arrays as (row, col) maps of
+    the detector's ``shape`` (NaN off ``rows``, ``cols``), units and long names; the batch offsets stored
+    as float32."""
 
     def as_maps(values):
-        out = np.full((values.shape[0], *detector.shape), np.nan)
+        out = np.full((values.shape[0], *shape), np.nan)
         out[:, rows, cols] = values
         return out
 
-    sample = np.flatnonzero(good)[np.linspace(0, good.sum() - 1, min(n_sample_pixels, good.sum())).astype(int)]
-    dims, maps = ("n_frames",), ("n_frames", "row", "col")
+    data = {}
+    for name, (dims, units, long_name) in _allan_variables(statistics, block).items():
+        values = getattr(statistics, name)
+        if "row" in dims:
+            values = as_maps(values)
+        if name == "batch_offset":
+            values = values.astype(np.float32)
+        data[name] = (dims, values, {"units": units, "long_name": long_name})
+    n_batches = statistics.batch_start.size
     return xr.Dataset(
-        {
-            "group_size": (dims, sizes, {"units": "1", "long_name": "batches per group"}),
-            "n_groups": (dims, n_batches // sizes, {"units": "1", "long_name": "groups the deviation is taken over"}),
-            "deviation": (maps, as_maps(per_pixel),
-                          {"units": "pixel", "long_name": "standard deviation between groups (the paper's statistic)"}),
-            "allan_deviation": (maps, as_maps(per_pixel_allan),
-                                {"units": "pixel", "long_name": "non-overlapping Allan deviation"}),
-            "deviation_mean": (dims, mean, {"units": "pixel", "long_name": "deviation between groups, rms over "
-                                            "pixels" + (", each group fitted as a whole" if batch_means else
-                                                        ", each group the mean of its batch fits")}),
-            **{name: (dims, values, {"units": "pixel", "long_name": (
-                "deviation between groups as means of their batch fits (the paper's), rms over pixels"
-                if name.startswith("deviation") else "photon-noise limit of deviation_mean_batch_means")})
-               for name, values in batch_means.items()},
-            "allan_deviation_mean": (dims, _mean_variance_root(per_pixel_allan),
-                                     {"units": "pixel", "long_name": "Allan deviation, rms over pixels"}),
-            "deviation_block_mean": (dims, _mean_variance_root(per_block),
-                                     {"units": "pixel", "long_name": f"deviation of {block}x{block}-pixel "
-                                                                    "block means, rms over blocks"}),
-            "allan_deviation_block_mean": (dims, _mean_variance_root(per_block_allan),
-                                           {"units": "pixel", "long_name": f"Allan deviation of {block}x{block}"
-                                                                          "-pixel block means, rms over blocks"}),
-            "white_deviation_mean": (dims, _mean_variance_root(white_pixel),
-                                     {"units": "pixel", "long_name": "deviation_mean of white noise of the "
-                                                                    "data's single-batch scatter"}),
-            "white_deviation_block_mean": (dims, _mean_variance_root(white_block),
-                                           {"units": "pixel", "long_name": "deviation_block_mean of white noise "
-                                                                          "of the blocks' single-batch scatter"}),
-            "photon_limit_pixel": (dims, limit_pixel, {"units": "pixel", "long_name": "photon-noise limit of "
-                                                       "deviation_mean, from the fits' own errors"}),
-            "photon_limit_block": (dims, limit_block, {"units": "pixel", "long_name": "photon-noise limit of "
-                                                       "deviation_block_mean, from the fits' own errors"}),
-            "photon_limit_pixel_paper": (dims, paper_pixel, {"units": "pixel", "long_name": "paper's photon-noise "
-                                                             "limit of one pixel, sqrt(Bi/g+sr^2)/(Aa|K|sqrt(N/2))"}),
-            "photon_limit_block_paper": (dims, paper_block, {"units": "pixel", "long_name": "paper's photon-noise "
-                                                             f"limit of a {block}x{block}-pixel block"}),
-            **first,
-            "slope": ((), slope, {"units": "1", "long_name": "log-log slope of deviation_mean against n_frames" + (
-                ", over groups of 4 batches or more" if even is not None else "")}),
-            **({} if not batch_means else {"slope_batch_means": (
-                (), log_slope(batch_means["deviation_mean_batch_means"]),
-                {"units": "1", "long_name": "log-log slope of deviation_mean_batch_means against n_frames"})}),
-            "sample_pixel": (("sample",), sample, {"units": "1", "long_name": "index of pixels drawn in the figure"}),
-            "sample_deviation": (("n_frames", "sample"), per_pixel[:, sample],
-                                 {"units": "pixel", "long_name": "deviation of the sample pixels"}),
-            "batch_start": (("batch",), batches[:, 0], {"units": "1", "long_name": "first frame of the batch"}),
-            "batch_frames": (("batch",), batches[:, 1] - batches[:, 0], {"units": "1",
-                                                                        "long_name": "frames in the batch"}),
-            "batch_offset": (("batch", "row", "col"), as_maps(offsets).astype(np.float32),
-                             {"units": "pixel", "long_name": "projected offset of each batch minus the global "
-                                                             "solution's, affine part removed"}),
-        },
-        coords={"n_frames": ("n_frames", n_frames, {"units": "1", "long_name": "mean frames per group"}),
-                "row": np.arange(detector.shape[0]), "col": np.arange(detector.shape[1]),
-                "batch": np.arange(n_batches)},
-        attrs={"frames_per_batch": frames_per_batch, "block_size": block},
+        data,
+        coords={"n_frames": ("n_frames", statistics.n_frames, {"units": "1", "long_name": "mean frames per group"}),
+                "row": np.arange(shape[0]), "col": np.arange(shape[1]), "batch": np.arange(n_batches)},
+        attrs={"frames_per_batch": statistics.frames_per_batch, "block_size": block},
     )
 
 

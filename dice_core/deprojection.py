@@ -31,7 +31,7 @@ import xarray as xr
 
 from dice_core.geometry import affine_basis, orthonormal_modes, remove_modes
 
-__all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "MIN_SINE"]
+__all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "difference_dataset", "MIN_SINE"]
 
 #: Smallest |sin| of the angle between the two wavevectors accepted; below it the
 #: intersection is ill-conditioned (errors grow as 1 / sin).
@@ -200,3 +200,44 @@ def offsets_dataset(first, second, *, label: str = "pair"):
         coords={"row": first["row"].values, "col": first["col"].values,
                 **({"mode": np.arange(mode_dx.shape[0])} if modes_found else {})},
     )
+
+
+def difference_dataset(reference, other, *, reference_pair: str, pair: str) -> xr.Dataset:
+    """The ``calibration/offsets_difference_<pair>.nc`` product: ``other``'s offsets minus ``reference``'s.
+
+    Both are ``calibration/offsets_<pair>.nc`` datasets (:func:`offsets_dataset`).
+    With spherical waves (products holding ``unobservable_dx``), the
+    difference is taken orthogonal to both pairs' unobservable modes and to
+    the affine part (:func:`pair_difference`). Its photon-noise floor is each
+    pixel's two floors added in quadrature, then the rms over pixels.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``ddx``, ``ddy`` (row, col), their standard deviations ``ddx_std``,
+        ``ddy_std`` and rms photon-noise floors ``ddx_photon_noise_floor``,
+        ``ddy_photon_noise_floor``, all pixel; attributes ``reference_pair``
+        and ``pair``.
+    """
+    modes = [(p["unobservable_dx"].values, p["unobservable_dy"].values) for p in (reference, other)
+             if "unobservable_dx" in p]
+    ddx, ddy, sdx, sdy = pair_difference(reference["dx"].values, reference["dy"].values,
+                                         other["dx"].values, other["dy"].values, modes=modes)
+    floor_dx = np.hypot(reference["dx_photon_noise_floor"].values, other["dx_photon_noise_floor"].values)
+    floor_dy = np.hypot(reference["dy_photon_noise_floor"].values, other["dy_photon_noise_floor"].values)
+    rc = ("row", "col")
+    product = xr.Dataset(
+        {
+            "ddx": (rc, ddx, {"units": "pixel", "long_name": f"dx({pair}) - dx({reference_pair})"}),
+            "ddy": (rc, ddy, {"units": "pixel", "long_name": f"dy({pair}) - dy({reference_pair})"}),
+            "ddx_std": ((), sdx, {"units": "pixel", "long_name": "standard deviation of ddx"}),
+            "ddy_std": ((), sdy, {"units": "pixel", "long_name": "standard deviation of ddy"}),
+            "ddx_photon_noise_floor": ((), float(np.sqrt(np.nanmean(floor_dx**2))),
+                                       {"units": "pixel", "long_name": "rms photon-noise floor of ddx"}),
+            "ddy_photon_noise_floor": ((), float(np.sqrt(np.nanmean(floor_dy**2))),
+                                       {"units": "pixel", "long_name": "rms photon-noise floor of ddy"}),
+        },
+        coords={"row": reference["row"].values, "col": reference["col"].values},
+    )
+    product.attrs.update({"reference_pair": reference_pair, "pair": pair})
+    return product

@@ -531,190 +531,296 @@ def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, toleranc
     centred = hasattr(stream, "centred")
     if centred:  # the reader subtracts it while converting, at no extra pass; _pass only folds it in
         stream = stream.centred(reference)
-    bad = np.zeros(detector.shape, bool)
-    if bad_pixels is not None:
-        from dice_core.calibration import unusable_pixels
-
-        bad_pixels = np.asarray(bad_pixels)
-        bad = (bad_pixels if bad_pixels.dtype == bool else unusable_pixels(bad_pixels)) & mask
+    bad = _left_out(bad_pixels, mask)
     k0 = initial_wavevector(first.frames[0] - dark0, mask & ~bad)
     log.info("%s: wavevector from the FFT of frame 0: (%.5f, %.5f) rad/pixel", label, *k0)
     rows, cols = np.nonzero(mask)
     idx = rows * detector.shape[1] + cols
     x, y = cols.astype(float), rows.astype(float)
-    xc, yc = x - x.mean(), y - y.mean()
 
     lanes = stream.split(LANES) if hasattr(stream, "split") else [stream]
     with lane_executor(workers, len(lanes)) as executor:
         log.info("%s: each pass reads %d part(s) of the frames, in %d process(es)", label, len(lanes),
                  lane_workers(workers, len(lanes)))
-        # Pass 1: perfect pixels; K free per frame, linearised about k0
-        G, extra = perfect_pixel_design(k0, xc, yc)
-        G[bad.ravel()[idx]] = 0.0  # bad pixels out of the frame fits from the first pass on
-        extra[bad.ravel()[idx]] = 0.0
-        coef, FtI, FtF, third, saturated, lane_threads, parts = _pass(lanes, dark0, idx, G, extra=extra,
-                                                                      reference=reference, centred=centred,
-                                                                      executor=executor)
-        parts_idx = idx
-        log.info("%s: %s", label, threads_report(executor, lane_threads))
-        u1, u2 = coef[:, 1], coef[:, 2]
-        amp2 = u1**2 + u2**2
-        if np.median(np.sqrt(amp2) / np.abs(coef[:, 0])) < min_contrast:
-            raise FringeError(f"{label}: no fringe contrast (amplitude/level "
-                              f"{np.median(np.sqrt(amp2) / np.abs(coef[:, 0])):.1e} < {min_contrast})")
-        coverage = _phase_coverage(np.arctan2(u2, u1))
-        if coverage < 1:
-            raise FringeError(f"{label}: the phase sweep covers only {coverage * 360:.0f} of 360 degrees; "
-                              "every pixel must see at least a full fringe period")
-        k_frame = wavevector_per_frame(coef, k0)
-        log.info("%s: pass 1, K(t) mean (%.6f, %.6f), rms (%.2e, %.2e) rad/pixel", label,
-                 *k_frame.mean(axis=0), *k_frame.std(axis=0))
 
-        # Pixels leave the fit when found unusable, so that they bias neither the frame fits nor
-        # the plane of K: first those with saturated samples, then those without fringe contrast.
-        flagged = bad.ravel()[idx]
-        saturated &= ~flagged
-        active = ~saturated & ~flagged
-        if flagged.any():
-            log.info("%s: %d bad pixel(s) of the mask left out of the fit", label, flagged.sum())
-        if saturated.any():
-            log.warning("%s: %d pixel(s) with saturated samples left out of the fit", label, saturated.sum())
-        FtI = FtI[:, active]
-        faint, unconverged = np.zeros(idx.size, bool), np.zeros(idx.size, bool)
-        history, offsets, state = [], np.full(idx.size, np.nan), None
-        for n_pass in range(1, max_passes + 1):
-            fit_idx = idx[active]
-            if n_pass > 1:
-                coef, FtI, FtF, third, _, _, parts = _pass(lanes, dark0, fit_idx, np.linalg.solve(FtF, FtI).T,
-                                                           reference=reference, centred=centred,
-                                                           executor=executor)
-                parts_idx = fit_idx
-            F = coef[:, :3]
-            G_new = np.linalg.solve(FtF, FtI).T
-            fx, fy = x[active], y[active]
-            flat_px = None if flat is None else np.nan_to_num(flat.ravel()[fit_idx], nan=1.0)
-            M = fix_gauge(F, G_new, flat=flat_px, x=fx, y=fy, smooth_degree=smooth_degree)
-            F_phys, G_phys = F @ M, G_new @ np.linalg.inv(M).T
-            # alpha A / (iota B), with the frame factors at their median level and amplitude
-            contrast = (np.hypot(G_phys[:, 1], G_phys[:, 2]) / G_phys[:, 0]
-                        * np.median(np.hypot(F_phys[:, 1], F_phys[:, 2])) / np.median(F_phys[:, 0]))
-            if np.median(contrast) < min_contrast:
-                raise FringeError(f"{label}: no fringe contrast (median {np.median(contrast):.1e} < {min_contrast})")
-            low = contrast < max(min_contrast, min_relative_contrast * np.median(contrast))
-            if low.any():
-                log.warning("%s: pass %d, %d pixel(s) without fringe contrast left out", label, n_pass, low.sum())
-                where = np.flatnonzero(active)[low]
-                faint[where] = True
-                active[where] = False
-                G_new, G_phys, FtI = G_new[~low], G_phys[~low], FtI[:, ~low]
-                fx, fy = fx[~low], fy[~low]
-            k, fitted = projected_offsets(np.arctan2(G_phys[:, 1], G_phys[:, 2]), fx, fy, k_frame.mean(axis=0))
-            new_offsets = np.full(idx.size, np.nan)
-            new_offsets[active] = fitted
-            if n_pass > 1:
-                change = (new_offsets - offsets)[active]
-                history.append({"pass": n_pass, "max_change": float(np.max(np.abs(change))),
-                                "rms_change": float(np.sqrt(np.mean(change**2)))})
-                log.info("%s: pass %d, offsets changed by %.2e pixel max, %.2e rms", label, n_pass,
-                         history[-1]["max_change"], history[-1]["rms_change"])
-            offsets = new_offsets
-            state = (F_phys, G_phys, M.T @ FtF @ M, np.einsum("ak,bi,cj,abc->kij", M, M, M, third), k)
-            if history and history[-1]["max_change"] < tolerance and not low.any():
-                break
-        else:
-            # A pixel still moving by more than the tolerance has no offset to trust: masked,
-            # and the plane of K and the offsets' normalisation taken over the others.
-            moving = np.abs(change) >= tolerance
-            log.warning("%s: not converged to %.1e pixel after %d passes; %d pixel(s) still moving masked",
-                        label, tolerance, max_passes, moving.sum())
-            where = np.flatnonzero(active)[moving]
-            unconverged[where] = True
+        def read(pixels, G, extra=None):
+            """One pass over the frames (:func:`_pass`) with the pixel factors ``G`` of ``pixels``."""
+            return _pass(lanes, dark0, pixels, G, extra=extra, reference=reference, centred=centred,
+                         executor=executor)
+
+        first_pass, k_frame = _first_pass(read, k0, idx, x, y, bad.ravel()[idx], executor=executor,
+                                          min_contrast=min_contrast, label=label)
+        passes = _converge(read, first_pass, idx, x, y, bad.ravel()[idx], k_frame.mean(axis=0), flat=flat,
+                           tolerance=tolerance, max_passes=max_passes, min_contrast=min_contrast,
+                           min_relative_contrast=min_relative_contrast, smooth_degree=smooth_degree, label=label)
+    active = passes.active
+    factors = _pixel_solution(passes, x[active], y[active], geometry=geometry,
+                              read_noise=None if read_noise is None else read_noise.ravel()[idx[active]],
+                              gain=detector.gain, label=label)
+    offsets = passes.offsets if factors.two_source is None else _on_active(factors.two_source.offsets, active)
+    if passes.faint.any():
+        log.warning("%s: %d pixel(s) without fringe contrast masked", label, passes.faint.sum())
+    offsets_prnu_free = gauge_floor = None
+    if flat is not None:
+        offsets_prnu_free, gauge_floor = _gauge_diagnostic(
+            passes, factors, x[active], y[active], np.nan_to_num(flat.ravel()[idx[active]], nan=1.0),
+            np.isin(passes.parts_idx, idx[active]), smooth_degree=smooth_degree, label=label)
+        if offsets_prnu_free is not None:
+            offsets_prnu_free = _on_active(offsets_prnu_free, active)
+    reasons = {"bad_pixel": int(passes.flagged.sum()), "saturated": int(passes.saturated.sum()),
+               "no_contrast": int(passes.faint.sum()), "unconverged": int(passes.unconverged.sum())}
+    iota, alpha = factors.iota, factors.alpha
+    return FringeSolution(rows, cols, offsets, _on_active(iota / iota.mean(), active),
+                          _on_active(alpha / alpha.mean(), active), _on_active(factors.floor, active), factors.k,
+                          k_frame, factors.level, factors.amplitude, factors.phase, passes.history, ~active, reasons,
+                          offsets_prnu_free, _on_active(factors.theta, active), factors.two_source, gauge_floor)
+
+
+def _on_active(values, active):
+    """Values of the ``active`` pixels placed on all the pixels (pixel,), NaN elsewhere."""
+    out = np.full(active.size, np.nan)
+    out[active] = values
+    return out
+
+
+def _left_out(bad_pixels, mask):
+    """The pixels of ``mask`` left out from the start (row, col) of bool: the unusable ones of ``bad_pixels``
+    (a bool map, or the bad-pixel mask's flags: :func:`dice_core.calibration.unusable_pixels`)."""
+    bad = np.zeros(mask.shape, bool)
+    if bad_pixels is not None:
+        from dice_core.calibration import unusable_pixels
+
+        bad_pixels = np.asarray(bad_pixels)
+        bad = (bad_pixels if bad_pixels.dtype == bool else unusable_pixels(bad_pixels)) & mask
+    return bad
+
+
+def _check_sweep(coef, *, min_contrast, label):
+    """Refuse a pass-1 fit (frame coefficients (frame, 3 + m)) without fringe contrast or whose phase sweep
+    does not cover 2 pi (:class:`FringeError`)."""
+    u1, u2 = coef[:, 1], coef[:, 2]
+    amp2 = u1**2 + u2**2
+    if np.median(np.sqrt(amp2) / np.abs(coef[:, 0])) < min_contrast:
+        raise FringeError(f"{label}: no fringe contrast (amplitude/level "
+                          f"{np.median(np.sqrt(amp2) / np.abs(coef[:, 0])):.1e} < {min_contrast})")
+    coverage = _phase_coverage(np.arctan2(u2, u1))
+    if coverage < 1:
+        raise FringeError(f"{label}: the phase sweep covers only {coverage * 360:.0f} of 360 degrees; "
+                          "every pixel must see at least a full fringe period")
+
+
+def _first_pass(read, k0, idx, x, y, bad, *, executor, min_contrast, label):
+    """Pass 1: perfect pixels, the wavevector free per frame and linearised about ``k0`` (rad/pixel).
+
+    ``read(pixels, G, extra)`` runs a pass (:func:`_pass`); ``bad`` (pixel,)
+    leaves pixels out of the frame fits. Returns the pass's results and K(t)
+    (frame, 2), rad/pixel; raises :class:`FringeError` on a sweep without
+    contrast or short of a period.
+    """
+    G, extra = perfect_pixel_design(k0, x - x.mean(), y - y.mean())
+    G[bad] = 0.0  # bad pixels out of the frame fits from the first pass on
+    extra[bad] = 0.0
+    result = read(idx, G, extra)
+    log.info("%s: %s", label, threads_report(executor, result[5]))
+    _check_sweep(result[0], min_contrast=min_contrast, label=label)
+    k_frame = wavevector_per_frame(result[0], k0)
+    log.info("%s: pass 1, K(t) mean (%.6f, %.6f), rms (%.2e, %.2e) rad/pixel", label,
+             *k_frame.mean(axis=0), *k_frame.std(axis=0))
+    return result, k_frame
+
+
+@dataclass
+class _Passes:
+    """What the passes of :func:`_converge` leave: the pixels and the last pass's factors.
+
+    ``active`` (pixel,) the pixels with an offset; ``flagged``, ``saturated``,
+    ``faint``, ``unconverged`` (pixel,) those left out and why; ``offsets``
+    (pixel,) the plane-wave projected offsets, pixel; ``F``, ``G`` the
+    physical frame and pixel factors (frame, 3), (active pixel, 3); ``FtF``
+    and ``third`` the frame moments in the physical gauge; ``k`` the mean
+    wavevector, rad/pixel; ``history`` the changes per pass; ``parts`` and
+    ``parts_idx`` each lane's frame factors and F'I of the last pass, over the
+    pixels ``parts_idx``.
+    """
+
+    active: np.ndarray
+    flagged: np.ndarray
+    saturated: np.ndarray
+    faint: np.ndarray
+    unconverged: np.ndarray
+    offsets: np.ndarray
+    F: np.ndarray
+    G: np.ndarray
+    FtF: np.ndarray
+    third: np.ndarray
+    k: np.ndarray
+    history: list
+    parts: list
+    parts_idx: np.ndarray
+
+
+def _converge(read, first_pass, idx, x, y, flagged, k_guess, *, flat, tolerance, max_passes, min_contrast,
+              min_relative_contrast, smooth_degree, label) -> _Passes:
+    """Passes from pass 1's results until no offset moves by more than ``tolerance`` (pixel).
+
+    Pixels leave the fit when found unusable, so that they bias neither the
+    frame fits nor the plane of K: first the ``flagged`` ones and those with
+    saturated samples, then, pass by pass, those without fringe contrast;
+    after ``max_passes``, those still moving.
+    """
+    coef, FtI, FtF, third, saturated, _, parts = first_pass
+    parts_idx = idx
+    saturated &= ~flagged
+    active = ~saturated & ~flagged
+    if flagged.any():
+        log.info("%s: %d bad pixel(s) of the mask left out of the fit", label, flagged.sum())
+    if saturated.any():
+        log.warning("%s: %d pixel(s) with saturated samples left out of the fit", label, saturated.sum())
+    FtI = FtI[:, active]
+    faint, unconverged = np.zeros(idx.size, bool), np.zeros(idx.size, bool)
+    history, offsets, state = [], np.full(idx.size, np.nan), None
+    for n_pass in range(1, max_passes + 1):
+        fit_idx = idx[active]
+        if n_pass > 1:
+            coef, FtI, FtF, third, _, _, parts = read(fit_idx, np.linalg.solve(FtF, FtI).T)
+            parts_idx = fit_idx
+        F = coef[:, :3]
+        G_new = np.linalg.solve(FtF, FtI).T
+        fx, fy = x[active], y[active]
+        flat_px = None if flat is None else np.nan_to_num(flat.ravel()[fit_idx], nan=1.0)
+        M = fix_gauge(F, G_new, flat=flat_px, x=fx, y=fy, smooth_degree=smooth_degree)
+        F_phys, G_phys = F @ M, G_new @ np.linalg.inv(M).T
+        low = _without_contrast(F_phys, G_phys, min_contrast=min_contrast,
+                                min_relative_contrast=min_relative_contrast, label=label)
+        if low.any():
+            log.warning("%s: pass %d, %d pixel(s) without fringe contrast left out", label, n_pass, low.sum())
+            where = np.flatnonzero(active)[low]
+            faint[where] = True
             active[where] = False
-            if not active.any():
-                raise FringeError(f"{label}: no pixel converged to {tolerance:.1e} pixel in {max_passes} passes")
-            F_phys, G_phys, FtF_phys, third_phys, _ = state
-            G_phys = G_phys[~moving]
-            k, fitted = projected_offsets(np.arctan2(G_phys[:, 1], G_phys[:, 2]), fx[~moving], fy[~moving],
-                                          k_frame.mean(axis=0))
-            offsets = np.full(idx.size, np.nan)
-            offsets[active] = fitted
-            state = (F_phys, G_phys, FtF_phys, third_phys, k)
+            G_phys, FtI = G_phys[~low], FtI[:, ~low]
+            fx, fy = fx[~low], fy[~low]
+        k, fitted = projected_offsets(np.arctan2(G_phys[:, 1], G_phys[:, 2]), fx, fy, k_guess)
+        new_offsets = _on_active(fitted, active)
+        if n_pass > 1:
+            change = (new_offsets - offsets)[active]
+            history.append({"pass": n_pass, "max_change": float(np.max(np.abs(change))),
+                            "rms_change": float(np.sqrt(np.mean(change**2)))})
+            log.info("%s: pass %d, offsets changed by %.2e pixel max, %.2e rms", label, n_pass,
+                     history[-1]["max_change"], history[-1]["rms_change"])
+        offsets = new_offsets
+        state = (F_phys, G_phys, M.T @ FtF @ M, np.einsum("ak,bi,cj,abc->kij", M, M, M, third), k)
+        if history and history[-1]["max_change"] < tolerance and not low.any():
+            break
+    else:
+        # A pixel still moving by more than the tolerance has no offset to trust: masked,
+        # and the plane of K and the offsets' normalisation taken over the others.
+        moving = np.abs(change) >= tolerance
+        log.warning("%s: not converged to %.1e pixel after %d passes; %d pixel(s) still moving masked",
+                    label, tolerance, max_passes, moving.sum())
+        where = np.flatnonzero(active)[moving]
+        unconverged[where] = True
+        active[where] = False
+        if not active.any():
+            raise FringeError(f"{label}: no pixel converged to {tolerance:.1e} pixel in {max_passes} passes")
+        F_phys, G_phys, FtF_phys, third_phys, _ = state
+        G_phys = G_phys[~moving]
+        k, fitted = projected_offsets(np.arctan2(G_phys[:, 1], G_phys[:, 2]), fx[~moving], fy[~moving], k_guess)
+        offsets = _on_active(fitted, active)
+        state = (F_phys, G_phys, FtF_phys, third_phys, k)
+    return _Passes(active, flagged, saturated, faint, unconverged, offsets, *state, history, parts, parts_idx)
 
-        F_phys, G_phys, FtF_phys, third_phys, k = state
-        theta = np.arctan2(G_phys[:, 1], G_phys[:, 2])
-        two_source, k_norm = None, np.hypot(*k)
-        if geometry is not None:
-            two_source = fit_two_source(theta, x[active], y[active], *geometry.nominal,
-                                        wavelength=geometry.wavelength, pixel_pitch=geometry.pixel_pitch,
-                                        k_plane=k, tip_sigma=geometry.tip_sigma, fibers=geometry.fibers,
-                                        label=label)
-            offsets = np.full(idx.size, np.nan)
-            offsets[active] = two_source.offsets
-            k, k_norm = two_source.k_local.mean(axis=0), np.hypot(*two_source.k_local.T)
-        noise_px = np.zeros(active.sum()) if read_noise is None else np.nan_to_num(read_noise.ravel()[idx[active]])
-        iota = G_phys[:, 0]
-        alpha = np.hypot(G_phys[:, 1], G_phys[:, 2])
-        level = F_phys[:, 0] * iota.mean()
-        amplitude = np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean()
-        phase = np.arctan2(F_phys[:, 2], F_phys[:, 1])
-        floor = photon_floor(G_phys, FtF_phys, third_phys, detector.gain, noise_px, k_norm)
-        if faint.any():
-            log.warning("%s: %d pixel(s) without fringe contrast masked", label, faint.sum())
 
-        def full(values):
-            out = np.full(idx.size, np.nan)
-            out[active] = values
-            return out
+def _without_contrast(F_phys, G_phys, *, min_contrast, min_relative_contrast, label):
+    """The pixels (rows of ``G_phys``) whose fringe contrast alpha A / (iota B), with the frame factors at
+    their median level and amplitude, is below ``min_contrast`` or ``min_relative_contrast`` times the
+    median; :class:`FringeError` when the median itself is below ``min_contrast``."""
+    contrast = (np.hypot(G_phys[:, 1], G_phys[:, 2]) / G_phys[:, 0]
+                * np.median(np.hypot(F_phys[:, 1], F_phys[:, 2])) / np.median(F_phys[:, 0]))
+    if np.median(contrast) < min_contrast:
+        raise FringeError(f"{label}: no fringe contrast (median {np.median(contrast):.1e} < {min_contrast})")
+    return contrast < max(min_contrast, min_relative_contrast * np.median(contrast))
 
-        offsets_prnu_free = gauge_floor = None
-        if flat is not None:
-            # The diagnostic of a flat that is not the laser's response (chromatic PRNU, speckle): the
-            # same factorisation under the PRNU-free gauge (the pixel contrast's smoothness), which the
-            # flat does not enter. The passes do not depend on the gauge, so this costs no pass.
-            ax, ay = x[active], y[active]
-            flat_active = np.nan_to_num(flat.ravel()[idx[active]], nan=1.0)
 
-            def offsets_under(F_any, G_any, use_flat):
-                """Offsets (active pixels) of a factorisation under one gauge, turned the way of ``k``."""
-                M_any = fix_gauge(F_any, G_any, flat=flat_active if use_flat else None, x=ax, y=ay,
-                                  smooth_degree=smooth_degree)
-                G_gauged = G_any @ np.linalg.inv(M_any).T
-                theta_any = np.arctan2(G_gauged[:, 1], G_gauged[:, 2])
-                k_any, plane = projected_offsets(theta_any, ax, ay, k)
-                if two_source is not None:  # against the same surface, the phases turned the same way
-                    return two_source.offsets_of(theta_any if k_any @ k > 0 else -theta_any)
-                return plane if k_any @ k > 0 else -plane
+@dataclass
+class _PixelSolution:
+    """The physical quantities of the converged factors (:func:`_pixel_solution`), over the active pixels."""
 
-            try:
-                free = offsets_under(F_phys, G_phys, False)
-            except FringeError as exc:  # a diagnostic must not fail a fit the flat's gauge made
-                log.warning("%s: no PRNU-free gauge for the diagnostic (%s)", label, exc)
-            else:
-                offsets_prnu_free = full(free)
-                # Its noise: the gauge difference of each independent part of the frames (the lanes); for
-                # two halves, the full data's difference has the noise of half their difference.
-                keep = np.isin(parts_idx, idx[active])
-                try:
-                    halves = []
-                    for F_part, FtI_part in parts:
-                        G_part = np.linalg.solve(F_part.T @ F_part, FtI_part[:, keep]).T
-                        halves.append(offsets_under(F_part, G_part, True) - offsets_under(F_part, G_part, False))
-                except (FringeError, np.linalg.LinAlgError) as exc:
-                    log.warning("%s: no noise floor for the gauge difference (%s)", label, exc)
-                else:
-                    if len(halves) == 2:
-                        # the whole is (n1 d1 + n2 d2) / (n1 + n2): of noise rms(d1 - d2) sqrt(n1 n2) / (n1 + n2)
-                        n1, n2 = (F_part.shape[0] for F_part, _ in parts)
-                        gauge_floor = float(np.sqrt(np.mean((halves[0] - halves[1]) ** 2) * n1 * n2) / (n1 + n2))
-                    else:
-                        log.info("%s: the frames are one part (one file): no noise floor for the gauge "
-                                 "difference", label)
+    theta: np.ndarray
+    iota: np.ndarray
+    alpha: np.ndarray
+    floor: np.ndarray
+    k: np.ndarray
+    level: np.ndarray
+    amplitude: np.ndarray
+    phase: np.ndarray
+    two_source: TwoSourceFit | None
 
-        reasons = {"bad_pixel": int(flagged.sum()), "saturated": int(saturated.sum()), "no_contrast": int(faint.sum()),
-                   "unconverged": int(unconverged.sum())}
-        return FringeSolution(rows, cols, offsets, full(iota / iota.mean()), full(alpha / alpha.mean()),
-                              full(floor), k, k_frame, level, amplitude, phase, history, ~active, reasons,
-                              offsets_prnu_free, full(theta), two_source, gauge_floor)
+
+def _pixel_solution(passes: _Passes, x, y, *, geometry, read_noise, gain, label) -> _PixelSolution:
+    """Pixel phases, iota, alpha and photon floors (at the active pixels ``x``, ``y``), B(t), A(t), phi(t)
+    and the mean K of the converged factors; with a ``geometry``, the phases measured against the
+    two-source surface of the refined tips (K then the mean of the local wavevectors)."""
+    F_phys, G_phys, k = passes.F, passes.G, passes.k
+    theta = np.arctan2(G_phys[:, 1], G_phys[:, 2])
+    two_source, k_norm = None, np.hypot(*k)
+    if geometry is not None:
+        two_source = fit_two_source(theta, x, y, *geometry.nominal, wavelength=geometry.wavelength,
+                                    pixel_pitch=geometry.pixel_pitch, k_plane=k, tip_sigma=geometry.tip_sigma,
+                                    fibers=geometry.fibers, label=label)
+        k, k_norm = two_source.k_local.mean(axis=0), np.hypot(*two_source.k_local.T)
+    noise_px = np.zeros(x.size) if read_noise is None else np.nan_to_num(read_noise)
+    iota = G_phys[:, 0]
+    alpha = np.hypot(G_phys[:, 1], G_phys[:, 2])
+    return _PixelSolution(theta=theta, iota=iota, alpha=alpha,
+                          floor=photon_floor(G_phys, passes.FtF, passes.third, gain, noise_px, k_norm), k=k,
+                          level=F_phys[:, 0] * iota.mean(), amplitude=np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean(),
+                          phase=np.arctan2(F_phys[:, 2], F_phys[:, 1]), two_source=two_source)
+
+
+def _gauge_diagnostic(passes: _Passes, solution: _PixelSolution, x, y, flat, keep, *, smooth_degree, label):
+    """The offsets under the PRNU-free gauge (active pixels ``x``, ``y``) and the noise of their difference
+    from the flat gauge's (pixel); None for what cannot be formed.
+
+    The diagnostic of a flat that is not the laser's response (chromatic PRNU,
+    speckle): the same factorisation under the PRNU-free gauge (the pixel
+    contrast's smoothness), which the flat (``flat``, at the active pixels)
+    does not enter. The passes do not depend on the gauge, so this costs no
+    pass. The noise comes from the gauge difference of each independent part
+    of the frames (the lanes; ``keep`` selects the active pixels among
+    ``passes.parts_idx``): for two halves, the full data's difference has the
+    noise of half their difference.
+    """
+    k, two_source = solution.k, solution.two_source
+
+    def offsets_under(F_any, G_any, use_flat):
+        """Offsets (active pixels) of a factorisation under one gauge, turned the way of ``k``."""
+        M_any = fix_gauge(F_any, G_any, flat=flat if use_flat else None, x=x, y=y, smooth_degree=smooth_degree)
+        G_gauged = G_any @ np.linalg.inv(M_any).T
+        theta_any = np.arctan2(G_gauged[:, 1], G_gauged[:, 2])
+        k_any, plane = projected_offsets(theta_any, x, y, k)
+        if two_source is not None:  # against the same surface, the phases turned the same way
+            return two_source.offsets_of(theta_any if k_any @ k > 0 else -theta_any)
+        return plane if k_any @ k > 0 else -plane
+
+    try:
+        free = offsets_under(passes.F, passes.G, False)
+    except FringeError as exc:  # a diagnostic must not fail a fit the flat's gauge made
+        log.warning("%s: no PRNU-free gauge for the diagnostic (%s)", label, exc)
+        return None, None
+    try:
+        halves = []
+        for F_part, FtI_part in passes.parts:
+            G_part = np.linalg.solve(F_part.T @ F_part, FtI_part[:, keep]).T
+            halves.append(offsets_under(F_part, G_part, True) - offsets_under(F_part, G_part, False))
+    except (FringeError, np.linalg.LinAlgError) as exc:
+        log.warning("%s: no noise floor for the gauge difference (%s)", label, exc)
+        return free, None
+    if len(halves) != 2:
+        log.info("%s: the frames are one part (one file): no noise floor for the gauge difference", label)
+        return free, None
+    # the whole is (n1 d1 + n2 d2) / (n1 + n2): of noise rms(d1 - d2) sqrt(n1 n2) / (n1 + n2)
+    n1, n2 = (F_part.shape[0] for F_part, _ in passes.parts)
+    return free, float(np.sqrt(np.mean((halves[0] - halves[1]) ** 2) * n1 * n2) / (n1 + n2))
 
 
 def _two_source_variables(solution: FringeSolution, as_map) -> dict:

@@ -107,12 +107,14 @@ def metrology_figure(ds, detector, *, title):
                     f"{float(ds['photon_noise_floor_rms']):.1e} pixel")
     frame = ds["frame"].values
     ax = axes[0, 1]
+    spread = max(np.nanmax(np.abs(ds[name].values - ds[name].values.mean())) for name in ("kx_frame", "ky_frame"))
+    exponent = int(np.floor(np.log10(spread))) if np.isfinite(spread) and spread > 0 else 0
     for name, colour in (("kx_frame", "C0"), ("ky_frame", "C1")):
         values = ds[name].values
-        ax.plot(frame, values - values.mean(), lw=0.4, color=colour,
-                label=f"{name[:2]}: mean {values.mean():.6f}, rms {values.std():.1e}")
+        ax.plot(frame, (values - values.mean()) / 10.0**exponent, lw=0.4, color=colour,
+                label=f"{name[:2]}: mean {values.mean():.6f} rad/pixel, rms {values.std():.1e} rad/pixel")
     ax.set_xlabel("frame")
-    ax.set_ylabel("K(t) - mean [rad/pixel]")
+    ax.set_ylabel(f"K(t) - mean [1e{exponent} rad/pixel]" if exponent else "K(t) - mean [rad/pixel]")
     ax.set_title("wavevector fitted per frame (pass 1)", fontsize=9)
     ax.legend(fontsize=8)
     ax = axes[1, 0]
@@ -127,8 +129,8 @@ def metrology_figure(ds, detector, *, title):
     ax.semilogy(iteration, ds["max_change"].values, "o-", label="largest change")
     ax.semilogy(iteration, ds["rms_change"].values, "s-", label="rms change")
     ax.set_xlabel("pass")
-    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
-    ax.set_xlim(1.5, iteration.max() + 0.5)
+    _integer_ticks(ax.xaxis)
+    ax.set_xlim(iteration.min() - 0.5, iteration.max() + 0.5)
     ax.set_ylabel("offset change from previous pass [pixel]")
     ax.set_title(f"convergence: {iteration.max()} passes", fontsize=9)
     ax.legend(fontsize=8)
@@ -138,16 +140,16 @@ def metrology_figure(ds, detector, *, title):
         _show_map(axes[row, 0], fig, difference, detector, scale=1e3, symmetric=True, units="offset [1e-3 pixel]",
                   title="flat gauge minus PRNU-free gauge")
         ax = axes[row, 1]
-        bars = {"gauge difference": float(ds["gauge_difference_rms"])}
+        bars = {"gauge\ndifference": float(ds["gauge_difference_rms"])}  # two lines: labels apart
         if "gauge_difference_floor" in ds:
-            bars["its noise floor"] = float(ds["gauge_difference_floor"])
-        bars["offsets' photon floor"] = float(ds["photon_noise_floor_rms"])
+            bars["its noise\nfloor"] = float(ds["gauge_difference_floor"])
+        bars["offsets'\nphoton floor"] = float(ds["photon_noise_floor_rms"])
         for i, ((name, value), colour) in enumerate(zip(bars.items(), ("C3", "C0", "0.5"))):
             ax.semilogy([i], [value], "o", ms=9, color=colour)
-            ax.annotate(f"{value:.1e}", (i, value), textcoords="offset points", xytext=(10, 0), va="center",
+            ax.annotate(f"{value:.1e} pixel", (i, value), textcoords="offset points", xytext=(10, 0), va="center",
                         fontsize=8)
         ax.set_xticks(range(len(bars)), list(bars))
-        ax.set_xlim(-0.5, len(bars) - 0.3)
+        ax.set_xlim(-0.5, len(bars) - 0.1)  # room for the last point's label
         ax.set_ylabel("rms [pixel]")
         ax.set_title("do the two gauges agree?", fontsize=9)
         ax.set_ylim(min(bars.values()) / 2, max(bars.values()) * 3)  # room for the points' labels and the note
@@ -184,7 +186,7 @@ def allan_figure(ds, *, title):
     paper's red line: the pixels' limit from the noise measured on the first
     frame (:func:`dice_core.allan.first_frame_limit`).
     """
-    fig, ax = plt.subplots(figsize=(8, 6), constrained_layout=True)
+    fig, ax = plt.subplots(figsize=(8, 7.5), layout="constrained")
     n = ds["n_frames"].values
     ax.loglog(n, ds["sample_deviation"].values, color="tab:green", lw=0.5, alpha=0.5)
     ax.loglog([], [], color="tab:green", lw=0.5, label=f"{ds.sizes['sample']} individual pixels")
@@ -211,11 +213,16 @@ def allan_figure(ds, *, title):
         ax.loglog(n, ds["photon_limit_pixel_first_frame"].values, color="red", lw=1.4, zorder=1.5,
                   gid="first frame", label=f"measured photon limit (first frame{noise}), pixels")
     ax.set_xlabel("frames per group")
+    # plain numbers (30, 40, 100) instead of 3x10^1 on a span of less than a decade
+    ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}"))
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(  # 2, 3, 4, 5, 6, 8 x 10^n within a decade
+        lambda value, _: f"{value:g}" if np.log10(ax.get_xlim()[1] / ax.get_xlim()[0]) < 1
+        and round(value / 10.0 ** np.floor(np.log10(value))) in (2, 3, 4, 5, 6, 8) else ""))
     ax.set_ylabel("deviation of projected offsets [pixel]")
     ax.set_title(f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (one fringe period) "
                  f"on average", fontsize=9)
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
-    ax.legend(fontsize=7, ncol=2)
+    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=2)  # off the curves
     fig.suptitle(title, fontsize=11)
     return fig
 
@@ -234,51 +241,63 @@ def _range_text(position, used):
     return f"positions {position[used].min()}-{position[used].max()}" if used.any() else "no position in the range"
 
 
-def centroids_figure(ds, *, title, positions=None):
-    """Star windows and the central star's path, from a ``centroids/<mode>.nc`` dataset.
+def _integer_ticks(axis):
+    """Ticks of an axis (``ax.xaxis``, ``ax.yaxis``) of an integer quantity at integers only, even when the
+    view holds one integer (MaxNLocator's integer option otherwise needs two)."""
+    axis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True, min_n_ticks=1))
 
-    Top: each star's corrected mean window at the first position (adu).
-    Below: the central star (nearest the stars' mean position), x and y each
-    against the position index (one panel each, minus its mean), with the
-    precision of each position from its batches (error bars) and the
-    Cramer-Rao bound (band); and its path, y against x, each axis to its own
-    scale (the paper's figure). The positions used for the accuracies, the
-    inclusive index range ``positions`` (config ``astrometry.positions``;
-    None: all), are drawn in red in all three.
+
+def centroids_figure(ds, *, title, positions=None):
+    """Star windows, the central star's path and its precision, from a ``centroids/<mode>.nc`` dataset.
+
+    Top: each star's corrected mean window at the first position (adu, one
+    colour scale for all). Middle: the central star (nearest the stars' mean
+    position), x and y each against the position index (one panel each, minus
+    its mean), with the precision of each position from its batches (error
+    bars); and its path, y against x, each axis to its own scale (the paper's
+    figure). The positions used for the accuracies, the inclusive index range
+    ``positions`` (config ``astrometry.positions``; None: all), are drawn in
+    red in these three. Bottom: the central star's precision from its batches
+    (points) against the Cramer-Rao bound (lines), x and y, log scale (pixel):
+    at the scale of the path, a fraction of a pixel, both would be invisible.
     """
     n_star = ds.sizes["star"]
-    fig = plt.figure(figsize=(max(10, 2.4 * n_star), 10), constrained_layout=True)
-    grid = fig.add_gridspec(3, max(n_star, 3), height_ratios=[1.2, 1, 1])
+    columns = max(n_star, 3)
+    fig = plt.figure(figsize=(max(10, 2.2 * n_star + 1), 13), constrained_layout=True)
+    grid = fig.add_gridspec(4, columns, height_ratios=[1.0, 1, 1, 1.1])
     x0, y0 = ds["x"].values[0], ds["y"].values[0]
     central = int(np.nanargmin(np.hypot(x0 - np.nanmean(x0), y0 - np.nanmean(y0))))
+    windows = ds["window"].values
+    finite = windows[np.isfinite(windows)]
+    low, high = (finite.min(), finite.max()) if finite.size else (0.0, 1.0)
+    window_axes = []
     for s in range(n_star):
         ax = fig.add_subplot(grid[0, s])
-        image = ax.imshow(ds["window"].values[s], origin="lower", cmap="magma")
-        fig.colorbar(image, ax=ax, shrink=0.7, label="adu")
-        ax.set_title(f"star {s}" + (" (central)" if s == central else "") + f"\nx {x0[s]:.3f}, y {y0[s]:.3f}",
-                     fontsize=8)
+        image = ax.imshow(windows[s], origin="lower", cmap="magma", vmin=low, vmax=high)
+        ax.set_title(f"star {s}" + (" (central)" if s == central else "") +
+                     f"\nx {x0[s]:.3f} pixel, y {y0[s]:.3f} pixel", fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
+        window_axes.append(ax)
+    fig.colorbar(image, ax=window_axes, shrink=0.8, label="mean window [adu]")
     position = ds["position"].values
     used = _used_positions(position, positions)
     used_text = _range_text(position, used)
-    half = max(n_star, 3) // 2
+    half = columns // 2
     for row, axis in ((1, "x"), (2, "y")):
         ax = fig.add_subplot(grid[row, :half])
         values = ds[axis].values[:, central]
         offset = np.nanmean(values)
         ax.errorbar(position, values - offset, yerr=ds[f"precision_{axis}"].values[:, central], fmt="o-",
-                    color="C0", ms=3, lw=0.8, capsize=2, label="batch precision (error bars)")
-        limit = ds[f"photon_limit_{axis}"].values[:, central]
-        ax.fill_between(position, values - offset - limit, values - offset + limit, color="C0", alpha=0.15,
-                        label="Cramer-Rao bound (band)")
+                    color="C0", ms=3, lw=0.8, capsize=2, label="batch precision (error bars; see below)")
         ax.plot(position[used], values[used] - offset, "o", ls="none", color="red", ms=3.5, zorder=3,
                 gid="used positions", label=f"{used_text} (accuracies)")
         ax.set_xlabel("position index")
+        _integer_ticks(ax.xaxis)
         ax.set_ylabel(f"{axis} - {offset:.3f} [pixel]")
-        ax.set_title(f"central star's {axis} against the position index; {used_text} in red", fontsize=9)
+        ax.set_title(f"central star's {axis} against the position index", fontsize=9)
         ax.legend(fontsize=7)
-    ax = fig.add_subplot(grid[1:, half:])
+    ax = fig.add_subplot(grid[1:3, half:])
     x, y = ds["x"].values[:, central], ds["y"].values[:, central]
     ax.plot(x, y, "-", color="0.6", lw=0.8)
     ax.plot(x[~used], y[~used], "o", ls="none", color="C0", ms=3, label="other positions")
@@ -291,6 +310,31 @@ def centroids_figure(ds, *, title, positions=None):
     ax.set_title("stage path seen by the central star, y against x\n(each axis to its own scale; "
                  "first and last index marked)", fontsize=9)
     ax.legend(fontsize=8)
+    ax = fig.add_subplot(grid[3, :])
+    ratios = []
+    for axis, colour, marker, line in (("x", "C0", "o", "-"), ("y", "C1", "s", "--")):  # the bounds often equal
+        precision = ds[f"precision_{axis}"].values[:, central]
+        limit = ds[f"photon_limit_{axis}"].values[:, central]
+        ax.plot(position, precision, marker, ls="none", color=colour, ms=4, gid=f"precision {axis}",
+                label=f"{axis}: precision from the batches")
+        ax.plot(position, limit, line, color=colour, lw=1.2, gid=f"Cramer-Rao {axis}",
+                label=f"{axis}: Cramer-Rao bound")
+        ratios.append(float(np.nanmedian(precision / limit)))
+    shown = np.concatenate([ds[f"{name}_{axis}"].values[:, central] for name in ("precision", "photon_limit")
+                            for axis in "xy"])
+    shown = shown[np.isfinite(shown) & (shown > 0)]
+    if shown.size:  # a decade around the points, so that a factor 2 between them reads
+        ax.set_yscale("log")
+        ax.set_ylim(shown.min() / 2, shown.max() * 2)
+    for first, last in ((position[used].min(), position[used].max()),) if used.any() and not used.all() else ():
+        ax.axvspan(first - 0.5, last + 0.5, color="red", alpha=0.07, lw=0, label=f"{used_text} (accuracies)")
+    ax.set_xlabel("position index")
+    _integer_ticks(ax.xaxis)
+    ax.set_ylabel("1-sigma error of the centroid [pixel]")
+    ax.set_title(f"central star's precision against its Cramer-Rao bound: median ratio {ratios[0]:.2f} (x), "
+                 f"{ratios[1]:.2f} (y)", fontsize=9)
+    ax.grid(True, which="both", axis="y", alpha=0.3)
+    ax.legend(fontsize=7, ncol=5)
     fig.suptitle(f"{title} ({ds.attrs.get('method', '')})", fontsize=11)
     return fig
 
@@ -332,10 +376,11 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
         for sign in (-1, 1):
             ax.axhline(sign * sigma, color="0.35", ls="--", lw=0.8, gid="sigma")
         ax.set_ylabel("residual [pixel]")
-        ax.set_title(f"{mode}: dashed ±σ, σ = {sigma:.2e} pixel the rms of these residuals; corrected accuracy "
+        ax.set_title(f"{mode}: dashed ±σ, σ = {sigma:.2e} pixel (rms of these residuals); corrected accuracy "
                      f"{accuracy:.2e} pixel; x plain, y dotted", fontsize=9)
     axes[0, 0].legend(fontsize=7, ncol=5)
     axes[-1, 0].set_xlabel("position index")
+    _integer_ticks(axes[-1, 0].xaxis)
     fig.suptitle(f"{title}, positions {position.min()}-{position.max()}", fontsize=11)
     return fig
 
@@ -353,6 +398,25 @@ def _downscaled_layout(residual, star_xy, spread):
     span = np.nanmax(np.nanmax(centred, axis=0) - np.nanmin(centred, axis=0))
     scale = spread * extent / span if span > 0 and extent > 0 else 0.0
     return centred * scale, float(scale)
+
+
+def _symmetric_square(ax, points, *, margin=1.1, bins=4):
+    """Equal, symmetric limits about 0 on both axes of ``ax`` holding all ``points`` (arrays (n, 2), pixel),
+    with at most ``bins`` + 1 ticks labelled in a power of ten of the pixel, so that they never overlap.
+    Returns the unit of the labels (e.g. ``"1e-3 pixel"``)."""
+    values = np.concatenate([np.abs(p).ravel() for p in points]) if points else np.zeros(0)
+    values = values[np.isfinite(values)]
+    half = margin * values.max() if values.size and values.max() > 0 else 1.0
+    ax.set_xlim(-half, half)
+    ax.set_ylim(-half, half)
+    ax.set_aspect("equal", adjustable="box")
+    exponent = int(np.floor(np.log10(half)))
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_locator(matplotlib.ticker.MaxNLocator(nbins=bins, symmetric=True))
+        # rounded, so that the tick at 0 reads "0", not "-0" or "1e-17"
+        axis.set_major_formatter(matplotlib.ticker.FuncFormatter(
+            lambda value, _, e=exponent: f"{round(value / 10.0**e, 6) + 0.0:g}"))
+    return f"1e{exponent} pixel" if exponent else "pixel"
 
 
 def barycentre_figure(ds, *, title="Barycentre residuals", spread: float = 3.0):
@@ -400,19 +464,20 @@ def barycentre_figure(ds, *, title="Barycentre residuals", spread: float = 3.0):
             row[1].plot(offsets[:, 0], offsets[:, 1], "+", ls="none", color="0.55", ms=6, gid="layout stars")
         for edge in (used.min(), used.max()):
             row[0].axvline(edge, color="grey", ls=":", lw=0.8)
+        _integer_ticks(row[0].xaxis)
         row[0].set_ylabel("residual [pixel]")
         row[0].set_title(f"{mode}: against the position index, x plain, y dotted; positions {used.min()}-"
                          f"{used.max()} used (between the dotted lines)", fontsize=9)
+        unit = _symmetric_square(row[1], [line.get_xydata() for line in row[1].get_lines()])
         if scale is None:
-            row[1].set_xlabel("x residual [pixel]")
-            row[1].set_ylabel("y residual [pixel]")
+            row[1].set_xlabel(f"x residual [{unit}]")
+            row[1].set_ylabel(f"y residual [{unit}]")
             row[1].set_title(f"{mode}: y against x; used positions circled", fontsize=9)
         else:
-            row[1].set_xlabel("x residual + scaled layout [pixel]")
-            row[1].set_ylabel("y residual + scaled layout [pixel]")
+            row[1].set_xlabel(f"x residual + scaled layout [{unit}]")
+            row[1].set_ylabel(f"y residual + scaled layout [{unit}]")
             row[1].set_title(f"{mode}: y against x at each star's place, layout x{scale:.1e}\n(dashed: "
                              f"the corner stars' square; circled: positions {used.min()}-{used.max()})", fontsize=9)
-        row[1].set_aspect("equal", adjustable="datalim")
     axes[0, 0].legend(fontsize=7, ncol=5)
     axes[-1, 0].set_xlabel("position index")
     fig.suptitle(title, fontsize=11)

@@ -246,3 +246,25 @@ def test_allan_is_the_same_bit_for_bit_whatever_the_workers(tmp_path):
     whole = allan.batch_offsets(list(stream.centred(reference)), batches, factors, truth["bias"].values,
                                 reference_phase, k, rows, cols, reference=reference)
     np.testing.assert_allclose(one["batch_offset"].values[:, rows, cols], whole, rtol=0, atol=1e-8)
+
+
+def test_the_product_is_the_statistics_with_their_metadata(rng):
+    """allan_statistics computes plain arrays, without a detector; allan_dataset only places them on the
+    detector's (row, col) maps and adds units and long names to every variable."""
+    from test_plotting import allan_inputs
+
+    (offsets, floors, batches, rows, cols, detector), keywords = allan_inputs(rng)
+    statistics = allan.allan_statistics(offsets, floors, batches, rows, cols, gain=detector.gain, **keywords)
+    ds = allan.allan_dataset(offsets, floors, batches, rows, cols, detector, **keywords)
+    for name in ds.data_vars:
+        values = np.asarray(getattr(statistics, name))
+        if "row" in ds[name].dims:  # pixel arrays (…, pixel) as maps, NaN off the pixels
+            np.testing.assert_array_equal(ds[name].values[:, rows, cols], values.astype(ds[name].dtype))
+        else:
+            np.testing.assert_array_equal(ds[name].values, values)
+        assert ds[name].attrs["units"] and ds[name].attrs["long_name"]
+    np.testing.assert_array_equal(ds["n_frames"].values, statistics.n_frames)
+    assert ds.attrs == {"frames_per_batch": statistics.frames_per_batch, "block_size": 10}
+    # the optional statistics are absent from the product when not computed
+    assert statistics.deviation_mean_batch_means is None and "deviation_mean_batch_means" not in ds
+    assert statistics.first_frame_noise is None and "first_frame_noise" not in ds

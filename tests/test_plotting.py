@@ -1,5 +1,7 @@
 """The paper's experimental figures, built from small synthetic products: what each draws."""
 
+import re
+
 import matplotlib.colors
 import numpy as np
 import pytest
@@ -61,7 +63,9 @@ def test_barycentre_paths_sit_in_the_downscaled_layout(residuals_product):
         paths = [line for line in ax.get_lines() if line.get_gid() is None]
         assert matplotlib.colors.same_color(paths[0].get_color(), "black")
         assert matplotlib.colors.same_color(fig.axes[2 * row].get_lines()[0].get_color(), "black")
-        assert "[pixel]" in ax.get_xlabel() and "[pixel]" in ax.get_ylabel()
+        # in pixel, or a power of ten of the pixel that the tick labels are in
+        assert re.search(r"\[(1e-?\d+ )?pixel\]", ax.get_xlabel()) and re.search(r"\[(1e-?\d+ )?pixel\]",
+                                                                                  ax.get_ylabel())
     plotting.save(fig, None)
 
 
@@ -199,3 +203,179 @@ def test_the_reproduction_pdf_has_a_title_page_and_one_page_per_figure(tmp_path)
     data = path.read_bytes()
     assert data.startswith(b"%PDF") and len(re.findall(rb"/Type\s*/Page\b", data)) == 3
     assert not list((tmp_path / "report").glob(".*.part"))  # written through a temporary name
+
+
+# What a reader of the paper needs: integer ticks for integer quantities, tick labels apart, symmetric
+# limits where the data are centred, a unit after every number printed.
+
+def metrology_product(rng, *, passes=2, side=12):
+    """A metrology/<baseline>.nc-like dataset of ``passes`` passes (the convergence history from pass 2)."""
+    detector = Detector(shape=(side, side), science_rows=(1, side - 1), science_cols=(1, side - 1), gain=2.5,
+                        saturation=6e4)
+    n_frames = 50
+    iteration = np.arange(2, passes + 1)
+    ds = xr.Dataset({
+        "projected_offset": (("row", "col"), 1e-3 * rng.standard_normal((side, side))),
+        "photon_noise_floor_rms": ((), 2.9e-4),
+        "kx_frame": (("frame",), 1.5686 + 2e-5 * rng.standard_normal(n_frames)),
+        "ky_frame": (("frame",), -0.0822 + 3e-5 * rng.standard_normal(n_frames)),
+        "level": (("frame",), 1e4 + rng.standard_normal(n_frames)),
+        "amplitude": (("frame",), 5e3 + rng.standard_normal(n_frames)),
+        "max_change": (("iteration",), 10.0 ** -(6.0 + iteration)),
+        "rms_change": (("iteration",), 10.0 ** -(6.5 + iteration)),
+        "projected_offset_prnu_free_gauge": (("row", "col"), 1e-3 * rng.standard_normal((side, side))),
+        "gauge_difference_rms": ((), 7.3e-5),
+        "gauge_difference_floor": ((), 2.6e-4),
+    }, coords={"frame": np.arange(n_frames), "iteration": iteration})
+    return ds, detector
+
+
+def texts(fig):
+    """Every piece of text a reader sees: titles, axis labels, legends, annotations, figure texts."""
+    found = [fig._suptitle] if fig._suptitle is not None else []
+    found += list(fig.texts) + [text for legend in fig.legends for text in legend.get_texts()]
+    for ax in fig.axes:
+        found += [ax.title, ax._left_title, ax._right_title, ax.xaxis.label, ax.yaxis.label, *ax.texts]
+        if ax.get_legend() is not None:
+            found += ax.get_legend().get_texts()
+    return [text.get_text() for text in found if text.get_text()]
+
+
+UNITS = ("pixel", "adu", "rad/pixel", "mm", "frames", "e-/adu")
+#: numbers that are ratios or exponents: a slope, a scale factor (x5.2e-04), a ratio, powers of ten in units
+DIMENSIONLESS = re.compile(r"(slope|ratio|layout x)\s*[-+]?$")
+
+
+def numbers_without_unit(text):
+    """Decimal numbers (a point or an exponent) in ``text`` followed by no unit: counts and indices,
+    integers, are exempt."""
+    missing = []
+    for match in re.finditer(r"[-+]?\d+\.\d*(?:e[-+]?\d+)?|[-+]?\d+e[-+]?\d+", text):
+        after, before = text[match.end():].lstrip(" )["), text[:match.start()]
+        if after.startswith(UNITS) or after.startswith("x ") or DIMENSIONLESS.search(before.rstrip(" =:")):
+            continue
+        if re.match(r"\s*\((x|y)\)", text[match.end():]) and "ratio" in before:
+            continue
+        missing.append(match.group())
+    return missing
+
+
+def test_numbers_without_unit_are_found():
+    assert numbers_without_unit("photon floor 9.6e-05") == ["9.6e-05"]
+    assert numbers_without_unit("x 22.999, y 20.230") == ["22.999", "20.230"]
+    assert numbers_without_unit("rms 1.0e-3 pixel (3 passes), slope -0.64, layout x5.2e-04") == []
+
+
+def integer_ticks(axis):
+    """The tick positions of ``axis`` within its view."""
+    low, high = sorted(axis.get_view_interval())
+    return [t for t in axis.get_ticklocs() if low - 1e-9 <= t <= high + 1e-9]
+
+
+def overlapping_labels(fig, axis):
+    """Pairs of the axis's visible tick labels whose drawn boxes overlap."""
+    renderer = fig.canvas.get_renderer()
+    boxes = [label.get_window_extent(renderer) for label in axis.get_ticklabels(which="both")
+             if label.get_visible() and label.get_text()]
+    return [(a, b) for i, a in enumerate(boxes) for b in boxes[i + 1:] if a.overlaps(b)]
+
+
+@pytest.mark.parametrize("passes", [2, 3])
+def test_the_convergence_panel_has_integer_passes(rng, passes):
+    """One pass compared (pass 2) or two: ticks at whole passes only, and the points in the middle."""
+    ds, detector = metrology_product(rng, passes=passes)
+    fig = plotting.metrology_figure(ds, detector, title="test")
+    fig.canvas.draw()
+    ax = fig.axes[3]  # second row, right (the colour bars come after the panels)
+    assert ax.get_xlabel() == "pass"
+    ticks = integer_ticks(ax.xaxis)
+    assert ticks and all(float(t).is_integer() for t in ticks) and 2 in ticks
+    low, high = ax.get_xlim()
+    assert low == pytest.approx(1.5) and high == pytest.approx(passes + 0.5)
+    plotting.save(fig, None)
+
+
+def test_metrology_numbers_carry_their_units(rng):
+    ds, detector = metrology_product(rng)
+    fig = plotting.metrology_figure(ds, detector, title="test")
+    shown = texts(fig)
+    assert any("rad/pixel" in text and "mean" in text for text in shown)  # the K(t) legend
+    assert any(text.endswith("pixel") and "e-0" in text for text in shown)  # the gauge annotations
+    assert {text: numbers_without_unit(text) for text in shown if numbers_without_unit(text)} == {}
+    plotting.save(fig, None)
+
+
+def test_procrustes_and_barycentre_figures_read_well(residuals_product):
+    """Integer position ticks; in the right panels of the barycentre figure equal limits symmetric about 0
+    and tick labels that do not overlap; a unit after every number."""
+    product, _ = residuals_product
+    fig = plotting.procrustes_figure(product)
+    fig.canvas.draw()
+    assert all(float(t).is_integer() for t in integer_ticks(fig.axes[-1].xaxis))
+    assert {text: numbers_without_unit(text) for text in texts(fig) if numbers_without_unit(text)} == {}
+    plotting.save(fig, None)
+    fig = plotting.barycentre_figure(product)
+    fig.canvas.draw()
+    for row in range(product.sizes["mode"]):
+        left, right = fig.axes[2 * row], fig.axes[2 * row + 1]
+        assert all(float(t).is_integer() for t in integer_ticks(left.xaxis))
+        x0, x1 = right.get_xlim()
+        y0, y1 = right.get_ylim()
+        assert x0 == pytest.approx(-x1) and y0 == pytest.approx(-y1) and x1 == pytest.approx(y1)
+        for axis in (right.xaxis, right.yaxis, left.xaxis, left.yaxis):
+            assert not overlapping_labels(fig, axis)
+        # every path inside the limits
+        for line in right.get_lines():
+            assert np.all(np.abs(line.get_xydata()) <= x1)
+        # the labels in the unit the axis label names
+        unit = re.search(r"\[(?:1e(-?\d+) )?pixel\]", right.get_xlabel())
+        exponent = int(unit.group(1) or 0)
+        for tick, label in zip(right.get_xticks(), right.get_xticklabels()):
+            if label.get_text():
+                assert float(label.get_text().replace("\N{MINUS SIGN}", "-")) == pytest.approx(
+                    tick / 10.0**exponent, abs=1e-6)
+    assert {text: numbers_without_unit(text) for text in texts(fig) if numbers_without_unit(text)} == {}
+    plotting.save(fig, None)
+
+
+def test_centroids_figure_has_one_colour_scale_and_readable_bounds(rng):
+    """One colour bar for the five windows (one scale); the central star's precision and Cramer-Rao bound
+    on their own panel, on an axis spanning at most two decades around them; integer positions."""
+    ds = central_centroids(rng)
+    ds["photon_limit_y"] = ds["photon_limit_y"] * 1.3
+    fig = plotting.centroids_figure(ds, title="test", positions=USED)
+    fig.canvas.draw()
+    colour_bars = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert len(colour_bars) == 1 and "adu" in colour_bars[0].get_ylabel()
+    images = [image for ax in fig.axes for image in ax.get_images()]
+    assert len(images) == 5 and len({image.get_clim() for image in images}) == 1
+    (ax,) = [ax for ax in fig.axes if lines(ax, "Cramer-Rao x")]
+    for axis in "xy":
+        (bound,) = lines(ax, f"Cramer-Rao {axis}")
+        (precision,) = lines(ax, f"precision {axis}")
+        np.testing.assert_allclose(bound.get_ydata(), ds[f"photon_limit_{axis}"].values[:, 0])
+        np.testing.assert_allclose(precision.get_ydata(), ds[f"precision_{axis}"].values[:, 0])
+        low, high = ax.get_ylim()
+        assert low < bound.get_ydata().min() and bound.get_ydata().max() < high
+        assert low < precision.get_ydata().min() and precision.get_ydata().max() < high
+    assert ax.get_yscale() == "log" and np.log10(high / low) <= 2
+    assert "1.25 (x)" in ax.get_title() and "0.96 (y)" in ax.get_title()  # median precision / bound
+    for axes in fig.axes:
+        if axes.get_xlabel() == "position index":
+            assert all(float(t).is_integer() for t in integer_ticks(axes.xaxis))
+    assert {text: numbers_without_unit(text) for text in texts(fig) if numbers_without_unit(text)} == {}
+    plotting.save(fig, None)
+
+
+def test_allan_figure_numbers_carry_units_and_the_legend_leaves_the_curves(rng):
+    args, keywords = allan_inputs(rng)
+    ds = allan.allan_dataset(*args, **keywords, first_frame=rng.uniform(500, 3000, args[3].size))
+    fig = plotting.allan_figure(ds, title="test")
+    fig.canvas.draw()
+    (ax,) = fig.axes
+    assert ax.get_legend() is None and len(fig.legends) == 1
+    renderer = fig.canvas.get_renderer()
+    assert not fig.legends[0].get_window_extent(renderer).overlaps(ax.get_window_extent(renderer))
+    assert not overlapping_labels(fig, ax.xaxis)
+    assert {text: numbers_without_unit(text) for text in texts(fig) if numbers_without_unit(text)} == {}
+    plotting.save(fig, None)

@@ -10,7 +10,7 @@ def plot_offsets_difference(path, manifest_path, png, pdf):
     ds = io.read_product(path)
     pair, reference = ds.attrs["pair"], ds.attrs["reference_pair"]
     titles = [f"{axis} difference: std {float(ds[f'd{axis}_std']):.2e} pixel "
-              f"(photon floor {float(ds[f'd{axis}_photon_noise_floor']):.1e})" for axis in ("dx", "dy")]
+              f"(photon floor {float(ds[f'd{axis}_photon_noise_floor']):.1e} pixel)" for axis in ("dx", "dy")]
     fig = plotting.maps_figure([ds["ddx"].values, ds["ddy"].values], detector, scale=1e3,
                                units="difference [1e-3 pixel]", titles=titles,
                                suptitle=f"Pixel offsets, pair {pair} minus pair {reference}")

@@ -10,7 +10,7 @@ def plot_prnu_difference(diff_path, manifest_path, png, pdf):
     diff = io.read_product(diff_path)
     title = f"PRNU difference, {diff.attrs['other_flat']} - {diff.attrs['reference_flat']}"
     note = (f"rms {float(diff['difference_rms']):.2e}, photon-noise limit "
-            f"{float(diff['photon_noise_limit_rms']):.2e}")
+            f"{float(diff['photon_noise_limit_rms']):.2e}, relative to the mean response")
     fig = plotting.map_figure(diff["difference"].values, detector, title=title, units="difference [1e-4]",
                               scale=1e4, symmetric=True, note=note)
     plotting.save(fig, png, pdf)
