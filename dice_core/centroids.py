@@ -40,8 +40,11 @@ __all__ = [
     "isolated_half_size",
     "fourier_displacement",
     "offset_corrected",
+    "response_corrected",
     "MODES",
     "METHODS",
+    "MODE_NEEDS",
+    "mode_needs",
     "mode_corrections",
     "PositionCentroids",
     "measure_positions",
@@ -338,15 +341,68 @@ def offset_corrected(image: np.ndarray, dx: np.ndarray, dy: np.ndarray, *, itera
     return corrected
 
 
-MODES = ("raw", "flat", "metrology", "flat+metrology")
+def response_corrected(image: np.ndarray, dx: np.ndarray, dy: np.ndarray, variance_x: np.ndarray,
+                       variance_y: np.ndarray, *, iterations: int = 4) -> np.ndarray:
+    """The window as identical pixels, on the perfect grid, would have recorded it: offsets and PRF widths.
+
+    Pixel p integrates the image against its PRF. With the mean PRF's image
+    P (the band-limited interpolant of the window, on the perfect grid), a
+    pixel whose symmetric PRF has the variance of the mean kernel's plus
+    (vx_p, vy_p) along x and y, centred at r_p + delta_p, records
+
+        P(r_p + delta_p) + (vx_p / 2) P_xx(r_p) + (vy_p / 2) P_yy(r_p)
+
+    to second order in the offsets and first order in the variances (the
+    characteristic function's k^2 term; the next terms, of order k^4 m4 and
+    vx vy, are about 2% of it for a 1.3-pixel PSF; docs/centroids.md). P is
+    found by fixed-point iteration, as in :func:`offset_corrected`.
+
+    Parameters
+    ----------
+    image : ndarray (size, size)
+        Dark-subtracted, flat-corrected window (odd side), adu.
+    dx, dy : ndarray (size, size)
+        The window's pixel offsets, pixel.
+    variance_x, variance_y : ndarray (size, size)
+        Each pixel's PRF variance minus the mean kernel's, pixel^2 (``width^2 - mean_width^2``).
+    """
+    image = np.asarray(image, float)
+    dx, dy = np.nan_to_num(np.asarray(dx, float)), np.nan_to_num(np.asarray(dy, float))
+    vx, vy = np.nan_to_num(np.asarray(variance_x, float)), np.nan_to_num(np.asarray(variance_y, float))
+    corrected = image.copy()
+    for _ in range(iterations):
+        px, py, pxx, pxy, pyy = _fourier_derivatives(corrected)
+        recorded_minus_grid = (dx * px + dy * py + 0.5 * (dx * dx * pxx + 2 * dx * dy * pxy + dy * dy * pyy)
+                               + 0.5 * (vx * pxx + vy * pyy))
+        corrected = image - recorded_minus_grid
+    return corrected
+
+
+MODES = ("raw", "flat", "metrology", "flat+metrology", "flat+metrology+width")
 METHODS = ("fourier", "gaussian")
+
+#: What each calibration mode corrects a star window with (dark subtraction always on): the reference
+#: PRNU (``flat``), the pair's pixel offsets (``offsets``), the PRF width maps (``widths``).
+MODE_NEEDS = {
+    "raw": frozenset(),
+    "flat": frozenset({"flat"}),
+    "metrology": frozenset({"offsets"}),
+    "flat+metrology": frozenset({"flat", "offsets"}),
+    "flat+metrology+width": frozenset({"flat", "offsets", "widths"}),
+}
+
+
+def mode_needs(mode: str) -> frozenset:
+    """The calibrations a mode uses: a subset of {"flat", "offsets", "widths"} (:data:`MODE_NEEDS`)."""
+    if mode not in MODE_NEEDS:
+        raise ValueError(f"unknown calibration mode {mode!r}; modes are {', '.join(MODES)}")
+    return MODE_NEEDS[mode]
 
 
 def mode_corrections(mode: str) -> tuple[bool, bool]:
-    """(flat, metrology) corrections of a calibration mode (dark subtraction is always on)."""
-    if mode not in MODES:
-        raise ValueError(f"unknown calibration mode {mode!r}; modes are {', '.join(MODES)}")
-    return "flat" in mode, "metrology" in mode
+    """(flat, metrology) corrections of a calibration mode (dark subtraction is always on); see :func:`mode_needs`."""
+    needs = mode_needs(mode)
+    return "flat" in needs, "offsets" in needs
 
 
 @dataclass
@@ -384,7 +440,7 @@ def _pixel_list(window, bad, flags):
 
 def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, prnu=None, dx=None, dy=None,
                       bad_pixels=None, method: str = "fourier", half_size: int = 7, label: str = "stars",
-                      log=None) -> PositionCentroids:
+                      log=None, variance_x=None, variance_y=None) -> PositionCentroids:
     """Centroids of the stars at every detector position, with their precision and photon-noise limit.
 
     Parameters
@@ -407,6 +463,10 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
         Flat-field correction (windows divided by it).
     dx, dy : ndarray (row, col), optional
         Pixel offsets for the offset correction (:func:`offset_corrected`).
+    variance_x, variance_y : ndarray (row, col), optional
+        Each pixel's PRF variance along x and y minus the mean kernel's,
+        pixel^2 (from ``calibration/prf.nc``: width^2 - mean_width^2); with
+        the offsets, the correction is :func:`response_corrected` (requires dx, dy).
     bad_pixels : int ndarray (row, col), optional
         The bad-pixel mask's flags (``bad_pixel`` of ``calibration/bad_pixels.nc``);
         its unusable pixels (dead, hot, column: :data:`dice_core.calibration.UNUSABLE`)
@@ -452,6 +512,8 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
     """
     if method not in METHODS:
         raise ValueError(f"unknown centroid method {method!r}; methods are {', '.join(METHODS)}")
+    if (variance_x is None) != (variance_y is None) or (variance_x is not None and dx is None):
+        raise ValueError("the PRF width correction needs both variance maps and the pixel offsets")
     n_pos, n_star = len(positions), len(approx)
     out = {name: np.full((n_pos, n_star), np.nan) for name in ("x", "y", "px", "py", "lx", "ly")}
     n_saturated = np.zeros((n_pos, n_star), dtype=np.int64)
@@ -506,7 +568,10 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
                     image = image / prnu[window.slices]
             if bad.any():  # left out (weight 0) or the star refused: a placeholder, never used
                 image = np.where(bad, 0.0, image)
-            if dx is not None:
+            if variance_x is not None:
+                image = response_corrected(image, dx[window.slices], dy[window.slices], variance_x[window.slices],
+                                           variance_y[window.slices])
+            elif dx is not None:
                 image = offset_corrected(image, dx[window.slices], dy[window.slices])
             if not np.all(np.isfinite(image)):
                 raise WindowError(f"star {star} at {where}: its window reaches pixels without calibration "
