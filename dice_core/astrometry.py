@@ -35,6 +35,8 @@ import numpy as np
 import xarray as xr
 from scipy.optimize import least_squares
 
+from dice_core.centroids import mode_needs
+
 __all__ = [
     "AstrometryError",
     "barycentre_residuals",
@@ -441,6 +443,10 @@ def select_positions(ds, positions=None):
     return np.stack([ds["x"].values, ds["y"].values], axis=-1), ds["position"].values
 
 
+#: The calibration modes of the paper's table (its cells: flat or not, metrology or not).
+_PAPER_MODES = ("raw", "flat", "metrology", "flat+metrology")
+
+
 def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: int = 2000, seed: int = 0):
     """Accuracies of every calibration mode, over positions (p) and over groups of positions (g).
 
@@ -467,8 +473,9 @@ def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: 
         configurations, index = select_positions(ds, positions)
         for grouping, data in (("position", configurations), ("group", group_means(configurations, groups))):
             result = accuracy(data, trials=trials, seed=seed)
-            rows.append({"mode": mode, "method": ds.attrs.get("method", ""), "flat": "flat" in mode,
-                         "metrology": "metrology" in mode, "grouping": grouping, "n": data.shape[0],
+            needs = mode_needs(mode)  # what the mode corrects with: one mapping, in dice_core.centroids
+            rows.append({"mode": mode, "method": ds.attrs.get("method", ""), "flat": "flat" in needs,
+                         "metrology": "offsets" in needs, "grouping": grouping, "n": data.shape[0],
                          "accuracy": result.accuracy, "error": result.error, "rms_residual": result.rms_residual,
                          "factor": result.factor})
             if grouping == "position":
@@ -482,8 +489,16 @@ def _latex_value(value, error):
 
 
 def latex_table(rows) -> str:
-    """The accuracies laid out as the paper's table of calibrations: metrology in rows, flat in columns."""
-    cell = {(r["metrology"], r["flat"], r["grouping"]): r for r in rows}
+    """The accuracies laid out as the paper's table of calibrations: metrology in rows, flat in columns.
+
+    Modes that add a calibration beyond the paper's two (``flat+metrology+width``) get a row of their own
+    under the flat column, after the paper's rows.
+    """
+    cell = {(r["metrology"], r["flat"], r["grouping"]): r for r in rows if r["mode"] in _PAPER_MODES}
+    extra = {}
+    for r in rows:
+        if r["mode"] not in _PAPER_MODES:
+            extra.setdefault(r["mode"], {})[r["grouping"]] = r
     lines = [r"% Accuracies (pixel) with different calibrations; (p) over positions, (g) over groups.",
              r"% \e{n} stands for x10^n and \specialcell makes a two-line cell, as in the paper.",
              r"\begin{tabular}{lcc}", r"\hline", r" & No flat & Flat \\", r"\hline"]
@@ -494,6 +509,14 @@ def latex_table(rows) -> str:
                      for g in ("position", "group") if (metrology, flat, g) in cell]
             entries.append(r"\specialcell{" + r"\\".join(parts) + "}" if parts else "--")
         lines.append(f"{'Metrology' if metrology else 'No metrology'} & {entries[0]} & {entries[1]} " + r"\\")
+    for mode, by_grouping in extra.items():
+        parts = [f"({g[0]}) " + _latex_value(by_grouping[g]["accuracy"], by_grouping[g]["error"])
+                 for g in ("position", "group") if g in by_grouping]
+        cells = ["--", r"\specialcell{" + r"\\".join(parts) + "}"]
+        if not next(iter(by_grouping.values()))["flat"]:
+            cells.reverse()
+        label = "Metrology + widths" if mode == "flat+metrology+width" else mode.replace("_", r"\_")
+        lines.append(f"{label} & {cells[0]} & {cells[1]} " + r"\\")
     lines += [r"\hline", r"\end{tabular}", ""]
     return "\n".join(lines)
 

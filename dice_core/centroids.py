@@ -40,8 +40,11 @@ __all__ = [
     "isolated_half_size",
     "fourier_displacement",
     "offset_corrected",
+    "response_corrected",
     "MODES",
     "METHODS",
+    "MODE_NEEDS",
+    "mode_needs",
     "mode_corrections",
     "PositionCentroids",
     "measure_positions",
@@ -338,15 +341,68 @@ def offset_corrected(image: np.ndarray, dx: np.ndarray, dy: np.ndarray, *, itera
     return corrected
 
 
-MODES = ("raw", "flat", "metrology", "flat+metrology")
+def response_corrected(image: np.ndarray, dx: np.ndarray, dy: np.ndarray, variance_x: np.ndarray,
+                       variance_y: np.ndarray, *, iterations: int = 4) -> np.ndarray:
+    """The window as identical pixels, on the perfect grid, would have recorded it: offsets and PRF widths.
+
+    Pixel p integrates the image against its PRF. With the mean PRF's image
+    P (the band-limited interpolant of the window, on the perfect grid), a
+    pixel whose symmetric PRF has the variance of the mean kernel's plus
+    (vx_p, vy_p) along x and y, centred at r_p + delta_p, records
+
+        P(r_p + delta_p) + (vx_p / 2) P_xx(r_p) + (vy_p / 2) P_yy(r_p)
+
+    to second order in the offsets and first order in the variances (the
+    characteristic function's k^2 term; the next terms, of order k^4 m4 and
+    vx vy, are about 2% of it for a 1.3-pixel PSF; docs/centroids.md). P is
+    found by fixed-point iteration, as in :func:`offset_corrected`.
+
+    Parameters
+    ----------
+    image : ndarray (size, size)
+        Dark-subtracted, flat-corrected window (odd side), adu.
+    dx, dy : ndarray (size, size)
+        The window's pixel offsets, pixel.
+    variance_x, variance_y : ndarray (size, size)
+        Each pixel's PRF variance minus the mean kernel's, pixel^2 (``width^2 - mean_width^2``).
+    """
+    image = np.asarray(image, float)
+    dx, dy = np.nan_to_num(np.asarray(dx, float)), np.nan_to_num(np.asarray(dy, float))
+    vx, vy = np.nan_to_num(np.asarray(variance_x, float)), np.nan_to_num(np.asarray(variance_y, float))
+    corrected = image.copy()
+    for _ in range(iterations):
+        px, py, pxx, pxy, pyy = _fourier_derivatives(corrected)
+        recorded_minus_grid = (dx * px + dy * py + 0.5 * (dx * dx * pxx + 2 * dx * dy * pxy + dy * dy * pyy)
+                               + 0.5 * (vx * pxx + vy * pyy))
+        corrected = image - recorded_minus_grid
+    return corrected
+
+
+MODES = ("raw", "flat", "metrology", "flat+metrology", "flat+metrology+width")
 METHODS = ("fourier", "gaussian")
+
+#: What each calibration mode corrects a star window with (dark subtraction always on): the reference
+#: PRNU (``flat``), the pair's pixel offsets (``offsets``), the PRF width maps (``widths``).
+MODE_NEEDS = {
+    "raw": frozenset(),
+    "flat": frozenset({"flat"}),
+    "metrology": frozenset({"offsets"}),
+    "flat+metrology": frozenset({"flat", "offsets"}),
+    "flat+metrology+width": frozenset({"flat", "offsets", "widths"}),
+}
+
+
+def mode_needs(mode: str) -> frozenset:
+    """The calibrations a mode uses: a subset of {"flat", "offsets", "widths"} (:data:`MODE_NEEDS`)."""
+    if mode not in MODE_NEEDS:
+        raise ValueError(f"unknown calibration mode {mode!r}; modes are {', '.join(MODES)}")
+    return MODE_NEEDS[mode]
 
 
 def mode_corrections(mode: str) -> tuple[bool, bool]:
-    """(flat, metrology) corrections of a calibration mode (dark subtraction is always on)."""
-    if mode not in MODES:
-        raise ValueError(f"unknown calibration mode {mode!r}; modes are {', '.join(MODES)}")
-    return "flat" in mode, "metrology" in mode
+    """(flat, metrology) corrections of a calibration mode (dark subtraction is always on); see :func:`mode_needs`."""
+    needs = mode_needs(mode)
+    return "flat" in needs, "offsets" in needs
 
 
 @dataclass
@@ -382,9 +438,113 @@ def _pixel_list(window, bad, flags):
     return "; ".join(items[:4]) + ("; ..." if len(items) > 4 else "")
 
 
+def _position_stack(stacks, position, i, n_pos, label):
+    """The next stack of the iterator ``stacks``, checked to be ``position``'s, of two batches or more."""
+    where = f"position {position}"
+    stack = next(stacks, None)
+    if stack is None:
+        raise ValueError(f"{label}: no frames given for {where} ({i} stack(s) for {n_pos} positions)")
+    if stack.position is not None and stack.position != position:
+        raise ValueError(f"{label}: the stack given for {where} is that of position {stack.position}")
+    if stack.n_batches < 2:
+        raise ValueError(f"{label}: {where} has {stack.n_batches} batch; a precision needs two at least")
+    return stack
+
+
+def _isolated_windows_half_size(mean, dark, centres, flags, half_size, shape, *, where, label, log):
+    """The half-size whose windows hold one star's light, from the widest Gaussian fit at the first position."""
+    width = max(max(f.width_x, f.width_y) for f in (
+        gaussian_fit(mean[w.slices] - dark[w.slices], w, weights=(flags[w.slices] == 0).astype(float)) for w in
+        (star_window(r, c, half_size, shape, label=f"star {s} at {where}") for s, (r, c) in enumerate(centres))))
+    isolated = isolated_half_size(centres, half_size, width)
+    size = 2 * half_size + 1
+    if isolated < 2:
+        raise WindowError(f"{label}: at {where} the stars are too close for windows holding one star's light "
+                          f"alone (PSF width {width:.2f} pixel; 5x5 windows at least)")
+    if isolated < half_size and log is not None:
+        log.warning("%s: %dx%d windows would hold other stars' light (PSF width %.2f pixel): %dx%d windows",
+                    label, size, size, width, 2 * isolated + 1, 2 * isolated + 1)
+    return isolated
+
+
+@dataclass
+class _Calibrations:
+    """What a mode corrects a window with (maps (row, col) or None) and the unusable pixels' flags."""
+
+    dark: np.ndarray
+    flags: np.ndarray
+    prnu: np.ndarray = None
+    dx: np.ndarray = None
+    dy: np.ndarray = None
+    variance_x: np.ndarray = None
+    variance_y: np.ndarray = None
+
+    def corrected(self, frame, window, *, star, where):
+        """The window of ``frame`` minus the dark, divided by the flat, corrected for offsets (and widths)."""
+        sl = window.slices
+        image = frame[sl] - self.dark[sl]
+        bad = self.flags[sl] != 0
+        if self.prnu is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):  # a dead pixel's PRNU is about 0
+                image = image / self.prnu[sl]
+        if bad.any():  # left out (weight 0) or the star refused: a placeholder, never used
+            image = np.where(bad, 0.0, image)
+        if self.variance_x is not None:
+            image = response_corrected(image, self.dx[sl], self.dy[sl], self.variance_x[sl], self.variance_y[sl])
+        elif self.dx is not None:
+            image = offset_corrected(image, self.dx[sl], self.dy[sl])
+        if not np.all(np.isfinite(image)):
+            raise WindowError(f"star {star} at {where}: its window reaches pixels without calibration "
+                              "(outside the science area)")
+        return image
+
+
+def _unreferenced_stars(windows, flags, n_bad, central, *, where, label, log):
+    """Fourier method, first position: the stars whose reference window holds a bad pixel (an error for the
+    central star, which ties all the others)."""
+    out = set()
+    for s in np.flatnonzero(n_bad):
+        listed = _pixel_list(windows[s], flags[windows[s].slices] != 0, flags[windows[s].slices])
+        if s == central:
+            raise WindowError(f"star {s} at {where}: its window, the reference every star is tied to, holds "
+                              f"bad pixel(s) {listed}; the fourier method cannot leave pixels out (the "
+                              "gaussian method without metrology can)")
+        out.add(int(s))
+        if log is not None:
+            log.warning("%s: star %d at %s: its reference window holds bad pixel(s) %s; the fourier method "
+                        "cannot leave pixels out: the star is not measured at any position", label, s,
+                        where, listed)
+    return out
+
+
+class _Locator:
+    """Positions in detector coordinates: a Gaussian fit, or Fourier resampling against each star's first
+    window, tied to the central star's, whose Gaussian fit anchors them all."""
+
+    def __init__(self, method, windows, images, noise, central, no_reference):
+        self.method = method
+        self.references = list(zip(windows, images))
+        self.anchor = gaussian_fit(images[central], windows[central], weights=noise[central])
+        # each star's reference tied to the central one's, by the method itself, with the weights
+        # its reference is measured with later: that window's noise then cancels between tie and shift
+        self.ties = [np.zeros(2) if s == central or method == "gaussian" or s in no_reference else
+                     fourier_displacement(images[central], images[s], weights=noise[s]) + np.array(
+                         [windows[s].col0 - windows[central].col0, windows[s].row0 - windows[central].row0])
+                     for s in range(len(windows))]
+
+    def __call__(self, image, window, star, weights):
+        if self.method == "gaussian":
+            fit = gaussian_fit(image, window, weights=weights)
+            return np.array([fit.x, fit.y])
+        ref_window, ref_image = self.references[star]
+        shift = fourier_displacement(ref_image, image, weights=weights)
+        origin = np.array([window.col0 - ref_window.col0, window.row0 - ref_window.row0])
+        return np.array([self.anchor.x, self.anchor.y]) + self.ties[star] + shift + origin
+
+
 def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, prnu=None, dx=None, dy=None,
                       bad_pixels=None, method: str = "fourier", half_size: int = 7, label: str = "stars",
-                      log=None) -> PositionCentroids:
+                      log=None, variance_x=None, variance_y=None) -> PositionCentroids:
     """Centroids of the stars at every detector position, with their precision and photon-noise limit.
 
     Parameters
@@ -407,6 +567,10 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
         Flat-field correction (windows divided by it).
     dx, dy : ndarray (row, col), optional
         Pixel offsets for the offset correction (:func:`offset_corrected`).
+    variance_x, variance_y : ndarray (row, col), optional
+        Each pixel's PRF variance along x and y minus the mean kernel's,
+        pixel^2 (from ``calibration/prf.nc``: width^2 - mean_width^2); with
+        the offsets, the correction is :func:`response_corrected` (requires dx, dy).
     bad_pixels : int ndarray (row, col), optional
         The bad-pixel mask's flags (``bad_pixel`` of ``calibration/bad_pixels.nc``);
         its unusable pixels (dead, hot, column: :data:`dice_core.calibration.UNUSABLE`)
@@ -452,6 +616,8 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
     """
     if method not in METHODS:
         raise ValueError(f"unknown centroid method {method!r}; methods are {', '.join(METHODS)}")
+    if (variance_x is None) != (variance_y is None) or (variance_x is not None and dx is None):
+        raise ValueError("the PRF width correction needs both variance maps and the pixel offsets")
     n_pos, n_star = len(positions), len(approx)
     out = {name: np.full((n_pos, n_star), np.nan) for name in ("x", "y", "px", "py", "lx", "ly")}
     n_saturated = np.zeros((n_pos, n_star), dtype=np.int64)
@@ -461,99 +627,43 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
     flags = np.zeros(detector.shape, np.int64)
     if bad_pixels is not None:
         flags = np.where(unusable_pixels(bad_pixels), np.asarray(bad_pixels).astype(np.int64), 0)
+    calibrations = _Calibrations(dark, flags, prnu, dx, dy, variance_x, variance_y)
     leave_out = method == "gaussian" and dx is None  # else a bad value is resampled over the window
     no_reference = set()  # stars whose reference window (Fourier, first position) holds a bad pixel
     n_frames = np.zeros(n_pos, dtype=np.int64)
     centres = [(float(r), float(c)) for r, c in approx]
-    references, first_windows = None, None
-    size = 2 * half_size + 1
+    locate, first_windows = None, None
     central = int(np.argmin([np.hypot(r - np.mean([a[0] for a in approx]), c - np.mean([a[1] for a in approx]))
                              for r, c in approx]))
     stacks = iter(stacks)
     for i, position in enumerate(positions):
         where = f"position {position}"
-        stack = next(stacks, None)
-        if stack is None:
-            raise ValueError(f"{label}: no frames given for {where} ({i} stack(s) for {n_pos} positions)")
-        if stack.position is not None and stack.position != position:
-            raise ValueError(f"{label}: the stack given for {where} is that of position {stack.position}")
-        if stack.n_batches < 2:
-            raise ValueError(f"{label}: {where} has {stack.n_batches} batch; a precision needs two at least")
+        stack = _position_stack(stacks, position, i, n_pos, label)
         n, n_batches = stack.n_frames, stack.n_batches
         mean, batch_means, saturated = stack.mean, stack.batch_means, stack.n_saturated
         n_frames[i] = n
-        if references is None:
-            width = max(max(f.width_x, f.width_y) for f in (
-                gaussian_fit(mean[w.slices] - dark[w.slices], w, weights=(flags[w.slices] == 0).astype(float)) for w in
-                (star_window(r, c, half_size, detector.shape, label=f"star {s} at {where}")
-                 for s, (r, c) in enumerate(centres))))
-            isolated = isolated_half_size(centres, half_size, width)
-            if isolated < 2:
-                raise WindowError(f"{label}: at {where} the stars are too close for windows holding one star's light "
-                                  f"alone (PSF width {width:.2f} pixel; 5x5 windows at least)")
-            if isolated < half_size and log is not None:
-                log.warning("%s: %dx%d windows would hold other stars' light (PSF width %.2f pixel): %dx%d windows",
-                            label, size, size, width, 2 * isolated + 1, 2 * isolated + 1)
-            half_size, size = isolated, 2 * isolated + 1
+        if locate is None:
+            half_size = _isolated_windows_half_size(mean, dark, centres, flags, half_size, detector.shape,
+                                                    where=where, label=label, log=log)
         windows = [star_window(r, c, half_size, detector.shape, label=f"star {s} at {where}")
                    for s, (r, c) in enumerate(centres)]
-
-        def corrected(frame, window, star):
-            image = frame[window.slices] - dark[window.slices]
-            bad = flags[window.slices] != 0
-            if prnu is not None:
-                with np.errstate(divide="ignore", invalid="ignore"):  # a dead pixel's PRNU is about 0
-                    image = image / prnu[window.slices]
-            if bad.any():  # left out (weight 0) or the star refused: a placeholder, never used
-                image = np.where(bad, 0.0, image)
-            if dx is not None:
-                image = offset_corrected(image, dx[window.slices], dy[window.slices])
-            if not np.all(np.isfinite(image)):
-                raise WindowError(f"star {star} at {where}: its window reaches pixels without calibration "
-                                  "(outside the science area)")
-            return image
-
-        images = [corrected(mean, w, s) for s, w in enumerate(windows)]
-        batch_images = [[corrected(frame, w, s) for s, w in enumerate(windows)] for frame in batch_means]
+        images = [calibrations.corrected(mean, w, star=s, where=where) for s, w in enumerate(windows)]
+        batch_images = [[calibrations.corrected(frame, w, star=s, where=where) for s, w in enumerate(windows)]
+                        for frame in batch_means]
         noise = [np.where(flags[w.slices] != 0, 0.0, _noise_weights(image, n, detector.gain, read_noise[w.slices]))
                  for image, w in zip(images, windows)]
         for s, w in enumerate(windows):
             n_bad[i, s] = int(np.count_nonzero(flags[w.slices]))
-        if references is None and method == "fourier" and n_bad[i].any():
-            for s in np.flatnonzero(n_bad[i]):
-                listed = _pixel_list(windows[s], flags[windows[s].slices] != 0, flags[windows[s].slices])
-                if s == central:
-                    raise WindowError(f"star {s} at {where}: its window, the reference every star is tied to, holds "
-                                      f"bad pixel(s) {listed}; the fourier method cannot leave pixels out (the "
-                                      "gaussian method without metrology can)")
-                no_reference.add(int(s))
-                if log is not None:
-                    log.warning("%s: star %d at %s: its reference window holds bad pixel(s) %s; the fourier method "
-                                "cannot leave pixels out: the star is not measured at any position", label, s,
-                                where, listed)
-        if references is None:
+        if locate is None:
+            if method == "fourier" and n_bad[i].any():
+                no_reference = _unreferenced_stars(windows, flags, n_bad[i], central, where=where, label=label,
+                                                   log=log)
             if method == "fourier" and any(saturated[w.slices].any() for w in windows):
                 s = next(s for s, w in enumerate(windows) if saturated[w.slices].any())
                 raise ValueError(f"star {s} at {where}: saturated samples in the window every later position "
                                  "is resampled against; the fourier method needs an unsaturated first position")
-            references = [(w, image) for w, image in zip(windows, images)]
             first_windows = np.array(images)
-            anchor = gaussian_fit(images[central], windows[central], weights=noise[central])
-            # each star's reference tied to the central one's, by the method itself, with the weights
-            # its reference is measured with later: that window's noise then cancels between tie and shift
-            ties = [np.zeros(2) if s == central or method == "gaussian" or s in no_reference else
-                    fourier_displacement(images[central], images[s], weights=noise[s]) + np.array(
-                        [windows[s].col0 - windows[central].col0, windows[s].row0 - windows[central].row0])
-                    for s in range(n_star)]
-
-        def locate(image, window, star, weights):
-            if method == "gaussian":
-                fit = gaussian_fit(image, window, weights=weights)
-                return np.array([fit.x, fit.y])
-            ref_window, ref_image = references[star]
-            shift = fourier_displacement(ref_image, image, weights=weights)
-            origin = np.array([window.col0 - ref_window.col0, window.row0 - ref_window.row0])
-            return np.array([anchor.x, anchor.y]) + ties[star] + shift + origin
+            locate = _Locator(method, windows, images, noise, central, no_reference)
 
         for s, window in enumerate(windows):
             n_saturated[i, s] = int(saturated[window.slices].sum())
@@ -586,7 +696,6 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
                      out["x"][i, central], out["y"][i, central])
     return PositionCentroids(out["x"], out["y"], out["px"], out["py"], out["lx"], out["ly"], n_frames, n_saturated,
                              first_windows, n_bad)
-
 
 def centroids_dataset(result: PositionCentroids, positions, *, mode: str, method: str):
     """The ``centroids/<mode>.nc`` product: x, y (position, star) and their error budget, pixel."""

@@ -297,7 +297,7 @@ STAR_ACCURACY_BENCH = {
     "stars": {"positions": 12, "frames": 16, "tip_tilt_pv": 0.0},  # a roll only: Procrustes absorbs it
 }
 
-STAR_ACCURACY_MODES = ("raw", "flat", "metrology", "flat+metrology")
+STAR_ACCURACY_MODES = ("raw", "flat", "metrology", "flat+metrology", "flat+metrology+width")
 
 
 def _position_chunks(cfg, truth, index: int):
@@ -311,14 +311,33 @@ def _position_chunks(cfg, truth, index: int):
         start += frames.shape[0]
 
 
+def _measurable_variances(truth, detector, *, degree: int = 6):
+    """The true PRF variances (x, y) minus their smooth polynomial over the science area, pixel^2.
+
+    What :func:`dice_core.prf.width_maps` can measure (the mean and smooth part are the fringe visibility's),
+    without its photon noise: the width mode's perfect calibration.
+    """
+    from dice_core import prf
+
+    mask = detector.science_mask()
+    rows, cols = np.nonzero(mask)
+    out = []
+    for axis in "xy":
+        variance = np.zeros(mask.shape)
+        variance[mask] = prf.pixel_scale(truth[f"width_{axis}"].values[mask] ** 2, cols, rows, degree=degree)
+        out.append(variance)
+    return out
+
+
 def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "gaussian", half_size: int = 7,
                   batches: int = 4, groups: int = 3, trials: int = 500) -> xr.Dataset:
     """Centroid accuracy of each calibration mode with perfect calibrations, against truth and by Procrustes.
 
     The bench ``settings`` (:data:`STAR_ACCURACY_BENCH` with a point's
     overrides) is simulated in memory, star positions only, with its true
-    sensitivities as the flat and its true pixel offsets as the metrology:
-    each mode's error is then what the calibrations it uses cannot remove.
+    sensitivities as the flat, its true pixel offsets as the metrology and
+    its true PRF variances, less their smooth part (what the width maps
+    measure), as the widths: each mode's error is then what the calibrations it uses cannot remove.
     The dark is the true bias and the frames are not quantised (the
     workflow's uint16 files add about 0.3 adu rms).
 
@@ -348,11 +367,14 @@ def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "g
     datasets, truth_errors = {}, []
     for mode in modes:
         use_flat, use_metrology = centroids.mode_corrections(mode)
+        widths = {}
+        if "widths" in centroids.mode_needs(mode):  # the PRF variances the width maps can measure
+            widths = dict(zip(("variance_x", "variance_y"), _measurable_variances(truth, manifest.detector)))
         result = centroids.measure_positions(
             position_stacks, positions, manifest.star_approx, manifest.detector, truth["bias"].values,
             read_noise=read_noise, prnu=truth["sensitivity"].values if use_flat else None,
             dx=truth["dx"].values if use_metrology else None, dy=truth["dy"].values if use_metrology else None,
-            method=method, half_size=half_size, label=f"mode {mode}", log=log)
+            method=method, half_size=half_size, label=f"mode {mode}", log=log, **widths)
         datasets[mode] = centroids.centroids_dataset(result, positions, mode=mode, method=method)
         errors = np.stack([result.x - truth["star_x"].values, result.y - truth["star_y"].values])
         errors -= np.nanmean(errors, axis=2, keepdims=True)  # each position's common displacement

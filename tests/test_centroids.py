@@ -433,3 +433,114 @@ def test_bad_pixels_in_a_star_window_are_left_out_or_the_star_refused(tmp_path, 
     assert np.isnan(refused.x[i, 1]) and refused.n_bad_pixels[i, 1] == 1
     assert f"star 1 at position {positions[i]} has bad pixel(s) in its window, row {r}, col {c} (hot)" in caplog.text
     assert np.isfinite(refused.x[:, [0, 2, 3, 4]]).all()
+
+
+def simulate_noisy_stars(path, *, prf_width_spread, frames=400):
+    """Simulated positions with photon and read noise (the default detector and stars), 5 positions."""
+    from dice_core import simulation
+    from dice_core.io import read_product
+    from dice_core.manifest import load_manifest
+
+    cfg = simulation.SimulationConfig.from_dict({
+        "name": "noisy-stars-test", "dark": {"frames": 2}, "flats": {"frames": 2}, "frames_per_file": 100000,
+        "detector": {"prf_width_spread": prf_width_spread},
+        "metrology": {"frames": 2, "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}},
+        "stars": {"positions": 5, "frames": frames}})
+    manifest = load_manifest(simulation.simulate_dataset(cfg, path))
+    return manifest, read_product(path / "truth.nc")
+
+
+def measure_with_widths(manifest, truth, variance_x, variance_y, *, method="gaussian", stacks=None, read_noise=None):
+    return centroids.measure_positions(
+        stacks or stacks_of(manifest), [p.index for p in manifest.positions], manifest.star_approx,
+        manifest.detector, truth["bias"].values,
+        read_noise=np.ones(manifest.detector.shape) if read_noise is None else read_noise,
+        prnu=truth["sensitivity"].values, dx=truth["dx"].values, dy=truth["dy"].values,
+        variance_x=variance_x, variance_y=variance_y, method=method)
+
+
+def measurable_variances(truth, *, degree=6):
+    """The PRF variance deviations the width maps can give: the truth's, off the smooth polynomials."""
+    from dice_core import prf
+
+    mask = np.zeros(truth["width_x"].shape, bool)
+    mask[2:79, 10:83] = True  # the default science area
+    rows, cols = np.nonzero(mask)
+    out = []
+    for axis in "xy":
+        v = np.zeros(mask.shape)
+        v[mask] = prf.pixel_scale(truth[f"width_{axis}"].values[mask] ** 2, cols, rows, degree=degree)
+        out.append(v)
+    return out
+
+
+def affine_residual_over_bound(result, truth):
+    """rms of the errors against truth with each position's affine transform removed, over the rms the
+    Cramer-Rao bounds give after the same projection (1 at the bound)."""
+    squared, expected = 0.0, 0.0
+    for p in range(result.x.shape[0]):
+        x, y = truth["star_x"].values[p], truth["star_y"].values[p]
+        one, zero = np.ones_like(x), np.zeros_like(x)
+        design = np.block([[one[:, None], zero[:, None], x[:, None], y[:, None], zero[:, None], zero[:, None]],
+                           [zero[:, None], one[:, None], zero[:, None], zero[:, None], x[:, None], y[:, None]]])
+        projector = np.eye(design.shape[0]) - design @ np.linalg.pinv(design)
+        error = np.concatenate([result.x[p] - x, result.y[p] - y])
+        variance = np.concatenate([result.limit_x[p], result.limit_y[p]]) ** 2
+        squared += float(np.sum((projector @ error) ** 2))
+        expected += float(np.sum(projector**2 @ variance))  # E|P e|^2 = sum_ij P_ij^2 sigma_j^2
+    return np.sqrt(squared / expected)
+
+
+@pytest.mark.parametrize("method", ["gaussian", pytest.param("fourier", marks=pytest.mark.slow)])
+def test_the_width_correction_removes_what_the_width_spread_leaves(tmp_path, method):
+    """Noiseless, the default 1% spread: flat+metrology keeps 6e-5 pixel; with the PRF variances the width
+    maps can measure (the truth's, off the smooth polynomials), far less."""
+    manifest, truth = simulate_stars(tmp_path, prf_width_spread=0.01)
+    st = stacks_of(manifest)
+    without = differential_error(measure(manifest, truth, flat=True, metrology=True, method=method, stacks=st), truth)
+    with_widths = differential_error(measure_with_widths(manifest, truth, *measurable_variances(truth), method=method,
+                                                         stacks=st), truth)
+    assert 4e-5 < without < 1e-4
+    assert with_widths < 1e-5 and with_widths < 0.15 * without, (with_widths, without)
+
+
+@pytest.fixture(scope="module")
+def noisy_stars(tmp_path_factory):
+    manifest, truth = simulate_noisy_stars(tmp_path_factory.mktemp("noisy-stars"), prf_width_spread=0.01)
+    return manifest, truth, stacks_of(manifest, n_batches=4)
+
+
+def test_with_noise_the_width_correction_reaches_the_cramer_rao_bound(noisy_stars):
+    """400 frames per position (bound about 4.4e-5 pixel): the width spread's 6e-5 shows in flat+metrology,
+    and the width mode sits at the bound (per-position affine removed)."""
+    manifest, truth, st = noisy_stars
+    read_noise = truth["read_noise"].values
+    base = centroids.measure_positions(
+        st, [p.index for p in manifest.positions], manifest.star_approx, manifest.detector, truth["bias"].values,
+        read_noise=read_noise, prnu=truth["sensitivity"].values, dx=truth["dx"].values, dy=truth["dy"].values,
+        method="gaussian")
+    widths = measure_with_widths(manifest, truth, *measurable_variances(truth), stacks=st, read_noise=read_noise)
+    ratio_base, ratio_width = (affine_residual_over_bound(r, truth) for r in (base, widths))
+    assert ratio_width < 1.2, ratio_width
+    assert ratio_base > 1.3 * ratio_width, (ratio_base, ratio_width)
+
+
+def test_without_width_spread_the_width_mode_is_no_worse_than_flat_and_metrology(tmp_path):
+    """No width spread: the width maps hold only their noise (drawn at the default preset's stated error,
+    8e-5 pixel, tests/test_prf.py), which the correction turns into far less than the photon noise."""
+    manifest, truth = simulate_noisy_stars(tmp_path, prf_width_spread=0.0)
+    st = stacks_of(manifest, n_batches=4)
+    read_noise = truth["read_noise"].values
+    base = centroids.measure_positions(
+        st, [p.index for p in manifest.positions], manifest.star_approx, manifest.detector, truth["bias"].values,
+        read_noise=read_noise, prnu=truth["sensitivity"].values, dx=truth["dx"].values, dy=truth["dy"].values,
+        method="gaussian")
+    zero = np.zeros(manifest.detector.shape)
+    exact = measure_with_widths(manifest, truth, zero, zero, stacks=st, read_noise=read_noise)
+    np.testing.assert_array_equal(exact.x, base.x)  # no width differences: the offset correction itself
+    rng = np.random.default_rng(5)
+    noise = [2 * 0.2063 * 8e-5 * rng.standard_normal(manifest.detector.shape) for _ in "xy"]  # pixel^2
+    noisy = measure_with_widths(manifest, truth, *noise, stacks=st, read_noise=read_noise)
+    ratio_base, ratio_width = (affine_residual_over_bound(r, truth) for r in (base, noisy))
+    assert ratio_width < 1.02 * ratio_base, (ratio_base, ratio_width)
+    assert ratio_base < 1.2

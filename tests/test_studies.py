@@ -137,3 +137,10 @@ def test_star_accuracy_shows_the_prf_width_spread_that_neither_calibration_sees(
     assert error["flat+metrology"] < 1e-5 < 1e-4 < error["flat"] < error["raw"]
     assert float(spread.truth_error.sel(mode="flat+metrology")) > 3e-5
     assert float(exact.accuracy_position.sel(mode="flat+metrology")) < float(exact.accuracy_position.sel(mode="flat"))
+    # the PRF widths take out what the spread leaves, and cost nothing without a spread
+    width = "flat+metrology+width"
+    assert float(spread.truth_error.sel(mode=width)) < 0.2 * float(spread.truth_error.sel(mode="flat+metrology"))
+    for grouping in ("position", "group"):
+        accuracy = f"accuracy_{grouping}"
+        assert float(spread[accuracy].sel(mode=width)) < float(spread[accuracy].sel(mode="flat+metrology"))
+    assert float(exact.truth_error.sel(mode=width)) <= 1.01 * error["flat+metrology"]

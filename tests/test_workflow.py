@@ -179,6 +179,26 @@ def test_allan_product_follows_the_contract(out):
     np.testing.assert_allclose(ds["deviation_mean"], ds["photon_limit_pixel"], rtol=0.25)
 
 
+def test_prf_widths_follow_the_contract_and_the_truth(out):
+    """calibration/prf.nc: each pixel's width along x and y within its stated error of the truth, the truth's
+    smooth part (the visibility's, which the contrast cannot see) taken as the maps' (docs/centroids.md)."""
+    from dice_core import prf
+
+    truth = read_product(out / "raw" / "truth.nc")
+    ds = read_product(out / "calibration" / "prf.nc")
+    for axis in "xy":
+        width, error = ds[f"width_{axis}"], ds[f"error_width_{axis}"]
+        assert width.dims == ("row", "col") and width.attrs["units"] == error.attrs["units"] == "pixel"
+        ok = np.isfinite(width.values)
+        assert ok.sum() > 1000
+        rows, cols = np.nonzero(ok)
+        true = np.sqrt(float(ds["mean_width"]) ** 2 + prf.pixel_scale(truth[f"width_{axis}"].values[ok] ** 2, cols,
+                                                                      rows, degree=ds.attrs["smooth_degree"]))
+        ratio = float(np.sqrt(np.mean(((width.values[ok] - true) / error.values[ok]) ** 2)))
+        assert 0.7 < ratio < 1.3, (axis, ratio)
+    assert "metrology/H1H4.nc" in ds.attrs["inputs"]
+
+
 def test_centroid_products_follow_the_contract_and_the_truth(out):
     truth = read_product(out / "raw" / "truth.nc")
     errors = {}
@@ -493,9 +513,9 @@ def test_default_preset_against_truth(tmp_path):
     from dice_core import astrometry
 
     table = read_accuracy_table(out / "tables" / "accuracy.csv")
-    assert len(table) == 16  # two methods, four modes, two groupings
+    assert len(table) == 20  # two methods, five modes, two groupings
     rows = {(r["mode"], r["grouping"]): r for r in table if r["method"] == "fourier"}
-    assert len(rows) == 8
+    assert len(rows) == 10
     value = {key: float(r["accuracy"]) for key, r in rows.items()}
     for grouping in ("position", "group"):
         assert value["flat+metrology", grouping] == min(value[m, grouping] for m in

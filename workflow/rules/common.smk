@@ -17,6 +17,7 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import Paramspace, validate
 
 from dice_core import DatasetError, simulation
+from dice_core.centroids import MODE_NEEDS
 from dice_core.manifest import load_manifest, parse_manifest
 
 validate(config, schema="../schemas/config.schema.yaml")
@@ -70,7 +71,7 @@ wildcard_constraints:
     baseline="|".join(map(re.escape, MANIFEST.baselines)) or "(?!)",
     pair="|".join(map(re.escape, MANIFEST.pairs)) or "(?!)",
     position="|".join(str(p.index) for p in MANIFEST.positions) or "(?!)",
-    mode="raw|flat|metrology|flat\\+metrology",
+    mode="|".join(map(re.escape, MODE_NEEDS)),
     method="fourier|gaussian",
 
 
@@ -186,6 +187,11 @@ def metrology_unavailable():
     return None
 
 
+def metrology_products(wildcards=None):
+    """Every baseline's metrology product (the PRF widths use them all)."""
+    return [f"{OUT}/metrology/{baseline}.nc" for baseline in MANIFEST.baselines]
+
+
 def metrology_targets():
     """Products and figures of the metrology stage that this dataset allows."""
     why = metrology_unavailable()
@@ -194,12 +200,9 @@ def metrology_targets():
         return []
     targets = []
     for baseline in MANIFEST.baselines:
-        targets += [
-            f"{OUT}/metrology/{baseline}.nc",
-            *figure_pair(f"metrology_{baseline}").values(),
-            f"{OUT}/allan/{baseline}.nc",
-            *figure_pair(f"allan_{baseline}").values(),
-        ]
+        targets += [f"{OUT}/metrology/{baseline}.nc", *figure_pair(f"metrology_{baseline}").values(),
+                    f"{OUT}/allan/{baseline}.nc", *figure_pair(f"allan_{baseline}").values()]
+    targets += [f"{OUT}/calibration/prf.nc", *figure_pair("prf").values()]
     for pair in MANIFEST.pairs:
         targets += [f"{OUT}/calibration/offsets_{pair}.nc", *figure_pair(f"offsets_{pair}").values()]
     for pair in list(MANIFEST.pairs)[1:]:
@@ -238,12 +241,16 @@ def position_stacks(wildcards):
 
 
 def centroid_calibrations(wildcards):
-    """The calibration products a mode needs: the reference PRNU, the pair's offsets; the bad-pixel mask."""
+    """The calibration products a mode needs (dice_core.centroids.MODE_NEEDS): the reference PRNU, the
+    pair's offsets, the PRF widths; the bad-pixel mask."""
     inputs = {"bad_pixels": bad_pixel_mask()} if bad_pixel_mask() else {}
-    if "flat" in wildcards.mode:
+    needs = MODE_NEEDS[wildcards.mode]
+    if "flat" in needs:
         inputs["prnu"] = f"{OUT}/calibration/prnu.nc"
-    if "metrology" in wildcards.mode:
+    if "offsets" in needs:
         inputs["offsets"] = f"{OUT}/calibration/offsets_{centroid_pair()}.nc"
+    if "widths" in needs:
+        inputs["prf"] = f"{OUT}/calibration/prf.nc"
     return inputs
 
 
@@ -264,13 +271,14 @@ def centroid_targets():
         return []
     targets = []
     for mode in config["centroids"]["modes"]:
-        if "flat" in mode and not MANIFEST.flats:
+        needs = MODE_NEEDS[mode]
+        if "flat" in needs and not MANIFEST.flats:
             skipped(f"centroid mode {mode}", "the dataset has no flat field")
             continue
-        if "metrology" in mode and centroid_pair() is None:
+        if "offsets" in needs and centroid_pair() is None:
             skipped(f"centroid mode {mode}", "the dataset names no pair of metrology baselines")
             continue
-        if "metrology" in mode and metrology_unavailable() is not None:
+        if needs & {"offsets", "widths"} and metrology_unavailable() is not None:
             skipped(f"centroid mode {mode}", f"the metrology is not reduced ({metrology_unavailable()})")
             continue
         targets += [f"{OUT}/centroids/{mode}.nc", *figure_pair(f"centroids_{mode}").values()]

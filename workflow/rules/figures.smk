@@ -106,6 +106,23 @@ rule plot_offsets:
         "../scripts/plot_offsets.py"
 
 
+rule plot_prf:
+    input:
+        prf=rules.prf_widths.output.prf,
+        manifest=MANIFEST_FILE,
+    output:
+        png=report(f"{OUT}/figures/prf.png", category="Metrology", caption="../report/prf.rst"),
+        pdf=f"{OUT}/figures/prf.pdf",
+    params:
+        code=code_version("plotting", "manifest", "io"),
+    log:
+        f"{OUT}/logs/plot_prf.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/plot_prf.py"
+
+
 rule plot_offsets_difference:
     input:
         difference=rules.compare_pairs.output.difference,

@@ -26,6 +26,27 @@ rule fit_fringes:
         "../scripts/fit_fringes.py"
 
 
+rule prf_widths:
+    input:
+        manifest=MANIFEST_FILE,
+        dark=rules.measure_dark.output.dark,
+        metrology=metrology_products,
+    output:
+        prf=f"{OUT}/calibration/prf.nc",
+    params:
+        code=code_version("io", "manifest", "prf"),
+        options=config["prf"],  # the assumed kernel
+        smooth_degree=config["metrology"]["smooth_degree"],
+    log:
+        f"{OUT}/logs/prf_widths.log",
+    benchmark:
+        f"{OUT}/benchmarks/prf_widths.tsv"
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/prf_widths.py"
+
+
 rule deproject_offsets:
     input:
         first=lambda w: f"{OUT}/metrology/{pair_baselines(w)[0]}.nc",

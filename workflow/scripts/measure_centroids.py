@@ -14,28 +14,35 @@ def read_stacks(paths):
 
 
 def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pixel_paths, stack_paths, mode, output,
-                      config, options):
+                      config, options, prf_path=None):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     use_flat, use_metrology = centroids.mode_corrections(mode)
+    use_widths = "widths" in centroids.mode_needs(mode)
     dark = io.read_product(dark_path)
     prnu = io.read_product(prnu_path)["prnu"].values if use_flat else None
     dx = dy = None
     if use_metrology:
         offsets = io.read_product(offsets_path)
         dx, dy = offsets["dx"].values, offsets["dy"].values
+    variance_x = variance_y = None
+    if use_widths:  # each pixel's PRF variance minus the assumed kernel's (NaN where not measured: none)
+        widths = io.read_product(prf_path)
+        variance_x, variance_y = (widths[f"width_{axis}"].values ** 2 - float(widths["mean_width"]) ** 2
+                                  for axis in "xy")
     # dead, hot and column defects are left out or refuse a star; dust pixels are the flat's to correct
     bad_pixels = io.read_product(bad_pixel_paths[0])["bad_pixel"].values if bad_pixel_paths else None
     positions = [p.index for p in manifest.positions]
-    log.info("mode %s (flat %s, pixel offsets %s), method %s, %d positions, %d stars, %dx%d windows", mode,
-             use_flat, use_metrology, options["method"], len(positions), len(manifest.star_approx),
+    log.info("mode %s (flat %s, pixel offsets %s%s), method %s, %d positions, %d stars, %dx%d windows", mode,
+             use_flat, use_metrology, ", PRF widths True" if use_widths else "", options["method"], len(positions), len(manifest.star_approx),
              2 * options["half_size"] + 1, 2 * options["half_size"] + 1)
     result = centroids.measure_positions(
         read_stacks(stack_paths), positions, manifest.star_approx, manifest.detector, dark["dark"].values,
         read_noise=dark["noise"].values, prnu=prnu, dx=dx, dy=dy, bad_pixels=bad_pixels, method=options["method"],
-        half_size=options["half_size"], label=f"mode {mode}", log=log)
+        half_size=options["half_size"], label=f"mode {mode}", log=log, variance_x=variance_x, variance_y=variance_y)
     product = centroids.centroids_dataset(result, positions, mode=mode, method=options["method"])
     inputs = [manifest.path, dark_path, *([prnu_path] if use_flat else []), *([offsets_path] if use_metrology else []),
+              *([prf_path] if use_widths else []),
               *bad_pixel_paths, *stack_paths]
     io.write_product(product, output, title=f"pseudo-star centroids of {manifest.name}, mode {mode}",
                      config=config, inputs=inputs)
@@ -45,4 +52,5 @@ dice_core.run_logged(snakemake.log[0], measure_centroids, snakemake.input.manife
                      snakemake.input.get("prnu"), snakemake.input.get("offsets"),
                      list(snakemake.input.get("bad_pixels", [])), list(snakemake.input.stacks),
                      snakemake.wildcards.mode,
-                     snakemake.output.centroids, snakemake.config, snakemake.params.options)
+                     snakemake.output.centroids, snakemake.config, snakemake.params.options,
+                     snakemake.input.get("prf"))
