@@ -495,7 +495,8 @@ def select_positions(ds, positions=None):
     return np.stack([ds["x"].values, ds["y"].values], axis=-1), ds["position"].values
 
 
-def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: int = 2000, seed: int = 0):
+def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: int = 2000, seed: int = 0,
+                    model: str = "procrustes", geometry=None):
     """Accuracies of every calibration mode, over positions (p) and over groups of positions (g).
 
     Parameters
@@ -506,28 +507,111 @@ def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: 
         Inclusive range of position indices.
     groups : int
         Contiguous groups of positions for (g).
+    model : str
+        The superimposition (:data:`SUPERIMPOSITIONS`).
+    geometry : PoseGeometry, optional
+        For the pose model; its ``centre`` None: the stars' mean position.
 
     Returns
     -------
     rows : list of dict
         One per mode and grouping: mode, method, flat, metrology, grouping
         ("position" or "group"), n (positions or groups), accuracy and error
-        (pixel), rms_residual (pixel), factor.
+        (pixel), rms_residual (pixel), factor, superimposition.
     residuals : dict
-        Mode -> (position indices, Procrustes residuals (position, star, 2)) over positions.
+        Mode -> (position indices, residuals (position, star, 2)) over positions.
     """
-    rows, residuals = [], {}
+    rows, residuals, _ = _mode_accuracies(datasets, positions=positions, groups=groups, trials=trials, seed=seed,
+                                          model=model, geometry=geometry)
+    return rows, residuals
+
+
+def _mode_accuracies(datasets, *, positions, groups, trials, seed, model, geometry):
+    """:func:`mode_accuracies`, and each mode's :class:`Accuracy` over positions (mode -> Accuracy)."""
+    rows, residuals, results = [], {}, {}
     for mode, ds in datasets.items():
         configurations, index = select_positions(ds, positions)
+        mode_geometry = geometry
+        if model == "pose":
+            mode_geometry = geometry or PoseGeometry(centre=None)
+            if mode_geometry.centre is None:
+                mode_geometry = PoseGeometry(mode_geometry.distance, mode_geometry.off_axis,
+                                             tuple(np.nanmean(configurations, axis=(0, 1))))
         for grouping, data in (("position", configurations), ("group", group_means(configurations, groups))):
-            result = accuracy(data, trials=trials, seed=seed)
+            result = accuracy(data, model=model, geometry=mode_geometry, trials=trials, seed=seed)
             rows.append({"mode": mode, "method": ds.attrs.get("method", ""), "flat": "flat" in mode,
                          "metrology": "metrology" in mode, "grouping": grouping, "n": data.shape[0],
                          "accuracy": result.accuracy, "error": result.error, "rms_residual": result.rms_residual,
-                         "factor": result.factor})
+                         "factor": result.factor, "superimposition": model})
             if grouping == "position":
                 residuals[mode] = (index, result.result.residuals)
-    return rows, residuals
+                results[mode] = result
+    return rows, residuals, results
+
+
+@dataclass
+class AccuracyTables:
+    """What :func:`accuracy_tables` gathers: the table's rows, its LaTeX and each model's residual product.
+
+    ``residuals`` maps each superimposition to the product of the first
+    method's residuals (:func:`residuals_dataset`); ``reports`` each pose
+    identifiability summary (``"<method> <mode>"`` -> text).
+    """
+
+    rows: list
+    latex: str
+    residuals: dict
+    reports: dict
+
+
+def accuracy_tables(datasets, methods, *, models=("procrustes",), positions=None, groups: int = 3,
+                    trials: int = 2000, geometry=None) -> AccuracyTables:
+    """Every method's, mode's and superimposition's accuracies: the accuracy table of the workflow.
+
+    Parameters
+    ----------
+    datasets : iterable of xarray.Dataset
+        Centroid products, each with its ``method`` and ``mode`` attributes.
+    methods : list of str
+        The configured methods, in order; those without a product are left
+        out, and the first one present gives the residual products.
+    models : sequence of str
+        Superimpositions (:data:`SUPERIMPOSITIONS`), each with its own rows.
+    geometry : PoseGeometry, optional
+        The pose model's nominal bench.
+
+    Raises
+    ------
+    AstrometryError
+        No product of any configured method, an unknown model.
+    """
+    by_method = {}
+    for ds in datasets:
+        by_method.setdefault(ds.attrs["method"], {})[ds.attrs["mode"]] = ds
+    present = [m for m in methods if m in by_method]
+    if not present:
+        raise AstrometryError(f"no centroid product of the configured methods {list(methods)} "
+                              f"(products of {sorted(by_method)})")
+    for model in models:
+        if model not in SUPERIMPOSITIONS:
+            raise AstrometryError(f"unknown superimposition {model!r}: one of {', '.join(SUPERIMPOSITIONS)}")
+    rows, tables, products, reports = [], [], {}, {}
+    for method in present:
+        for model in models:
+            model_rows, model_residuals, results = _mode_accuracies(
+                by_method[method], positions=positions, groups=groups, trials=trials, seed=0, model=model,
+                geometry=geometry)
+            rows += model_rows
+            tables.append(f"% centroid method: {method}, superimposition: {model}\n" + latex_table(model_rows))
+            identifiability = {}
+            if model == "pose":
+                for mode, result in results.items():
+                    identifiability[mode] = pose_identifiability(result.result, sigma=result.accuracy)
+                    reports[f"{method} {mode}"] = identifiability[mode].summary()
+            if method == present[0]:
+                products[model] = residuals_dataset(by_method[method], model_rows, model_residuals,
+                                                    identifiability=identifiability)
+    return AccuracyTables(rows, "\n".join(tables), products, reports)
 
 
 def _latex_value(value, error):
@@ -553,7 +637,8 @@ def latex_table(rows) -> str:
 
 
 #: Columns of ``tables/accuracy.csv``: the contract's first, then what makes each row traceable.
-CSV_COLUMNS = ("flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "n", "rms_residual", "factor")
+CSV_COLUMNS = ("flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "n", "rms_residual", "factor",
+               "superimposition")
 
 
 def accuracy_csv(rows) -> str:
@@ -563,7 +648,8 @@ def accuracy_csv(rows) -> str:
             return str(bool(value)).lower()
         return f"{value:.6e}" if isinstance(value, float) else str(value)
 
-    return "\n".join([",".join(CSV_COLUMNS), *(",".join(text(row[c]) for c in CSV_COLUMNS) for row in rows)]) + "\n"
+    return "\n".join([",".join(CSV_COLUMNS), *(",".join(text(row.get(c, "procrustes" if c == "superimposition" else ""))
+                                                       for c in CSV_COLUMNS) for row in rows)]) + "\n"
 
 
 def _complete_barycentre_residuals(configurations):
@@ -575,21 +661,26 @@ def _complete_barycentre_residuals(configurations):
     return out
 
 
-def residuals_dataset(datasets: dict, rows, residuals: dict) -> xr.Dataset:
-    """Procrustes residuals over the selected positions and barycentre residuals over all, per mode.
+def residuals_dataset(datasets: dict, rows, residuals: dict, *, identifiability=None) -> xr.Dataset:
+    """A superimposition's residuals over the selected positions and barycentre residuals over all, per mode.
 
-    ``datasets``, ``rows`` and ``residuals`` are one method's: its centroid
-    datasets by mode, and what :func:`mode_accuracies` returned for them.
+    ``datasets``, ``rows`` and ``residuals`` are one method's and one
+    superimposition's: its centroid datasets by mode, and what
+    :func:`mode_accuracies` returned for them.
     ``star_x`` and ``star_y`` (mode, star) are each star's mean centroid over
     the positions where it was measured: the pattern's layout, which the
-    barycentre figure draws downscaled to the residuals.
+    barycentre figure draws downscaled to the residuals. With
+    ``identifiability`` (mode -> :class:`PoseIdentifiability`), the fitted
+    tip and tilt and their Cramer-Rao bounds where the data support them
+    (NaN where not: no pose accuracy is claimed), and each mode's report in
+    the attributes.
     """
     modes = list(residuals)
     accuracy_p = {r["mode"]: r["accuracy"] for r in rows if r["grouping"] == "position"}
     configurations = [select_positions(datasets[m])[0] for m in modes]
     barycentre = [_complete_barycentre_residuals(c) for c in configurations]
     star_mean = np.stack([np.nanmean(c, axis=0) for c in configurations])  # (mode, star, 2)
-    return xr.Dataset(
+    ds = xr.Dataset(
         {"residual": (("mode", "position", "star", "axis"), np.stack([residuals[m][1] for m in modes]),
                       {"units": "pixel", "long_name": "Procrustes residual of each star"}),
          "accuracy": (("mode",), [accuracy_p[m] for m in modes],
@@ -603,6 +694,25 @@ def residuals_dataset(datasets: dict, rows, residuals: dict) -> xr.Dataset:
                     {"units": "pixel", "long_name": "mean centroid y of each star over the positions"})},
         coords={"mode": modes, "position": residuals[modes[0]][0],
                 "all_position": datasets[modes[0]]["position"].values, "axis": ["x", "y"]})
+    model = {r.get("superimposition", "procrustes") for r in rows}
+    ds.attrs["superimposition"] = model.pop() if len(model) == 1 else ""
+    if identifiability:
+        n_pos = ds.sizes["position"]
+        for name, k, what in (("tip", 3, "detector tip (about x)"), ("tilt", 4, "detector tilt (about y)")):
+            values = np.full((len(modes), n_pos), np.nan)
+            bounds = np.full((len(modes), n_pos), np.nan)
+            for i, mode in enumerate(modes):
+                report = identifiability.get(mode)
+                if report is not None and report.identifiable[name]:
+                    values[i] = getattr(report, name)
+                    bounds[i] = report.crlb[:, k]
+            ds[name] = (("mode", "position"), values, {"units": "rad", "long_name": f"{what} fitted by the pose "
+                        "model, zero mean; NaN where the data do not identify it"})
+            ds[f"{name}_crlb"] = (("mode", "position"), bounds, {"units": "rad", "long_name": f"Cramer-Rao bound "
+                                  f"of the {name} from the data alone; NaN where not identifiable"})
+        for mode, report in identifiability.items():
+            ds.attrs[f"identifiability {mode}"] = report.summary()
+    return ds
 
 
 # --------------------------------------------------------------------------- models beyond Procrustes
