@@ -17,30 +17,10 @@ import logging
 
 import numpy as np
 
-from dice_core import astrometry, centroids, simulation, stacks, studies
-from dice_core.manifest import parse_manifest
+from dice_core import astrometry, studies
+from dice_core.studies import flat_metrology_centroids
 
 MODELS = ("procrustes", "projective", "pose")
-
-
-def flat_metrology_centroids(settings):
-    """(position, star, 2) flat+metrology centroids of a simulated bench, the true calibrations applied."""
-    from pathlib import Path
-
-    cfg = simulation.SimulationConfig.from_dict(settings)
-    truth = simulation.make_truth(cfg)
-    manifest = parse_manifest(simulation.dataset_layout(cfg), Path.cwd() / "tip-tilt.yaml")
-    positions = [p.index for p in manifest.positions]
-    position_stacks = [stacks.stack_position(studies._position_chunks(cfg, truth, i), cfg.stars.frames, 4,
-                                             position=i, label=f"position {i}") for i in positions]
-    result = centroids.measure_positions(
-        position_stacks, positions, manifest.star_approx, manifest.detector, truth["bias"].values,
-        read_noise=np.maximum(truth["read_noise"].values, 1e-3), prnu=truth["sensitivity"].values,
-        dx=truth["dx"].values, dy=truth["dy"].values, method="gaussian", half_size=7, label="flat+metrology")
-    rows, cols = cfg.detector.shape
-    geometry = astrometry.PoseGeometry(distance=cfg.stars.distance, off_axis=np.radians(cfg.stars.off_axis_deg),
-                                       centre=((cols - 1) / 2, (rows - 1) / 2))
-    return np.stack([result.x, result.y], axis=-1), truth, geometry
 
 
 def main():
