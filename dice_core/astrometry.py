@@ -53,6 +53,19 @@ __all__ = [
     "CSV_COLUMNS",
     "accuracy_csv",
     "residuals_dataset",
+    "SUPERIMPOSITIONS",
+    "superimpose",
+    "ProjectiveResult",
+    "projective",
+    "PoseGeometry",
+    "pose_project",
+    "POSE_CONSTRAINTS",
+    "POSE_PARAMETERS",
+    "PoseResult",
+    "pose",
+    "PoseUnidentifiable",
+    "PoseIdentifiability",
+    "pose_identifiability",
 ]
 
 
@@ -325,7 +338,7 @@ def _residuals(basis, errors):
     return errors - (errors @ basis) @ basis.T
 
 
-def correction_factor(result: ProcrustesResult, *, trials: int = 2000, seed: int = 0) -> tuple[float, float]:
+def correction_factor(result, *, trials: int = 2000, seed: int = 0) -> tuple[float, float]:
     """Ratio of a white jitter to the rms Procrustes residual it leaves, by Monte Carlo.
 
     For the actual geometry (``result``'s mean configuration, transforms and
@@ -349,15 +362,27 @@ def _factors(white):
     return per_star, float((1.0 / np.sqrt(np.mean(white**2, axis=(1, 2, 3)))).mean())
 
 
-def _white_residuals(result: ProcrustesResult, trials: int, seed: int, basis=None) -> np.ndarray:
+def _basis_of(result) -> np.ndarray:
+    """Orthonormal basis of what a superimposition's result can absorb (its tangent space at the solution)."""
+    if isinstance(result, ProcrustesResult):
+        return _tangent_basis(result.mean, result.params)
+    if isinstance(result, PoseResult):  # the fit moves only within its constraints
+        from scipy.linalg import null_space
+
+        n_pos, n_star = result.residuals.shape[:2]
+        return _column_basis(result.jacobian() @ null_space(_pose_constraints(n_star, n_pos)[0]))
+    return _column_basis(result.jacobian())
+
+
+def _white_residuals(result, trials: int, seed: int, basis=None) -> np.ndarray:
     """Residuals (trial, position, star, 2) that the superimposition leaves of unit white errors."""
-    basis = _tangent_basis(result.mean, result.params) if basis is None else basis
+    basis = _basis_of(result) if basis is None else basis
     rng = np.random.default_rng(seed)
     errors = rng.standard_normal((trials, basis.shape[0]))
     return _residuals(basis, errors).reshape(trials, *result.residuals.shape)
 
 
-def star_factors(result: ProcrustesResult, *, trials: int = 2000, seed: int = 0) -> np.ndarray:
+def star_factors(result, *, trials: int = 2000, seed: int = 0) -> np.ndarray:
     """The correction factor of each star (star,): white jitter over the mean rms of that star's residuals.
 
     The superimposition does not absorb all stars alike: the transforms have
@@ -375,7 +400,9 @@ class Accuracy:
     """A corrected Procrustes accuracy (pixel) with its Monte Carlo error bar (pixel).
 
     ``factor`` is the global correction factor (rms residual to accuracy, for
-    equal errors); ``star_accuracy`` each star's own corrected accuracy.
+    equal errors); ``star_accuracy`` each star's own corrected accuracy;
+    ``result`` the superimposition's (:class:`ProcrustesResult`,
+    :class:`ProjectiveResult` or :class:`PoseResult`).
     """
 
     accuracy: float
@@ -383,7 +410,7 @@ class Accuracy:
     rms_residual: float
     factor: float
     star_accuracy: np.ndarray
-    result: ProcrustesResult
+    result: object
 
 
 def _corrected(residuals, factors):
@@ -392,8 +419,35 @@ def _corrected(residuals, factors):
     return np.sqrt(np.mean(per_star**2, axis=-1)), per_star
 
 
-def accuracy(configurations, *, trials: int = 2000, seed: int = 0) -> Accuracy:
-    """Differential astrometric accuracy of the configurations: corrected rms Procrustes residual.
+#: The superimpositions :func:`accuracy` offers: Procrustes (5 parameters per position), projective
+#: (a homography, 8) and pose (the detector's 3-D pose, 6, with the star directions shared).
+SUPERIMPOSITIONS = ("procrustes", "projective", "pose")
+
+
+def superimpose(configurations, model: str = "procrustes", *, geometry=None):
+    """Fit the superimposition ``model`` (:data:`SUPERIMPOSITIONS`); ``geometry`` (:class:`PoseGeometry`) for pose.
+
+    Raises
+    ------
+    AstrometryError
+        An unknown model, or what the model's fit raises.
+    """
+    if model == "procrustes":
+        return procrustes(configurations)
+    if model == "projective":
+        return projective(configurations)
+    if model == "pose":
+        return pose(configurations, geometry=geometry or PoseGeometry())
+    raise AstrometryError(f"unknown superimposition {model!r}: one of {', '.join(SUPERIMPOSITIONS)}")
+
+
+def accuracy(configurations, *, model: str = "procrustes", geometry=None, trials: int = 2000,
+             seed: int = 0) -> Accuracy:
+    """Differential astrometric accuracy of the configurations: corrected rms residual of a superimposition.
+
+    ``model`` is one of :data:`SUPERIMPOSITIONS` (``geometry`` labels the
+    pose model's parameters); each has its own Monte Carlo deflation factors,
+    from its own tangent space at the solution.
 
     Each star's rms residual is multiplied by its Monte Carlo correction
     factor for this geometry and number of positions (:func:`star_factors`),
@@ -402,8 +456,8 @@ def accuracy(configurations, *, trials: int = 2000, seed: int = 0) -> Accuracy:
     star, each star's jitter its own corrected accuracy (as in the paper).
     """
     c = _check(configurations)
-    result = procrustes(c)
-    basis = _tangent_basis(result.mean, result.params)  # one SVD for the factors and the error bar
+    result = superimpose(c, model, geometry=geometry)
+    basis = _basis_of(result)  # one SVD for the factors and the error bar
     factors, global_factor = _factors(_white_residuals(result, trials, seed, basis))
     value, per_star = _corrected(result.residuals, factors)
     rng = np.random.default_rng(seed + 1)
@@ -447,7 +501,8 @@ def select_positions(ds, positions=None):
 _PAPER_MODES = ("raw", "flat", "metrology", "flat+metrology")
 
 
-def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: int = 2000, seed: int = 0):
+def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: int = 2000, seed: int = 0,
+                    model: str = "procrustes", geometry=None):
     """Accuracies of every calibration mode, over positions (p) and over groups of positions (g).
 
     Parameters
@@ -458,29 +513,112 @@ def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: 
         Inclusive range of position indices.
     groups : int
         Contiguous groups of positions for (g).
+    model : str
+        The superimposition (:data:`SUPERIMPOSITIONS`).
+    geometry : PoseGeometry, optional
+        For the pose model; its ``centre`` None: the stars' mean position.
 
     Returns
     -------
     rows : list of dict
         One per mode and grouping: mode, method, flat, metrology, grouping
         ("position" or "group"), n (positions or groups), accuracy and error
-        (pixel), rms_residual (pixel), factor.
+        (pixel), rms_residual (pixel), factor, superimposition.
     residuals : dict
-        Mode -> (position indices, Procrustes residuals (position, star, 2)) over positions.
+        Mode -> (position indices, residuals (position, star, 2)) over positions.
     """
-    rows, residuals = [], {}
+    rows, residuals, _ = _mode_accuracies(datasets, positions=positions, groups=groups, trials=trials, seed=seed,
+                                          model=model, geometry=geometry)
+    return rows, residuals
+
+
+def _mode_accuracies(datasets, *, positions, groups, trials, seed, model, geometry):
+    """:func:`mode_accuracies`, and each mode's :class:`Accuracy` over positions (mode -> Accuracy)."""
+    rows, residuals, results = [], {}, {}
     for mode, ds in datasets.items():
         configurations, index = select_positions(ds, positions)
+        mode_geometry = geometry
+        if model == "pose":
+            mode_geometry = geometry or PoseGeometry(centre=None)
+            if mode_geometry.centre is None:
+                mode_geometry = PoseGeometry(mode_geometry.distance, mode_geometry.off_axis,
+                                             tuple(np.nanmean(configurations, axis=(0, 1))))
         for grouping, data in (("position", configurations), ("group", group_means(configurations, groups))):
-            result = accuracy(data, trials=trials, seed=seed)
+            result = accuracy(data, model=model, geometry=mode_geometry, trials=trials, seed=seed)
             needs = mode_needs(mode)  # what the mode corrects with: one mapping, in dice_core.centroids
             rows.append({"mode": mode, "method": ds.attrs.get("method", ""), "flat": "flat" in needs,
                          "metrology": "offsets" in needs, "grouping": grouping, "n": data.shape[0],
                          "accuracy": result.accuracy, "error": result.error, "rms_residual": result.rms_residual,
-                         "factor": result.factor})
+                         "factor": result.factor, "superimposition": model})
             if grouping == "position":
                 residuals[mode] = (index, result.result.residuals)
-    return rows, residuals
+                results[mode] = result
+    return rows, residuals, results
+
+
+@dataclass
+class AccuracyTables:
+    """What :func:`accuracy_tables` gathers: the table's rows, its LaTeX and each model's residual product.
+
+    ``residuals`` maps each superimposition to the product of the first
+    method's residuals (:func:`residuals_dataset`); ``reports`` each pose
+    identifiability summary (``"<method> <mode>"`` -> text).
+    """
+
+    rows: list
+    latex: str
+    residuals: dict
+    reports: dict
+
+
+def accuracy_tables(datasets, methods, *, models=("procrustes",), positions=None, groups: int = 3,
+                    trials: int = 2000, geometry=None) -> AccuracyTables:
+    """Every method's, mode's and superimposition's accuracies: the accuracy table of the workflow.
+
+    Parameters
+    ----------
+    datasets : iterable of xarray.Dataset
+        Centroid products, each with its ``method`` and ``mode`` attributes.
+    methods : list of str
+        The configured methods, in order; those without a product are left
+        out, and the first one present gives the residual products.
+    models : sequence of str
+        Superimpositions (:data:`SUPERIMPOSITIONS`), each with its own rows.
+    geometry : PoseGeometry, optional
+        The pose model's nominal bench.
+
+    Raises
+    ------
+    AstrometryError
+        No product of any configured method, an unknown model.
+    """
+    by_method = {}
+    for ds in datasets:
+        by_method.setdefault(ds.attrs["method"], {})[ds.attrs["mode"]] = ds
+    present = [m for m in methods if m in by_method]
+    if not present:
+        raise AstrometryError(f"no centroid product of the configured methods {list(methods)} "
+                              f"(products of {sorted(by_method)})")
+    for model in models:
+        if model not in SUPERIMPOSITIONS:
+            raise AstrometryError(f"unknown superimposition {model!r}: one of {', '.join(SUPERIMPOSITIONS)}")
+    rows, tables, products, reports = [], [], {}, {}
+    for method in present:
+        for model in models:
+            model_rows, model_residuals, results = _mode_accuracies(
+                by_method[method], positions=positions, groups=groups, trials=trials, seed=0, model=model,
+                geometry=geometry)
+            rows += model_rows
+            tables.append(f"% centroid method: {method}, superimposition: {model}\n" + latex_table(model_rows))
+            identifiability = {}
+            if model == "pose":
+                for mode, result in results.items():
+                    identifiability[mode] = pose_identifiability(result.result, sigma=result.accuracy)
+                    reports[f"{method} {mode}"] = identifiability[mode].summary()
+            if method == present[0]:
+                products[model] = residuals_dataset(by_method[method], model_rows, model_residuals,
+                                                    identifiability=identifiability)
+    return AccuracyTables(rows, "\n".join(tables), products, reports)
 
 
 def _latex_value(value, error):
@@ -522,7 +660,8 @@ def latex_table(rows) -> str:
 
 
 #: Columns of ``tables/accuracy.csv``: the contract's first, then what makes each row traceable.
-CSV_COLUMNS = ("flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "n", "rms_residual", "factor")
+CSV_COLUMNS = ("flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "n", "rms_residual", "factor",
+               "superimposition")
 
 
 def accuracy_csv(rows) -> str:
@@ -532,7 +671,8 @@ def accuracy_csv(rows) -> str:
             return str(bool(value)).lower()
         return f"{value:.6e}" if isinstance(value, float) else str(value)
 
-    return "\n".join([",".join(CSV_COLUMNS), *(",".join(text(row[c]) for c in CSV_COLUMNS) for row in rows)]) + "\n"
+    return "\n".join([",".join(CSV_COLUMNS), *(",".join(text(row.get(c, "procrustes" if c == "superimposition" else ""))
+                                                       for c in CSV_COLUMNS) for row in rows)]) + "\n"
 
 
 def _complete_barycentre_residuals(configurations):
@@ -544,21 +684,26 @@ def _complete_barycentre_residuals(configurations):
     return out
 
 
-def residuals_dataset(datasets: dict, rows, residuals: dict) -> xr.Dataset:
-    """Procrustes residuals over the selected positions and barycentre residuals over all, per mode.
+def residuals_dataset(datasets: dict, rows, residuals: dict, *, identifiability=None) -> xr.Dataset:
+    """A superimposition's residuals over the selected positions and barycentre residuals over all, per mode.
 
-    ``datasets``, ``rows`` and ``residuals`` are one method's: its centroid
-    datasets by mode, and what :func:`mode_accuracies` returned for them.
+    ``datasets``, ``rows`` and ``residuals`` are one method's and one
+    superimposition's: its centroid datasets by mode, and what
+    :func:`mode_accuracies` returned for them.
     ``star_x`` and ``star_y`` (mode, star) are each star's mean centroid over
     the positions where it was measured: the pattern's layout, which the
-    barycentre figure draws downscaled to the residuals.
+    barycentre figure draws downscaled to the residuals. With
+    ``identifiability`` (mode -> :class:`PoseIdentifiability`), the fitted
+    tip and tilt and their Cramer-Rao bounds where the data support them
+    (NaN where not: no pose accuracy is claimed), and each mode's report in
+    the attributes.
     """
     modes = list(residuals)
     accuracy_p = {r["mode"]: r["accuracy"] for r in rows if r["grouping"] == "position"}
     configurations = [select_positions(datasets[m])[0] for m in modes]
     barycentre = [_complete_barycentre_residuals(c) for c in configurations]
     star_mean = np.stack([np.nanmean(c, axis=0) for c in configurations])  # (mode, star, 2)
-    return xr.Dataset(
+    ds = xr.Dataset(
         {"residual": (("mode", "position", "star", "axis"), np.stack([residuals[m][1] for m in modes]),
                       {"units": "pixel", "long_name": "Procrustes residual of each star"}),
          "accuracy": (("mode",), [accuracy_p[m] for m in modes],
@@ -572,3 +717,661 @@ def residuals_dataset(datasets: dict, rows, residuals: dict) -> xr.Dataset:
                     {"units": "pixel", "long_name": "mean centroid y of each star over the positions"})},
         coords={"mode": modes, "position": residuals[modes[0]][0],
                 "all_position": datasets[modes[0]]["position"].values, "axis": ["x", "y"]})
+    model = {r.get("superimposition", "procrustes") for r in rows}
+    ds.attrs["superimposition"] = model.pop() if len(model) == 1 else ""
+    if identifiability:
+        n_pos = ds.sizes["position"]
+        for name, k, what in (("tip", 3, "detector tip (about x)"), ("tilt", 4, "detector tilt (about y)")):
+            values = np.full((len(modes), n_pos), np.nan)
+            bounds = np.full((len(modes), n_pos), np.nan)
+            for i, mode in enumerate(modes):
+                report = identifiability.get(mode)
+                if report is not None and report.identifiable[name]:
+                    values[i] = getattr(report, name)
+                    bounds[i] = report.crlb[:, k]
+            ds[name] = (("mode", "position"), values, {"units": "rad", "long_name": f"{what} fitted by the pose "
+                        "model, zero mean; NaN where the data do not identify it"})
+            ds[f"{name}_crlb"] = (("mode", "position"), bounds, {"units": "rad", "long_name": f"Cramer-Rao bound "
+                                  f"of the {name} from the data alone; NaN where not identifiable"})
+        for mode, report in identifiability.items():
+            ds.attrs[f"identifiability {mode}"] = report.summary()
+    return ds
+
+
+# --------------------------------------------------------------------------- models beyond Procrustes
+
+def _column_basis(jacobian) -> np.ndarray:
+    """Orthonormal basis (observation, k) of the column space of ``jacobian`` (observation, parameter).
+
+    Columns are normalised first, so that parameters of very different units
+    (pixel, rad, a star's direction) weigh alike; directions with a singular
+    value below 1e-10 of the largest are the model's gauge freedoms (null).
+    """
+    norms = np.linalg.norm(jacobian, axis=0)
+    u, singular, _ = np.linalg.svd(jacobian / np.where(norms > 0, norms, 1.0), full_matrices=False)
+    return u[:, singular > singular[0] * 1e-10]
+
+
+# ----- projective superimposition: a homography per position
+
+@dataclass
+class ProjectiveResult:
+    """Result of :func:`projective`.
+
+    Attributes
+    ----------
+    mean : ndarray (star, 2)
+        Mean configuration, pixel; 4 reference stars (``reference``) fix the
+        projective gauge at their Procrustes mean positions.
+    homographies : ndarray (position, 3, 3)
+        H_p, with H_p[2, 2] = 1, mapping the mean configuration's normalised
+        coordinates ``(mean - centre) / scale`` to detector pixels.
+    centre, scale : ndarray (2,), float
+        The normalisation of the mean configuration (pixel).
+    reference : ndarray (4,)
+        The stars held fixed.
+    residuals : ndarray (position, star, 2)
+        Configuration minus the model, pixel.
+    """
+
+    mean: np.ndarray
+    homographies: np.ndarray
+    centre: np.ndarray
+    scale: float
+    reference: np.ndarray
+    residuals: np.ndarray
+
+    @property
+    def rms(self) -> float:
+        """rms of the residuals over positions, stars and both axes, pixel."""
+        return float(np.sqrt(np.mean(self.residuals**2)))
+
+    def jacobian(self) -> np.ndarray:
+        """d(model coordinates) / d(free mean coordinates, every position's 8 entries of H)."""
+        free = np.setdiff1d(np.arange(self.mean.shape[0]), self.reference)
+        h = self.homographies.reshape(-1, 9)[:, :8]
+        return _homography_jacobian((self.mean - self.centre) / self.scale, h, free)[1]
+
+
+def _homography_apply(points, h):
+    """Pixels (position, star, 2) of normalised points (star, 2) through homographies h (position, 8)."""
+    x, y = points[:, 0], points[:, 1]
+    w = h[:, 6, None] * x + h[:, 7, None] * y + 1.0
+    u = (h[:, 0, None] * x + h[:, 1, None] * y + h[:, 2, None]) / w
+    v = (h[:, 3, None] * x + h[:, 4, None] * y + h[:, 5, None]) / w
+    return np.stack([u, v], axis=-1), w
+
+
+def _homography_jacobian(points, h, free):
+    """Model (position, star, 2) and its Jacobian (2 S N, 2 len(free) + 8 N) in (free stars' points, h)."""
+    n_pos, n_star = h.shape[0], points.shape[0]
+    model, w = _homography_apply(points, h)
+    u, v = model[..., 0], model[..., 1]
+    x, y = points[None, :, 0], points[None, :, 1]
+    jac = np.zeros((n_pos, n_star, 2, 2 * len(free) + 8 * n_pos))
+    for k, s in enumerate(free):
+        jac[:, s, 0, 2 * k] = (h[:, 0] - h[:, 6] * u[:, s]) / w[:, s]
+        jac[:, s, 0, 2 * k + 1] = (h[:, 1] - h[:, 7] * u[:, s]) / w[:, s]
+        jac[:, s, 1, 2 * k] = (h[:, 3] - h[:, 6] * v[:, s]) / w[:, s]
+        jac[:, s, 1, 2 * k + 1] = (h[:, 4] - h[:, 7] * v[:, s]) / w[:, s]
+    one = np.ones_like(u)
+    for p in range(n_pos):
+        k = 2 * len(free) + 8 * p
+        jac[p, :, 0, k:k + 3] = np.stack([x[0], y[0], one[p]], -1) / w[p, :, None]
+        jac[p, :, 1, k + 3:k + 6] = np.stack([x[0], y[0], one[p]], -1) / w[p, :, None]
+        jac[p, :, 0, k + 6] = -x[0] * u[p] / w[p]
+        jac[p, :, 0, k + 7] = -y[0] * u[p] / w[p]
+        jac[p, :, 1, k + 6] = -x[0] * v[p] / w[p]
+        jac[p, :, 1, k + 7] = -y[0] * v[p] / w[p]
+    return model, jac.reshape(n_pos * n_star * 2, -1)
+
+
+def _projective_reference(points) -> np.ndarray:
+    """The 4 stars whose smallest triangle is the largest: a well-conditioned projective basis."""
+    from itertools import combinations
+
+    def area(a, b, c):
+        return abs((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])) / 2
+
+    best = max(combinations(range(len(points)), 4),
+               key=lambda q: min(area(*points[list(t)]) for t in combinations(q, 3)))
+    return np.array(best)
+
+
+def _dlt(points, targets):
+    """Least-squares homography (8,) with H[2, 2] = 1 mapping points (star, 2) to targets (star, 2)."""
+    x, y = points[:, 0], points[:, 1]
+    u, v = targets[:, 0], targets[:, 1]
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    rows = np.concatenate([np.column_stack([x, y, one, zero, zero, zero, -x * u, -y * u]),
+                           np.column_stack([zero, zero, zero, x, y, one, -x * v, -y * v])])
+    return np.linalg.lstsq(rows, np.concatenate([u, v]), rcond=None)[0]
+
+
+def projective(configurations) -> ProjectiveResult:
+    """Generalised projective superimposition: a homography (8 parameters) per position.
+
+    Each position is modelled as X_p = H_p(M): the mean configuration M
+    mapped by a plane-to-plane projective transform, which holds, besides
+    Procrustes's translation, scales and rotation, a shear and the two
+    projective terms: a tilted detector seeing star directions through a
+    pinhole maps their tangent plane to the detector by exactly such a
+    homography, so H_p absorbs tip-tilt's non-homogeneous scale (the paper's
+    appendix D) without a 3-D model. The model is unchanged if M is mapped
+    by any homography G and every H_p by H_p G^-1: that 8-dimensional
+    gauge is fixed by holding 4 stars of M (the best-conditioned projective
+    basis) at their Procrustes mean positions. With S stars the data keep
+    2SN - 8N - 2(S - 4) degrees of freedom: 2N - 2 for 5 stars (a
+    deflation factor near sqrt(5)).
+
+    Fitted by Levenberg-Marquardt (MINPACK) with an analytic Jacobian, from
+    each position's linear (DLT) homography onto the Procrustes mean.
+
+    Parameters
+    ----------
+    configurations : ndarray (position, star, 2)
+        (x, y) of every star at every position, pixel.
+
+    Raises
+    ------
+    AstrometryError
+        Fewer than 5 stars (4 fix the gauge and leave nothing to compare) or
+        2 positions, NaN centroids.
+    """
+    c = _check(configurations)
+    n_pos, n_star = c.shape[:2]
+    if n_star < 5:
+        raise AstrometryError(f"{n_star} star(s): the projective superimposition needs at least 5 (a homography "
+                              "maps any 4 points onto any 4 others)")
+    start = procrustes(c)
+    centre = start.mean.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((start.mean - centre) ** 2, axis=1))))
+    points = (start.mean - centre) / scale
+    reference = _projective_reference(points)
+    free = np.setdiff1d(np.arange(n_star), reference)
+    h0 = np.array([_dlt(points, c[p]) for p in range(n_pos)])
+    x0 = np.concatenate([points[free].ravel(), h0.ravel()])
+
+    def unpack(x):
+        p = points.copy()
+        p[free] = x[:2 * len(free)].reshape(-1, 2)
+        return p, x[2 * len(free):].reshape(n_pos, 8)
+
+    def residual(x):
+        return (_homography_apply(*unpack(x))[0] - c).ravel()
+
+    def jacobian(x):
+        p, h = unpack(x)
+        return _homography_jacobian(p, h, free)[1]
+
+    fit = least_squares(residual, x0, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
+                        x_scale="jac", max_nfev=100 * x0.size)
+    p, h = unpack(fit.x)
+    model = _homography_apply(p, h)[0]
+    homographies = np.concatenate([h, np.ones((n_pos, 1))], axis=1).reshape(n_pos, 3, 3)
+    return ProjectiveResult(p * scale + centre, homographies, centre, scale, reference, c - model)
+
+
+# ----- pose: the detector's 3-D position and orientation per position, star directions shared
+
+@dataclass(frozen=True)
+class PoseGeometry:
+    """The nominal bench that labels the pose parameters (not fitted).
+
+    The pinhole (the mirror) is the origin; the detector's centre ``centre``
+    (pixel coordinates x, y) sits at the reference pose at
+    ``(distance tan(off_axis), 0, distance)``, its x, y axes along the
+    frame's. These only label the parameters (a translation, the rotation
+    centre, the directions' zero): the fitted model, its residuals and its
+    accuracy do not depend on them, its start does.
+
+    Attributes
+    ----------
+    distance : float
+        Mirror to detector, pixel.
+    off_axis : float
+        Off-axis angle of the field along x, rad.
+    centre : (float, float)
+        Detector pixel (x, y) about which tip, tilt and roll turn.
+    """
+
+    distance: float = 25000.0
+    off_axis: float = 0.0
+    centre: tuple = (0.0, 0.0)
+
+
+def _axis_rotations(angles):
+    """R = Rz(roll) Ry(tilt) Rx(tip) (position, 3, 3) and dR/d(tip, tilt, roll) (3, position, 3, 3)."""
+    def parts(angle):
+        c, s = np.cos(angle), np.sin(angle)
+        return c, s
+
+    (c1, s1), (c2, s2), (c3, s3) = parts(angles[:, 0]), parts(angles[:, 1]), parts(angles[:, 2])
+    n = len(angles)
+    rx, ry, rz = (np.zeros((n, 3, 3)) for _ in range(3))
+    drx, dry, drz = (np.zeros((n, 3, 3)) for _ in range(3))
+    rx[:, 0, 0] = 1
+    rx[:, 1, 1], rx[:, 1, 2], rx[:, 2, 1], rx[:, 2, 2] = c1, -s1, s1, c1
+    drx[:, 1, 1], drx[:, 1, 2], drx[:, 2, 1], drx[:, 2, 2] = -s1, -c1, c1, -s1
+    ry[:, 1, 1] = 1
+    ry[:, 0, 0], ry[:, 0, 2], ry[:, 2, 0], ry[:, 2, 2] = c2, s2, -s2, c2
+    dry[:, 0, 0], dry[:, 0, 2], dry[:, 2, 0], dry[:, 2, 2] = -s2, c2, -c2, -s2
+    rz[:, 2, 2] = 1
+    rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1] = c3, -s3, s3, c3
+    drz[:, 0, 0], drz[:, 0, 1], drz[:, 1, 0], drz[:, 1, 1] = -s3, -c3, c3, -s3
+    rotation = rz @ ry @ rx
+    return rotation, np.stack([rz @ ry @ drx, rz @ dry @ rx, drz @ ry @ rx])
+
+
+def pose_project(directions, poses, geometry: PoseGeometry, *, jacobian: bool = False):
+    """Pixel positions of stars seen through a pinhole by a moving, tilted detector (exact, no approximation).
+
+    Parameters
+    ----------
+    directions : ndarray (star, 2)
+        Each star's direction as tangents (a, b): the ray (a, b, 1) from the
+        pinhole, a and b in rad to first order.
+    poses : ndarray (position, 6)
+        Detector translation (x, y, z) from the reference pose, pixel, then
+        tip (about x), tilt (about y), roll (about z), rad: orientation
+        R = Rz(roll) Ry(tilt) Rx(tip) about the detector's ``centre``.
+    geometry : PoseGeometry
+    jacobian : bool
+        Also return d(positions)/d(directions, poses), (2 S N, 2 S + 6 N),
+        derived analytically.
+
+    Returns
+    -------
+    ndarray (position, star, 2)
+        (x, y) on the detector, pixel.
+
+    Notes
+    -----
+    In the detector's frame the pinhole is at q = -R'O (O the detector
+    centre's position) and a ray's direction is e = R'd; the ray meets the
+    detector plane z = 0 at q + lambda e with lambda = -q_z / e_z, so
+    x = xc + q_x + lambda e_x and y = yc + q_y + lambda e_y.
+    """
+    n_pos, n_star = poses.shape[0], directions.shape[0]
+    d = np.column_stack([directions, np.ones(n_star)])
+    origin = np.array([geometry.distance * np.tan(geometry.off_axis), 0.0, geometry.distance]) + poses[:, :3]
+    rotation, d_rotation = _axis_rotations(poses[:, 3:6])
+    q = -np.einsum("pji,pj->pi", rotation, origin)
+    e = np.einsum("pji,sj->psi", rotation, d)
+    lam = -q[:, None, 2] / e[..., 2]
+    xy = q[:, None, :2] + lam[..., None] * e[..., :2] + np.asarray(geometry.centre, float)
+    if not jacobian:
+        return xy
+    # d(x, y)/dq = M and d(x, y)/de = lambda M, with M = [[1, 0, -e_x/e_z], [0, 1, -e_y/e_z]]
+    m = np.zeros((n_pos, n_star, 2, 3))
+    m[..., 0, 0] = m[..., 1, 1] = 1.0
+    m[..., :, 2] = -e[..., :2] / e[..., 2:3]
+    jac = np.zeros((n_pos, n_star, 2, 2 * n_star + 6 * n_pos))
+    lm_rt = lam[..., None, None] * np.einsum("psik,pjk->psij", m, rotation)  # lambda M R' (position, star, 2, 3)
+    for s in range(n_star):
+        jac[:, s, :, 2 * s:2 * s + 2] = lm_rt[:, s, :, :2]
+    dq = -np.einsum("apji,pj->api", d_rotation, origin)  # (angle, position, 3)
+    de = np.einsum("apji,sj->apsi", d_rotation, d)  # (angle, position, star, 3)
+    for p in range(n_pos):
+        k = 2 * n_star + 6 * p
+        jac[p, :, :, k:k + 3] = -np.einsum("sik,jk->sij", m[p], rotation[p])
+        for a in range(3):
+            jac[p, :, :, k + 3 + a] = (np.einsum("sik,k->si", m[p], dq[a, p])
+                                       + lam[p, :, None] * np.einsum("sik,sk->si", m[p], de[a, p]))
+    return xy, jac.reshape(n_pos * n_star * 2, -1)
+
+
+#: The pose fit's constraints: the gauge (mean tip, tilt and roll over positions zero), and two
+#: near-gauges held at the nominal bench: the detector's mean distance (mean z zero) and the
+#: field's mean direction (the stars' mean tangents where the nominal bench sees their mean position).
+POSE_CONSTRAINTS = ("mean tip", "mean tilt", "mean roll", "mean z", "field direction a", "field direction b")
+
+
+def _pose_constraints(n_star, n_pos, field=(0.0, 0.0)):
+    """Constraint rows (6, 2 S + 6 N) and their targets (6,) (:data:`POSE_CONSTRAINTS`), ``field`` the mean tangents."""
+    rows = np.zeros((6, 2 * n_star + 6 * n_pos))
+    for k, column in enumerate((3, 4, 5, 2)):
+        rows[k, 2 * n_star + column::6] = 1.0 / n_pos
+    rows[4, 0:2 * n_star:2] = rows[5, 1:2 * n_star:2] = 1.0 / n_star
+    return rows, np.array([0.0, 0.0, 0.0, 0.0, field[0], field[1]])
+
+
+@dataclass
+class PoseResult:
+    """Result of :func:`pose`.
+
+    Attributes
+    ----------
+    directions : ndarray (star, 2)
+        Each star's direction tangents (a, b), rad.
+    poses : ndarray (position, 6)
+        Translation x, y, z (pixel), tip, tilt, roll (rad) of the detector,
+        under :data:`POSE_CONSTRAINTS`.
+    geometry : PoseGeometry
+    residuals : ndarray (position, star, 2)
+        Configuration minus the model, pixel.
+    field : ndarray (2,)
+        The stars' mean direction tangents the fit holds (nominal bench).
+    cost_evaluations : int
+    """
+
+    directions: np.ndarray
+    poses: np.ndarray
+    geometry: PoseGeometry
+    residuals: np.ndarray
+    field: np.ndarray
+    cost_evaluations: int = 0
+
+    @property
+    def rms(self) -> float:
+        """rms of the residuals over positions, stars and both axes, pixel."""
+        return float(np.sqrt(np.mean(self.residuals**2)))
+
+    def jacobian(self) -> np.ndarray:
+        """d(model coordinates) / d(directions, poses): (2 S N, 2 S + 6 N)."""
+        return pose_project(self.directions, self.poses, self.geometry, jacobian=True)[1]
+
+
+def _pose_start(c, geometry: PoseGeometry):
+    """Directions and poses from the Procrustes solution: roll and distance from its rotation and scales."""
+    start = procrustes(c)
+    xc, yc = geometry.centre
+    distance = geometry.distance
+    directions = np.column_stack([(start.mean[:, 0] - xc) / distance + np.tan(geometry.off_axis),
+                                  (start.mean[:, 1] - yc) / distance])
+    poses = np.zeros((c.shape[0], 6))
+    poses[:, 2] = distance * (np.exp(start.params[:, 2:4].mean(axis=1)) - 1)  # farther: larger
+    poses[:, 5] = -start.params[:, 4]  # the detector turns one way, the pattern the other
+    poses[:, 5] -= poses[:, 5].mean()
+    poses[:, 2] -= poses[:, 2].mean()
+    # then the translation in x, y that puts each position's stars where they are, on average
+    model = pose_project(directions, poses, geometry)
+    poses[:, :2] = (model - c).mean(axis=1)
+    return directions, poses
+
+
+def pose(configurations, *, geometry: PoseGeometry = PoseGeometry(), max_evaluations: int | None = None) -> PoseResult:
+    """Invert the 3-D projection: each position's detector pose and each star's direction, fitted together.
+
+    The model (:func:`pose_project`) is the exact projection of fixed star
+    directions through a pinhole (the mirror) onto the detector at pose
+    (x, y, z, tip, tilt, roll): 6 N + 2 S parameters for 2 S N coordinates
+    (the paper's 10 + 6 N for 10 N with 5 stars).
+
+    Gauge: turning the whole bench about the pinhole (directions, detector
+    positions and orientations by the same rotation G) leaves every
+    projected position unchanged: 3 freedoms, and the only exact ones (the
+    Jacobian's null space has dimension 3; tested). The fit fixes them by
+    three constraint rows, mean tip = mean tilt = mean roll = 0 over
+    positions, appended to the residuals: since G moves along the null space,
+    the constrained minimum has the same residuals as any other and the
+    constraints are met exactly (the simulator's tip and tilt walks have zero
+    mean too; its roll's mean is one more turn of G). Two further
+    combinations are only weakly fixed, by second-order terms
+    (:func:`pose_identifiability` measures them on the data): the distance
+    (mean z) against the angular scale of the star pattern, and the scale of
+    the tip-tilt against the field's off-axis angle (the tip-tilt's
+    first-order signature on the pattern is the product of the two).
+
+    Solved by Levenberg-Marquardt (MINPACK) with the analytic Jacobian, the
+    bundle-adjustment way, from the Procrustes solution (rolls, distance
+    from its scales, translations), tip and tilt zero.
+
+    Parameters
+    ----------
+    configurations : ndarray (position, star, 2)
+        (x, y) of every star at every position, pixel.
+    geometry : PoseGeometry
+        The nominal bench labelling the parameters.
+
+    Raises
+    ------
+    AstrometryError
+        Fewer than 3 stars or 2 positions, NaN centroids, fewer data than
+        parameters.
+    """
+    c = _check(configurations)
+    n_pos, n_star = c.shape[:2]
+    if 2 * n_star * n_pos < 2 * n_star + 6 * n_pos - len(POSE_CONSTRAINTS):
+        raise AstrometryError(f"{n_pos} positions of {n_star} stars: {2 * n_star * n_pos} coordinates for "
+                              f"{2 * n_star + 6 * n_pos - len(POSE_CONSTRAINTS)} pose parameters")
+    directions, poses = _pose_start(c, geometry)
+    # the field's direction: where the nominal bench sees the centre of the stars, over all positions
+    field = (c.mean(axis=(0, 1)) - geometry.centre) / geometry.distance + [np.tan(geometry.off_axis), 0.0]
+    gauge, target = _pose_constraints(n_star, n_pos, field)
+    # each constraint row weighs about as a pixel of the data: angles times the distance, z as it is
+    weight = np.array([geometry.distance] * 3 + [1.0] + [geometry.distance] * 2)
+    x0 = np.concatenate([directions.ravel(), poses.ravel()])
+
+    def unpack(x):
+        return x[:2 * n_star].reshape(n_star, 2), x[2 * n_star:].reshape(n_pos, 6)
+
+    def residual(x):
+        return np.concatenate([(pose_project(*unpack(x), geometry) - c).ravel(), weight * (gauge @ x - target)])
+
+    def jacobian(x):
+        return np.vstack([pose_project(*unpack(x), geometry, jacobian=True)[1], weight[:, None] * gauge])
+
+    fit = least_squares(residual, x0, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
+                        x_scale="jac", max_nfev=max_evaluations or 200 * x0.size)
+    directions, poses = unpack(fit.x)
+    return PoseResult(directions, poses, geometry, c - pose_project(directions, poses, geometry), field,
+                      int(fit.nfev))
+
+
+# ----- what the data say about the pose: Fisher information and Cramer-Rao bounds
+
+class PoseUnidentifiable(AstrometryError):
+    """The data cannot support the pose accuracy asked for (see :class:`PoseIdentifiability`)."""
+
+
+#: Parameter groups of the pose model, in the order of a position's 6 parameters.
+POSE_PARAMETERS = ("x", "y", "z", "tip", "tilt", "roll")
+
+
+@dataclass
+class PoseIdentifiability:
+    """What the centroids constrain of the pose (:func:`pose_identifiability`).
+
+    Attributes
+    ----------
+    sigma : float
+        Centroid error per coordinate the Fisher information assumes, pixel.
+    crlb : ndarray (position, 6)
+        Cramer-Rao bound (1 sigma) of each position's x, y, z (pixel), tip,
+        tilt, roll (rad), the star directions fitted, with the field's mean
+        direction and the distance from the data alone (the constraints of
+        the gauge and mean z only): what the data support.
+    crlb_nominal_field : ndarray (position, 6)
+        The same with the field's mean direction held at the nominal bench
+        (all of :data:`POSE_CONSTRAINTS`, as the fit does).
+    crlb_known_stars : ndarray (position, 6)
+        The same were every star's direction known.
+    snr : dict
+        For tip and tilt, sqrt(mean over positions of (fitted / ``crlb``)^2):
+        the tip-tilt variation seen over positions in units of its bound
+        (about 1 for noise alone, the mean being the gauge).
+    inflation : dict
+        For tip and tilt, rms ``crlb`` over rms ``crlb_nominal_field``: what
+        separating the tip-tilt from the star geometry costs.
+    weak : list of (float, dict)
+        The least constrained combinations (field direction from the data):
+        the bound on each, in pixel of the coordinates it moves per unit of
+        normalised amplitude, and each parameter group's share of it.
+    rank_deficient : int
+        Combinations the data leave unconstrained (Fisher eigenvalues below
+        1e-24 of the largest, field direction from the data).
+    identifiable : dict
+        For tip and tilt, whether a pose accuracy may be reported.
+    reasons : list of str
+        Why not, in words.
+    tip, tilt : ndarray (position,)
+        The fitted values, rad.
+    """
+
+    sigma: float
+    crlb: np.ndarray
+    crlb_nominal_field: np.ndarray
+    crlb_known_stars: np.ndarray
+    snr: dict
+    inflation: dict
+    weak: list
+    rank_deficient: int
+    identifiable: dict
+    reasons: list
+    tip: np.ndarray
+    tilt: np.ndarray
+
+    @property
+    def all_identifiable(self) -> bool:
+        """Both tip and tilt identifiable."""
+        return all(self.identifiable.values())
+
+    def tip_tilt(self):
+        """(tip, tilt, tip CRLB, tilt CRLB) per position, rad: the pose accuracy the data support.
+
+        Raises
+        ------
+        PoseUnidentifiable
+            Where the data cannot support it, with the reasons.
+        """
+        if not self.all_identifiable:
+            raise PoseUnidentifiable("no pose accuracy can be reported: " + "; ".join(self.reasons))
+        return self.tip, self.tilt, self.crlb[:, 3], self.crlb[:, 4]
+
+    def summary(self) -> str:
+        """The report in words: identifiability, bounds, weak combinations."""
+        def rms(values):
+            return np.sqrt(np.mean(np.asarray(values) ** 2))
+
+        lines = [f"pose identifiability (centroid error {self.sigma:.2e} pixel per coordinate, "
+                 f"{self.crlb.shape[0]} positions):"]
+        for angle in ("tip", "tilt"):
+            k = POSE_PARAMETERS.index(angle)
+            lines.append(f"  {angle}: rms over positions {rms(getattr(self, angle)):.2e} rad; CRLB (rms) "
+                         f"{rms(self.crlb[:, k]):.2e} rad from the data alone, {rms(self.crlb_nominal_field[:, k]):.2e}"
+                         f" with the nominal field direction, {rms(self.crlb_known_stars[:, k]):.2e} with the "
+                         f"stars known; SNR {self.snr[angle]:.1f}: "
+                         + ("identifiable" if self.identifiable[angle] else "NOT identifiable"))
+        for k, name in enumerate(POSE_PARAMETERS):
+            if name not in ("tip", "tilt"):
+                unit = "rad" if k >= 3 else "pixel"
+                lines.append(f"  {name}: CRLB (rms over positions) {rms(self.crlb[:, k]):.2e} {unit}")
+        for bound, shares in self.weak:
+            parts = ", ".join(f"{g} {100 * v:.0f}%" for g, v in sorted(shares.items(), key=lambda t: -t[1])
+                              if v >= 0.05)
+            lines.append(f"  weak combination ({bound:.1e} pixel per unit): {parts}")
+        if self.reasons:
+            lines.append("  no pose accuracy reported: " + "; ".join(self.reasons))
+        return "\n".join(lines)
+
+
+def _constrained_covariance(jacobian, constraints, sigma):
+    """Covariance of the constrained least-squares estimate and its Fisher eigenpairs.
+
+    Parameters are scaled by the Jacobian's column norms (so that pixels,
+    radians and tangents weigh alike); the estimate is confined to the
+    constraints' null space Z: Cov = Z (Z'FZ)^-1 Z' with F = J'J / sigma^2,
+    singular values of J Z below 1e-12 of the largest left out (counted as deficient).
+    Returns the covariance in the original parameters, the eigenvalues and
+    eigenvectors (normalised parameters, on Z) of Z'FZ, Z and the count of
+    deficient combinations.
+    """
+    from scipy.linalg import null_space
+
+    norms = np.linalg.norm(jacobian, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    z = null_space(constraints / norms)
+    # the SVD of J Z, not the eigenvalues of its normal matrix, so that weak combinations down to 1e-12 of
+    # the strongest (not 1e-6) keep their bounds
+    _, singular, vt = np.linalg.svd((jacobian / norms) @ z / sigma, full_matrices=False)
+    keep = singular > singular[0] * 1e-12
+    values, vectors = singular[::-1] ** 2, vt[::-1].T
+    inverse = (vt[keep].T / singular[keep] ** 2) @ vt[keep]
+    covariance = (z @ inverse @ z.T) / np.outer(norms, norms)
+    keep = keep[::-1]
+    return covariance, values, vectors, z, int(np.sum(~keep))
+
+
+def pose_identifiability(result: PoseResult, *, sigma: float | None = None, snr_min: float = 3.0,
+                         weak: int = 3) -> PoseIdentifiability:
+    """Fisher information of the pose fit on the actual data: what 5 stars constrain, and how well.
+
+    The Fisher information J'J / sigma^2 at the fitted solution (J the
+    analytic Jacobian of :func:`pose_project`), confined to the gauge and
+    the nominal distance (the first four of :data:`POSE_CONSTRAINTS`), gives
+    the Cramer-Rao bound of every parameter from the data alone; holding the
+    field's mean direction too (as the fit does) or every star's direction
+    shows what separating the tip-tilt from the star geometry costs. A
+    position's tip and tilt show on the pattern to first order only through
+    their product with the field's off-axis angle (a shear and an
+    anisotropic scale), and that angle is a star-geometry parameter: only
+    second-order terms, which grow with the tip-tilt's spread over
+    positions, separate the two.
+
+    The tip (tilt) is declared identifiable when the Fisher information has
+    full rank under those constraints and the fitted tip (tilt) varies over
+    positions by at least ``snr_min`` times its bound (rms of fitted / CRLB;
+    about 1 for noise alone, so a tip-tilt constant over positions, which is
+    all gauge, is refused; too few positions leave bounds as large as the
+    tip-tilt itself).
+
+    Parameters
+    ----------
+    result : PoseResult
+    sigma : float, optional
+        Centroid error per coordinate, pixel; by default the residuals' rms
+        scaled by the degrees of freedom, sqrt(2SN / (2SN - 6N - 2S + 6)).
+    snr_min : float
+        Detection threshold of the tip-tilt's variation, in CRLB.
+    weak : int
+        How many of the least constrained combinations to describe.
+
+    Raises
+    ------
+    AstrometryError
+        No degrees of freedom left to estimate sigma from.
+    """
+    n_pos, n_star = result.residuals.shape[:2]
+    n_data = 2 * n_pos * n_star
+    dof = n_data - (2 * n_star + 6 * n_pos - len(POSE_CONSTRAINTS))
+    if sigma is None:
+        sigma = result.rms * np.sqrt(n_data / dof) if dof > 0 else np.nan
+    if not np.isfinite(sigma) or sigma <= 0:
+        raise AstrometryError(f"no centroid error to weigh the Fisher information with (sigma {sigma}): "
+                              f"{dof} degrees of freedom left")
+    jacobian = result.jacobian()
+    constraints, _ = _pose_constraints(n_star, n_pos, result.field)
+
+    def bounds(columns, rows):
+        covariance, *rest = _constrained_covariance(jacobian[:, columns], constraints[np.ix_(rows, columns)], sigma)
+        return np.sqrt(np.maximum(np.diag(covariance), 0))[-6 * n_pos:].reshape(n_pos, 6), rest
+
+    every, poses_only = np.arange(jacobian.shape[1]), np.arange(2 * n_star, jacobian.shape[1])
+    crlb, (values, vectors, z, deficient) = bounds(every, [0, 1, 2, 3])
+    crlb_nominal, _ = bounds(every, [0, 1, 2, 3, 4, 5])
+    crlb_known, _ = bounds(poses_only, [0, 1, 2, 3])
+    groups = [f"star {'ab'[k % 2]}" for k in range(2 * n_star)] + list(POSE_PARAMETERS) * n_pos
+    described = []
+    for k in range(min(weak, values.size)):
+        shares = {}
+        for group, component in zip(groups, z @ vectors[:, k]):
+            shares[group] = shares.get(group, 0.0) + component**2
+        described.append((float(1 / np.sqrt(values[k])) if values[k] > 0 else np.inf, shares))
+    snr, inflation, identifiable, reasons = {}, {}, {}, []
+    if deficient:
+        reasons.append(f"{deficient} combination(s) of the pose and star parameters are unconstrained by the data "
+                       f"(the field's direction against the tip-tilt)")
+    for angle in ("tip", "tilt"):
+        k = POSE_PARAMETERS.index(angle)
+        snr[angle] = float(np.sqrt(np.mean((result.poses[:, k] / crlb[:, k]) ** 2)))
+        inflation[angle] = float(np.sqrt(np.mean(crlb[:, k] ** 2) / np.mean(crlb_nominal[:, k] ** 2)))
+        identifiable[angle] = not deficient and snr[angle] >= snr_min
+        if snr[angle] < snr_min:
+            reasons.append(f"the {angle} varies over the {n_pos} positions by {snr[angle]:.1f} times its "
+                           f"Cramer-Rao bound (rms {np.sqrt(np.mean(crlb[:, k] ** 2)):.1e} rad), less than "
+                           f"{snr_min:g}: the positions do not sample the {angle} well enough to separate it from "
+                           f"the star geometry (its bound is x{inflation[angle]:.1f} the one with the field's "
+                           f"direction known)")
+    return PoseIdentifiability(float(sigma), crlb, crlb_nominal, crlb_known, snr, inflation, described, deficient,
+                               identifiable, reasons, result.poses[:, 3].copy(), result.poses[:, 4].copy())

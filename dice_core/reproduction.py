@@ -100,9 +100,15 @@ def procrustes_deflation(n_positions: int = 33, *, trials: int = 2000, seed: int
 
 
 def accuracy_rows(rows, *, dataset: str, note: str) -> list[Row]:
-    """Rows from ``tables/accuracy.csv`` records (dicts with mode, grouping, accuracy, error)."""
+    """Rows from ``tables/accuracy.csv`` records (dicts with mode, grouping, accuracy, error).
+
+    Only the Procrustes rows (the paper's superimposition): records of
+    another ``superimposition`` (projective, pose) are left out.
+    """
     out, found = [], {}
     for record in rows:
+        if record.get("superimposition", "procrustes") != "procrustes":
+            continue
         key = f"accuracy_{record['mode']}_{record['grouping']}"
         if key in PAPER:
             out.append(Row(key, float(record["accuracy"]), float(record["error"]), dataset, note))

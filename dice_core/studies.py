@@ -34,7 +34,8 @@ from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
 from dice_core.paper_method import fit_baseline_paper
 
-__all__ = ["OFFSET_BIAS_BENCH", "STAR_ACCURACY_BENCH", "STUDIES", "star_accuracy", "apply_overrides", "offset_bias", "affine_free", "error_propagation",
+__all__ = ["OFFSET_BIAS_BENCH", "STAR_ACCURACY_BENCH", "TIP_TILT_BENCH", "STUDIES", "star_accuracy", "tip_tilt",
+           "flat_metrology_centroids", "apply_overrides", "offset_bias", "affine_free", "error_propagation",
            "sweep_dataset", "sweep_from_dataset", "run_point"]
 
 log = logging.getLogger(__name__)
@@ -397,11 +398,101 @@ def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "g
     return ds
 
 
+# --------------------------------------------------------------------------- tip-tilt against the superimpositions
+
+#: The tip-tilt study's bench: the star-accuracy bench (perfect flat and metrology, no photon noise:
+#: only the PRF width spread's pixelation is left) on the simulated stage, its field 2 degrees off axis
+#: at 25000 pixel; a point sets ``stars.tip_tilt_pv`` and ``stars.positions``.
+TIP_TILT_BENCH = STAR_ACCURACY_BENCH
+
+
+def flat_metrology_centroids(settings: dict, *, method: str = "gaussian", half_size: int = 7, batches: int = 4):
+    """Flat+metrology centroids of a simulated bench (true calibrations), the truth and the pose geometry.
+
+    Returns
+    -------
+    configurations : ndarray (position, star, 2)
+        Centroids, pixel.
+    truth : xarray.Dataset
+        The simulation's truth (``stage_rotation``: tip, tilt, roll in rad).
+    geometry : dice_core.astrometry.PoseGeometry
+        The simulated bench's distance, off-axis angle and detector centre.
+    """
+    from dice_core import astrometry, centroids, stacks
+    from dice_core.manifest import parse_manifest
+
+    cfg = simulation.SimulationConfig.from_dict(settings)
+    truth = simulation.make_truth(cfg)
+    manifest = parse_manifest(simulation.dataset_layout(cfg), Path.cwd() / "tip-tilt.yaml")
+    positions = [p.index for p in manifest.positions]
+    position_stacks = [stacks.stack_position(_position_chunks(cfg, truth, i), cfg.stars.frames, batches, position=i,
+                                             label=f"position {i}") for i in positions]
+    result = centroids.measure_positions(
+        position_stacks, positions, manifest.star_approx, manifest.detector, truth["bias"].values,
+        read_noise=np.maximum(truth["read_noise"].values, 1e-3), prnu=truth["sensitivity"].values,
+        dx=truth["dx"].values, dy=truth["dy"].values, method=method, half_size=half_size, label="flat+metrology")
+    rows, cols = cfg.detector.shape
+    geometry = astrometry.PoseGeometry(distance=cfg.stars.distance, off_axis=np.radians(cfg.stars.off_axis_deg),
+                                       centre=((cols - 1) / 2, (rows - 1) / 2))
+    return np.stack([result.x, result.y], axis=-1), truth, geometry
+
+
+def tip_tilt(settings: dict, *, models=("procrustes", "projective", "pose"), trials: int = 1000,
+             method: str = "gaussian") -> xr.Dataset:
+    """Each superimposition's flat+metrology accuracy under the bench's tip-tilt, its excess, the pose's bounds.
+
+    The bench (:data:`TIP_TILT_BENCH` with a point's overrides) is simulated
+    twice with the same seed and detector: as set, and with no tip-tilt
+    (its twin). Per model: the corrected accuracy over positions and its
+    error, and the excess variance accuracy^2 - twin's accuracy^2 (pixel^2).
+    For the pose model also its identifiability (:func:`dice_core.astrometry.pose_identifiability`):
+    the tip and tilt SNR, whether identifiable (1/0), their rms Cramer-Rao
+    bounds from the data alone and with the field's direction known, and the
+    rms of fitted minus true tip and tilt (rad).
+    """
+    from dice_core import astrometry
+
+    twin = apply_overrides(settings, {"stars.tip_tilt_pv": 0.0})
+    configurations, truth, geometry = flat_metrology_centroids(settings, method=method)
+    untilted, *_ = flat_metrology_centroids(twin, method=method)
+    ds = xr.Dataset(coords={"model": list(models)})
+    accuracy, error, excess = [], [], []
+    for model in models:
+        result = astrometry.accuracy(configurations, model=model, geometry=geometry, trials=trials)
+        reference = astrometry.accuracy(untilted, model=model, geometry=geometry, trials=trials)
+        accuracy.append(result.accuracy)
+        error.append(result.error)
+        excess.append(result.accuracy**2 - reference.accuracy**2)
+        if model == "pose":
+            report = astrometry.pose_identifiability(result.result, sigma=result.accuracy)
+            true = truth["stage_rotation"].values
+            for k, angle in ((3, "tip"), (4, "tilt")):
+                rms = float(np.sqrt(np.mean((result.result.poses[:, k] - true[:, k - 3]) ** 2)))
+                ds[f"pose_{angle}_snr"] = ((), report.snr[angle], {"units": "1", "long_name": f"{angle} variation "
+                                           "over positions in Cramer-Rao bounds"})
+                ds[f"pose_{angle}_identifiable"] = ((), int(report.identifiable[angle]), {
+                    "units": "1", "long_name": f"1 if the data identify the {angle}, else 0"})
+                ds[f"pose_{angle}_crlb"] = ((), float(np.sqrt(np.mean(report.crlb[:, k] ** 2))), {
+                    "units": "rad", "long_name": f"rms Cramer-Rao bound of the {angle} from the data alone"})
+                ds[f"pose_{angle}_crlb_nominal_field"] = ((), float(np.sqrt(np.mean(report.crlb_nominal_field[:, k] ** 2))), {
+                    "units": "rad", "long_name": f"rms Cramer-Rao bound of the {angle}, the field's direction known"})
+                ds[f"pose_{angle}_error"] = ((), rms, {"units": "rad", "long_name": f"rms fitted minus true {angle}"})
+                ds[f"true_{angle}_rms"] = ((), float(np.sqrt(np.mean(true[:, k - 3] ** 2))), {
+                    "units": "rad", "long_name": f"rms of the true {angle} over positions"})
+    ds["accuracy"] = (("model",), accuracy, {"units": "pixel", "long_name": "corrected flat+metrology accuracy over "
+                                             "positions"})
+    ds["error"] = (("model",), error, {"units": "pixel", "long_name": "its 1-sigma Monte Carlo error"})
+    ds["excess_variance"] = (("model",), excess, {"units": "pixel^2", "long_name": "accuracy^2 minus the untilted "
+                                                  "twin's accuracy^2"})
+    ds.attrs.update({"method": method, "positions": configurations.shape[0]})
+    return ds
+
+
 # --------------------------------------------------------------------------- sweeps
 
 #: Each study's runner: point and settings -> dataset. ``bench`` holds dotted keys of the
 #: study's simulated bench, ``options`` its keyword options; a point's parameters are either.
-STUDIES = ("offset_bias", "error_propagation", "star_accuracy")
+STUDIES = ("offset_bias", "error_propagation", "star_accuracy", "tip_tilt")
 
 
 def run_point(study: str, point: dict, *, bench: dict | None = None, options: dict | None = None,
@@ -441,6 +532,8 @@ def run_point(study: str, point: dict, *, bench: dict | None = None, options: di
         ds = error_propagation(star=stars, **options)
     elif study == "star_accuracy":
         ds = star_accuracy(apply_overrides(STAR_ACCURACY_BENCH, bench), **options)
+    elif study == "tip_tilt":
+        ds = tip_tilt(apply_overrides(TIP_TILT_BENCH, bench), **options)
     else:
         raise ValueError(f"unknown study {study!r}; studies are {', '.join(STUDIES)}")
     ds.attrs.update({"study": study, "point": json.dumps(point)})

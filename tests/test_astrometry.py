@@ -145,3 +145,47 @@ def test_residuals_product_holds_each_stars_mean_position(rng):
             assert float(product["star_y"].sel(mode=mode)[s]) == pytest.approx(y.mean(), abs=1e-12)
     # the pattern: the central star in the middle of the corners
     np.testing.assert_allclose(product["star_x"].sel(mode="raw"), LAYOUT[:, 0], atol=3)
+
+
+def test_accuracy_tables_gather_every_method_mode_and_superimposition(rng):
+    """The accuracy table's logic (moved from the workflow step, issue 13): methods in the configured order,
+    those without products left out, one row per method, mode, grouping and superimposition, the first
+    method's residual product per superimposition, pose reports refusing what the data cannot support."""
+    fourier = centroid_datasets(rng, modes=("raw", "flat+metrology"))
+    gaussian = {m: ds.assign_attrs(method="gaussian") for m, ds in centroid_datasets(rng, modes=("raw",)).items()}
+    # translations, rotations and isotropic scales only (an anisotropic scale is a tilt's signature)
+    params = np.column_stack([rng.normal(0, 1, (12, 2)), np.repeat(rng.normal(0, 2e-4, (12, 1)), 2, axis=1),
+                              rng.normal(0, 2e-3, 12)])
+    rigid = np.array([astrometry._transform(q, LAYOUT) for q in params]) + 2e-4 * rng.standard_normal((12, 5, 2))
+    gaussian["raw"]["x"].values[:], gaussian["raw"]["y"].values[:] = rigid[..., 0], rigid[..., 1]
+    tables = astrometry.accuracy_tables([*fourier.values(), *gaussian.values()], ["gaussian", "fourier", "none"],
+                                        models=["procrustes", "pose"], trials=50,
+                                        geometry=astrometry.PoseGeometry(centre=None))
+    keys = [(r["method"], r["mode"], r["superimposition"], r["grouping"]) for r in tables.rows]
+    assert len(keys) == len(set(keys)) == (1 + 2) * 2 * 2
+    assert keys[0] == ("gaussian", "raw", "procrustes", "position")
+    assert set(tables.residuals) == {"procrustes", "pose"}
+    assert tables.residuals["pose"].attrs["superimposition"] == "pose"
+    assert list(tables.residuals["pose"]["mode"].values) == ["raw"]  # the first method's
+    # no tip-tilt to detect, so no pose accuracy is claimed
+    assert np.all(np.isnan(tables.residuals["pose"]["tip_crlb"].values))
+    assert "NOT identifiable" in tables.reports["gaussian raw"]
+    assert tables.latex.count(r"\begin{tabular}") == 4
+    csv = astrometry.accuracy_csv(tables.rows).splitlines()
+    assert csv[0].endswith(",superimposition") and csv[1].endswith(",procrustes")
+    # Procrustes rows and residuals are those of the single-model call
+    rows, residuals = astrometry.mode_accuracies(gaussian, trials=50)
+    assert rows[0]["accuracy"] == tables.rows[0]["accuracy"]
+    with pytest.raises(astrometry.AstrometryError, match="no centroid product of the configured methods"):
+        astrometry.accuracy_tables(gaussian.values(), ["fourier"])
+    with pytest.raises(astrometry.AstrometryError, match="unknown superimposition 'affine'"):
+        astrometry.accuracy_tables(gaussian.values(), ["gaussian"], models=["affine"])
+
+
+def test_the_paper_comparison_reads_only_the_procrustes_rows():
+    from dice_core import reproduction
+
+    records = [{"mode": "raw", "grouping": "position", "accuracy": "2e-4", "error": "1e-5"},
+               {"mode": "raw", "grouping": "position", "accuracy": "1e-4", "error": "1e-5", "superimposition": "pose"}]
+    rows = reproduction.accuracy_rows(records, dataset="d", note="n")
+    assert [(row.key, row.ours) for row in rows] == [("accuracy_raw_position", 2e-4)]

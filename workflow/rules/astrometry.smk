@@ -1,4 +1,5 @@
-# Differential astrometry: Procrustes accuracies of every centroid mode, gathered in one table.
+# Differential astrometry: accuracies of every centroid mode under each superimposition (Procrustes, and the
+# projective and pose models of astrometry.superimposition), gathered in one table.
 
 
 rule accuracy_table:
@@ -8,6 +9,7 @@ rule accuracy_table:
         csv=f"{OUT}/tables/accuracy.csv",
         tex=f"{OUT}/tables/accuracy.tex",
         residuals=f"{OUT}/tables/procrustes_residuals.nc",
+        model_residuals=[f"{OUT}/tables/{model}_residuals.nc" for model in extra_superimpositions()],
     log:
         f"{OUT}/logs/accuracy_table.log",
     conda:
@@ -15,6 +17,7 @@ rule accuracy_table:
     params:
         code=code_version("io", "astrometry"),
         options=lambda w: config["astrometry"],
+        models=extra_superimpositions(),
     script:
         "../scripts/accuracy_table.py"
 
@@ -43,3 +46,22 @@ rule plot_procrustes_residuals:
         code=code_version("plotting", "io"),
     script:
         "../scripts/plot_procrustes_residuals.py"
+
+
+rule plot_superimposition_residuals:
+    input:
+        residuals=f"{OUT}/tables/{{model}}_residuals.nc",
+    output:
+        png=report(f"{OUT}/figures/{{model}}_residuals.png", category="Astrometry",
+                   caption="../report/superimposition_residuals.rst"),
+        pdf=f"{OUT}/figures/{{model}}_residuals.pdf",
+    wildcard_constraints:
+        model="projective|pose",
+    params:
+        code=code_version("plotting", "io"),
+    log:
+        f"{OUT}/logs/plot_{{model}}_residuals.log",
+    conda:
+        "../envs/dice.yaml"
+    script:
+        "../scripts/plot_superimposition_residuals.py"

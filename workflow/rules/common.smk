@@ -290,12 +290,16 @@ def astrometry_targets():
     """The accuracy table of the centroid modes this dataset allows, and its figure."""
     if not centroid_targets():
         return []
-    return [
-        f"{OUT}/tables/accuracy.csv",
-        f"{OUT}/tables/accuracy.tex",
-        *figure_pair("procrustes_residuals").values(),
-        *figure_pair("barycentre_residuals").values(),
-    ]
+    return [f"{OUT}/tables/accuracy.csv", f"{OUT}/tables/accuracy.tex", *figure_pair("procrustes_residuals").values(),
+            *figure_pair("barycentre_residuals").values(),
+            *(path for model in extra_superimpositions() for path in figure_pair(f"{model}_residuals").values())]
+
+
+def extra_superimpositions():
+    """The superimpositions configured besides Procrustes (which always runs): projective, pose."""
+    value = config["astrometry"].get("superimposition", "procrustes")
+    value = [value] if isinstance(value, str) else list(value)
+    return [m for m in dict.fromkeys(value) if m != "procrustes"]
 
 
 def centroid_products(wildcards):

@@ -1,37 +1,45 @@
-"""Snakemake step: Procrustes accuracies of every centroid mode, as tables/accuracy.csv and a LaTeX table."""
+"""Snakemake step: accuracies of every centroid mode and superimposition, as tables/accuracy.csv and LaTeX."""
 
 import logging
+
+import numpy as np
 
 import dice_core
 from dice_core import astrometry, io
 
 
-def accuracy_table(centroid_paths, csv_path, tex_path, residuals_path, config):
+def accuracy_table(centroid_paths, csv_path, tex_path, residual_paths, config):
     log = logging.getLogger("dice")
     options = config["astrometry"]
-    by_method = {}
-    for path in centroid_paths:
-        ds = io.read_product(path)
-        by_method.setdefault(ds.attrs["method"], {})[ds.attrs["mode"]] = ds
-    methods = [m for m in config["centroids"]["methods"] if m in by_method]
-    rows, tables = [], []
-    for method in methods:
-        method_rows, method_residuals = astrometry.mode_accuracies(
-            by_method[method], positions=options["positions"], groups=options["groups"], trials=options["trials"])
-        rows += method_rows
-        tables.append(f"% centroid method: {method}\n" + astrometry.latex_table(method_rows))
-        if method == methods[0]:  # the figures show the first method, whose products are centroids/<mode>.nc
-            first_datasets, first_rows, first_residuals = by_method[method], method_rows, method_residuals
-    for row in rows:
-        log.info("%-8s mode %-15s %-8s n=%-3d accuracy %.2e +- %.1e pixel (rms residual %.2e x factor %.3f)",
-                 row["method"], row["mode"], row["grouping"], row["n"], row["accuracy"], row["error"],
-                 row["rms_residual"], row["factor"])
-    io.write_text(csv_path, astrometry.accuracy_csv(rows))
-    io.write_text(tex_path, "\n".join(tables))
-    product = astrometry.residuals_dataset(first_datasets, first_rows, first_residuals)
-    io.write_product(product, residuals_path, title="Procrustes residuals per calibration mode", config=config,
-                     inputs=list(centroid_paths))
+    pose = options.get("pose", {})
+    geometry = astrometry.PoseGeometry(pose.get("distance", 25000.0), np.radians(pose.get("off_axis_deg", 2.0)),
+                                       pose.get("centre"))
+    tables = astrometry.accuracy_tables(
+        [io.read_product(path) for path in centroid_paths], config["centroids"]["methods"],
+        models=superimpositions(options), positions=options["positions"], groups=options["groups"],
+        trials=options["trials"], geometry=geometry)
+    for row in tables.rows:
+        log.info("%-8s mode %-15s %-10s %-8s n=%-3d accuracy %.2e +- %.1e pixel (rms residual %.2e x factor %.3f)",
+                 row["method"], row["mode"], row["superimposition"], row["grouping"], row["n"], row["accuracy"],
+                 row["error"], row["rms_residual"], row["factor"])
+    for name, report in tables.reports.items():
+        log.info("%s: %s", name, report)
+    io.write_text(csv_path, astrometry.accuracy_csv(tables.rows))
+    io.write_text(tex_path, tables.latex)
+    for model, path in residual_paths.items():
+        io.write_product(tables.residuals[model], path, title=f"{model} residuals per calibration mode",
+                         config=config, inputs=list(centroid_paths))
+
+
+def superimpositions(options):
+    """Procrustes first, always (the contract's rows and residuals), then the others configured."""
+    value = options.get("superimposition", "procrustes")
+    value = [value] if isinstance(value, str) else list(value)
+    return ["procrustes", *(m for m in dict.fromkeys(value) if m != "procrustes")]
 
 
 dice_core.run_logged(snakemake.log[0], accuracy_table, list(snakemake.input.centroids), snakemake.output.csv,
-                     snakemake.output.tex, snakemake.output.residuals, snakemake.config)
+                     snakemake.output.tex,
+                     {"procrustes": snakemake.output.residuals,
+                      **{m: p for m, p in zip(snakemake.params.models, snakemake.output.model_residuals)}},
+                     snakemake.config)

@@ -1,4 +1,4 @@
-"""Snakemake step: one row per point of a sweep, its parameters and every scalar (or per-mode) result (CSV)."""
+"""Snakemake step: one row per point of a sweep, its parameters and every scalar (or per-mode, per-model) result (CSV)."""
 
 import csv
 import io as text_io
@@ -17,9 +17,9 @@ def sweep_summary(points, output):
         for name, var in ds.data_vars.items():
             if var.ndim == 0:
                 row[f"{name} [{var.attrs['units']}]"] = float(var.values)
-            elif var.dims == ("mode",):  # a study's per-mode results (star_accuracy)
-                row.update({f"{name}[{mode}] [{var.attrs['units']}]": float(value)
-                            for mode, value in zip(ds["mode"].values, var.values)})
+            elif var.ndim == 1 and var.dims[0] in ds.coords:  # per-mode (star_accuracy), per-model (tip_tilt)
+                row.update({f"{name}[{key}] [{var.attrs['units']}]": float(value)
+                            for key, value in zip(ds[var.dims[0]].values, var.values)})
         rows.append(row)
         columns += [c for c in row if c not in columns]
     buffer = text_io.StringIO()
