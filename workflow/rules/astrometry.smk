@@ -13,6 +13,8 @@ rule accuracy_table:
         options=lambda w: config["astrometry"],
     log:
         f"{OUT}/logs/accuracy_table.log",
+    resources:
+        **step_resources("accuracy_table"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -33,6 +35,8 @@ rule plot_procrustes_residuals:
         code=code_version("plotting", "io"),
     log:
         f"{OUT}/logs/plot_procrustes_residuals.log",
+    resources:
+        **step_resources("plot_procrustes_residuals"),
     conda:
         "../envs/dice.yaml"
     script:

@@ -14,6 +14,8 @@ rule measure_dark:
         f"{OUT}/logs/measure_dark.log",
     benchmark:
         f"{OUT}/benchmarks/measure_dark.tsv"
+    resources:
+        **step_resources("measure_dark"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -33,6 +35,8 @@ rule measure_prnu:
         f"{OUT}/logs/measure_prnu_{{flat}}.log",
     benchmark:
         f"{OUT}/benchmarks/measure_prnu_{{flat}}.tsv"
+    resources:
+        **step_resources("measure_prnu"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -49,6 +53,8 @@ rule select_reference_prnu:
         code=code_version("io"),
     log:
         f"{OUT}/logs/select_reference_prnu.log",
+    resources:
+        **step_resources("select_reference_prnu"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -66,6 +72,8 @@ rule compare_prnu:
         code=code_version("io", "manifest", "calibration", "polynomials"),
     log:
         f"{OUT}/logs/compare_prnu_{{flat}}.log",
+    resources:
+        **step_resources("compare_prnu"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -83,6 +91,8 @@ rule find_bad_pixels:
         code=code_version("io", "manifest", "calibration", "polynomials"),
     log:
         f"{OUT}/logs/find_bad_pixels.log",
+    resources:
+        **step_resources("find_bad_pixels"),
     conda:
         "../envs/dice.yaml"
     script:

@@ -16,6 +16,8 @@ rule stack_position:
         f"{OUT}/logs/stack_position_{{position}}.log",
     benchmark:
         f"{OUT}/benchmarks/stack_position_{{position}}.tsv"
+    resources:
+        **step_resources("stack_position"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -37,6 +39,8 @@ rule measure_centroids:
         f"{OUT}/logs/measure_centroids_{{mode}}.log",
     benchmark:
         f"{OUT}/benchmarks/measure_centroids_{{mode}}.tsv"
+    resources:
+        **step_resources("measure_centroids"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -64,6 +68,8 @@ rule plot_centroids:
         positions=config["astrometry"]["positions"],  # the used range, marked red
     log:
         f"{OUT}/logs/plot_centroids_{{mode}}.log",
+    resources:
+        **step_resources("plot_centroids"),
     conda:
         "../envs/dice.yaml"
     script:

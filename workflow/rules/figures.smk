@@ -14,6 +14,8 @@ rule plot_dark:
         code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_dark.log",
+    resources:
+        **step_resources("plot_dark"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -31,6 +33,8 @@ rule plot_prnu:
         code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_prnu_{{flat}}.log",
+    resources:
+        **step_resources("plot_prnu"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -49,6 +53,8 @@ rule plot_prnu_difference:
         code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_prnu_difference_{{flat}}.log",
+    resources:
+        **step_resources("plot_prnu_difference"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -67,6 +73,8 @@ rule plot_metrology:
         code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_metrology_{{baseline}}.log",
+    resources:
+        **step_resources("plot_metrology"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -83,6 +91,8 @@ rule plot_allan:
         code=code_version("plotting", "io"),
     log:
         f"{OUT}/logs/plot_allan_{{baseline}}.log",
+    resources:
+        **step_resources("plot_allan"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -100,6 +110,8 @@ rule plot_offsets:
         code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_offsets_{{pair}}.log",
+    resources:
+        **step_resources("plot_offsets"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -118,6 +130,8 @@ rule plot_offsets_difference:
         code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_offsets_difference_{{pair}}.log",
+    resources:
+        **step_resources("plot_offsets_difference"),
     conda:
         "../envs/dice.yaml"
     script:

@@ -20,6 +20,8 @@ rule fit_fringes:
         f"{OUT}/logs/fit_fringes_{{baseline}}.log",
     benchmark:
         f"{OUT}/benchmarks/fit_fringes_{{baseline}}.tsv"
+    resources:
+        **step_resources("fit_fringes"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -37,6 +39,8 @@ rule deproject_offsets:
         code=code_version("io", "deprojection", "geometry"),
     log:
         f"{OUT}/logs/deproject_offsets_{{pair}}.log",
+    resources:
+        **step_resources("deproject_offsets"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -54,6 +58,8 @@ rule compare_pairs:
         code=code_version("io", "deprojection", "geometry"),
     log:
         f"{OUT}/logs/compare_pairs_{{pair}}.log",
+    resources:
+        **step_resources("compare_pairs"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -75,6 +81,8 @@ rule allan_deviation:
         f"{OUT}/logs/allan_deviation_{{baseline}}.log",
     benchmark:
         f"{OUT}/benchmarks/allan_deviation_{{baseline}}.tsv"
+    resources:
+        **step_resources("allan_deviation"),
     conda:
         "../envs/dice.yaml"
     script:

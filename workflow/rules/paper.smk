@@ -27,6 +27,8 @@ rule sweep_point:
         f"{SWEEP_ROOT}/{{sweep}}/{{point}}/point.log",
     benchmark:
         f"{SWEEP_ROOT}/{{sweep}}/{{point}}/benchmark.tsv"
+    resources:
+        **step_resources("sweep_point"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -75,6 +77,8 @@ rule reduction_sweep_summary:
         sweep="|".join(map(re.escape, REDUCTION_SWEEPS)) or "(?!)",
     log:
         f"{SWEEP_ROOT}/{{sweep}}/summary.log",
+    resources:
+        **step_resources("reduction_sweep_summary"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -92,6 +96,8 @@ rule sweep_summary:
         code=code_version("io"),
     log:
         f"{SWEEP_ROOT}/{{sweep}}/summary.log",
+    resources:
+        **step_resources("sweep_summary"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -110,6 +116,8 @@ rule plot_star_accuracy:
         sweep="|".join(re.escape(n) for n, (spec, *_) in SWEEPS.items() if spec["study"] == "star_accuracy") or "(?!)",
     log:
         f"{SWEEP_ROOT}/{{sweep}}/accuracy.log",
+    resources:
+        **step_resources("plot_star_accuracy"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -127,6 +135,8 @@ rule plot_offset_bias:
         code=code_version("plotting", "io"),
     log:
         f"{OUT}/logs/plot_offset_bias.log",
+    resources:
+        **step_resources("plot_offset_bias"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -145,6 +155,8 @@ rule error_propagation_table:
         code=code_version("studies", "error_budget", "io"),
     log:
         f"{OUT}/logs/error_propagation_table.log",
+    resources:
+        **step_resources("error_propagation_table"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -167,6 +179,8 @@ rule paper_comparison:
         method=config["centroids"]["methods"][0],  # the method of centroids/<mode>.nc
     log:
         f"{OUT}/logs/paper_comparison.log",
+    resources:
+        **step_resources("paper_comparison"),
     conda:
         "../envs/dice.yaml"
     script:
@@ -185,6 +199,8 @@ rule paper_pdf:
         code=code_version("plotting"),
     log:
         f"{OUT}/logs/paper_pdf.log",
+    resources:
+        **step_resources("paper_pdf"),
     conda:
         "../envs/dice.yaml"
     script:

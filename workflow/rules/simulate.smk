@@ -13,6 +13,8 @@ if SIMULATE:
             code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
         log:
             f"{OUT}/logs/simulate_truth.log",
+        resources:
+            **step_resources("simulate_truth"),
         conda:
             "../envs/dice.yaml"
         script:
@@ -32,6 +34,8 @@ if SIMULATE:
             f"{OUT}/logs/simulate/{{relpath}}.log",
         benchmark:
             f"{OUT}/benchmarks/simulate/{{relpath}}.tsv"
+        resources:
+            **step_resources("simulate_file"),
         conda:
             "../envs/dice.yaml"
         script:
@@ -48,6 +52,8 @@ if SIMULATE:
             code=code_version("geometry", "simulation", "manifest"),
         log:
             f"{OUT}/logs/simulate_manifest.log",
+        resources:
+            **step_resources("simulate_manifest"),
         conda:
             "../envs/dice.yaml"
         script:
