@@ -4,7 +4,9 @@ The copy carries its own dice_core, first on PYTHONPATH, so that a test can
 edit a module and watch which jobs Snakemake would re-run.
 """
 
+import csv
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -265,6 +267,30 @@ def test_a_module_change_reruns_the_steps_that_import_it_through_another(workdir
 def test_lint_has_nothing_to_say(workdir):
     result = snakemake(workdir, "--lint", "--config", "dataset=ci")
     assert "Lints for" not in result.stdout + result.stderr
+
+
+def test_every_job_asks_for_memory_and_time_that_cover_what_its_benchmark_measured(workdir):
+    """Each job's mem_mb and runtime (dice_core.resources, from the dataset's size) are in the plan, and cover
+    the peak memory and the wall time its benchmark file measured in this run (the request less the
+    Snakemake process that runs the job on a cluster node)."""
+    from dice_core import resources
+
+    plan = snakemake(workdir, "-n", "--forceall", "--config", "dataset=ci").stdout
+    jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?=^\S|\Z)", plan, re.M | re.S)
+    checked = 0
+    for rule, block in jobs:
+        if rule == "all":
+            continue
+        asked = dict(re.findall(r"\b(mem_mb|runtime)=(\d+)", block))
+        assert set(asked) == {"mem_mb", "runtime"}, (rule, block)
+        benchmark = re.search(r"^\s+benchmark: (\S+)", block, re.M)
+        if benchmark:
+            with open(workdir / benchmark.group(1)) as handle:
+                measured = next(csv.DictReader(handle, delimiter="\t"))
+            assert float(measured["max_rss"]) <= int(asked["mem_mb"]) - resources.EXECUTOR_MB, (rule, measured)
+            assert float(measured["s"]) <= 60 * int(asked["runtime"]), (rule, measured)
+            checked += 1
+    assert checked >= 20  # the simulation's files, dark, flats, fits, Allan, stacks, centroids
 
 
 def test_missing_manifest_is_a_clear_error(workdir, tmp_path):

@@ -154,6 +154,14 @@ done
 [[ $(sinfo --noheader --format=%T) == idle ]] || fail "the node is not idle: $(sinfo --noheader)"
 say "cluster up: node $HOST, 2 CPUs, ${MEM_MB} MB, slurmctld port $CTLD_PORT ($(sinfo --version))"
 
+# The memory limits are enforced: a job that touches 400 MB with 50 MB asked for is killed.
+canary=$(sbatch --parsable --mem=50 --cpus-per-task=1 --time=2 --job-name=dice-memory-canary \
+    --output="$WORK/canary.out" --wrap "$PYTHON -c 'import time; a = bytes(range(256)) * (1600 * 1024); time.sleep(10); print(\"survived\")'")
+for _ in $(seq 120); do grep -q "JobId=$canary " "$WORK/jobcomp.log" 2>/dev/null && break; sleep 1; done
+grep -q "exceeded memory limit" "$WORK/canary.out" && ! grep -q survived "$WORK/canary.out" \
+    || fail "SLURM does not enforce memory limits here: $(cat "$WORK/canary.out")"
+say "memory limits enforced: job $canary, 400 MB touched with 50 MB asked for, killed"
+
 # ----------------------------------------------------------------------------------- the two runs of ci
 copy() {
     mkdir -p "$1"
