@@ -20,6 +20,18 @@ from matplotlib import image
 VOLATILE_ATTRS = ("history",)
 #: Folders of timings and messages, which differ between any two runs.
 SKIPPED_FOLDERS = ("logs", "benchmarks")
+#: Stands for each run's copy of the repository in the attributes that name files (``inputs``).
+COPY = "<copy of the repository>"
+
+
+def without_copy_folder(ds, folder):
+    """The dataset with its copy's folder replaced by :data:`COPY` in every string attribute."""
+    ds = ds.copy()
+    for attrs in [ds.attrs] + [ds[name].attrs for name in ds.variables]:
+        for key, value in attrs.items():
+            if isinstance(value, str):
+                attrs[key] = value.replace(folder, COPY)
+    return ds
 
 
 def job_stats(log):
@@ -87,6 +99,7 @@ def product_files(root):
 
 def check_products(local, slurm):
     local, slurm = Path(local), Path(slurm)
+    copies = (str(local.resolve().parents[1]), str(slurm.resolve().parents[1]))  # <copy>/results/<name>
     files = product_files(local)
     problems = []
     if files != product_files(slurm):
@@ -100,7 +113,7 @@ def check_products(local, slurm):
             continue
         if rel.suffix == ".nc":
             with xr.open_dataset(a) as x, xr.open_dataset(b) as y:
-                x, y = x.load(), y.load()
+                x, y = without_copy_folder(x.load(), copies[0]), without_copy_folder(y.load(), copies[1])
             for name in VOLATILE_ATTRS:
                 volatile[name] += x.attrs.get(name) != y.attrs.get(name)
                 x.attrs.pop(name, None)
@@ -122,7 +135,8 @@ def check_products(local, slurm):
         return 1
     print(f"products: {sum(kinds.values())} files identical to the local run's ({dict(kinds)}; netCDF by "
           f"xarray.testing.assert_identical, data, coordinates and attributes, global attributes "
-          f"{list(VOLATILE_ATTRS)} left out, different in {dict(volatile)} files; FITS, CSV, TeX and YAML byte "
+          f"{list(VOLATILE_ATTRS)} left out, different in {dict(volatile)} files, each copy's folder in the "
+          f"attributes naming files replaced by {COPY!r}; FITS, CSV, TeX and YAML byte "
           f"for byte; PNG pixel for pixel; PDF files present, their bytes not compared)")
     return 0
 
