@@ -21,6 +21,10 @@
 #      and that no job ran locally;
 #   4. checks that every product is identical to the local run's (tests/cluster/compare_runs.py);
 #   5. stops the daemons and removes the folder, whatever happened (a trap). DICE_SLURM_KEEP=1 keeps the folder.
+#
+# Each SLURM job starts Snakemake twice on the node (the batch script, then srun), each parsing the workflow,
+# so the SLURM run of the 68 ci jobs takes several times the local run's minute on an idle machine, and far
+# longer on busy cores (2026-12-02, load average 20-30 on 2 cores: about 50 s a job, 2 at a time).
 set -euo pipefail
 
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
