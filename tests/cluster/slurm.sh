@@ -24,7 +24,7 @@
 #
 # Each SLURM job starts Snakemake twice on the node (the batch script, then srun), each parsing the workflow,
 # so the SLURM run of the 68 ci jobs takes several times the local run's minute on an idle machine, and far
-# longer on busy cores (2026-12-02, load average 20-30 on 2 cores: about 50 s a job, 2 at a time).
+# longer on busy cores (2026-12-02, load average 20-30 on 2 cores: about 2 minutes a job, 2 at a time).
 set -euo pipefail
 
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
