@@ -5,7 +5,9 @@ edit a module and watch which jobs Snakemake would re-run.
 """
 
 import base64
+import csv
 import os
+import re
 import shutil
 import signal
 import socket
@@ -379,6 +381,30 @@ def test_a_stale_lock_is_removed_only_when_its_run_was_on_this_machine(tmp_path)
     guard.write_text(socket.gethostname() + "\n")
     said = snakemake(root, "-n", "--config", "dataset=ci").stderr
     assert not lock.exists() and "removed the lock of a run" in said
+
+
+def test_every_job_asks_for_memory_and_time_that_cover_what_its_benchmark_measured(workdir):
+    """Each job's mem_mb and runtime (dice_core.resources, from the dataset's size) are in the plan, and cover
+    the peak memory and the wall time its benchmark file measured in this run (the request less the
+    Snakemake process that runs the job on a cluster node)."""
+    from dice_core import resources
+
+    plan = snakemake(workdir, "-n", "--forceall", "--config", "dataset=ci").stdout
+    jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?=^\S|\Z)", plan, re.M | re.S)
+    checked = 0
+    for rule, block in jobs:
+        if rule == "all":
+            continue
+        asked = dict(re.findall(r"\b(mem_mb|runtime)=(\d+)", block))
+        assert set(asked) == {"mem_mb", "runtime"}, (rule, block)
+        benchmark = re.search(r"^\s+benchmark: (\S+)", block, re.M)
+        if benchmark:
+            with open(workdir / benchmark.group(1)) as handle:
+                measured = next(csv.DictReader(handle, delimiter="\t"))
+            assert float(measured["max_rss"]) <= int(asked["mem_mb"]) - resources.EXECUTOR_MB, (rule, measured)
+            assert float(measured["s"]) <= 60 * int(asked["runtime"]), (rule, measured)
+            checked += 1
+    assert checked >= 20  # the simulation's files, dark, flats, fits, Allan, stacks, centroids
 
 
 def test_missing_manifest_is_a_clear_error(workdir, tmp_path):

@@ -14,6 +14,8 @@ rule accuracy_table:
         f"{OUT}/logs/accuracy_table.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("accuracy_table"),
     params:
         code=code_version("io", "astrometry"),
         options=lambda w: config["astrometry"],
@@ -42,6 +44,8 @@ rule plot_procrustes_residuals:
         f"{OUT}/logs/plot_procrustes_residuals.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_procrustes_residuals"),
     params:
         code=code_version("plotting", "io"),
     script:
@@ -52,16 +56,19 @@ rule plot_superimposition_residuals:
     input:
         residuals=f"{OUT}/tables/{{model}}_residuals.nc",
     output:
-        png=report(f"{OUT}/figures/{{model}}_residuals.png", category="Astrometry",
-                   caption="../report/superimposition_residuals.rst"),
+        png=report(
+            f"{OUT}/figures/{{model}}_residuals.png",
+            category="Astrometry",
+            caption="../report/superimposition_residuals.rst",
+        ),
         pdf=f"{OUT}/figures/{{model}}_residuals.pdf",
-    wildcard_constraints:
-        model="projective|pose",
-    params:
-        code=code_version("plotting", "io"),
     log:
         f"{OUT}/logs/plot_{{model}}_residuals.log",
+    wildcard_constraints:
+        model="projective|pose",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "io"),
     script:
         "../scripts/plot_superimposition_residuals.py"

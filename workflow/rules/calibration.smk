@@ -14,6 +14,8 @@ rule measure_dark:
         f"{OUT}/benchmarks/measure_dark.tsv"
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("measure_dark"),
     params:
         code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
@@ -33,6 +35,8 @@ rule measure_prnu:
         f"{OUT}/benchmarks/measure_prnu_{{flat}}.tsv"
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("measure_prnu"),
     params:
         code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
@@ -48,6 +52,8 @@ rule select_reference_prnu:
         f"{OUT}/logs/select_reference_prnu.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("select_reference_prnu"),
     params:
         reference=MANIFEST.reference_flat,
         code=code_version("io"),
@@ -66,6 +72,8 @@ rule compare_prnu:
         f"{OUT}/logs/compare_prnu_{{flat}}.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("compare_prnu"),
     params:
         code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
@@ -83,6 +91,8 @@ rule find_bad_pixels:
         f"{OUT}/logs/find_bad_pixels.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("find_bad_pixels"),
     params:
         code=code_version("io", "manifest", "calibration", "polynomials"),
     script:

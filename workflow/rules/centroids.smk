@@ -15,6 +15,8 @@ rule stack_position:
         f"{OUT}/benchmarks/stack_position_{{position}}.tsv"
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("stack_position"),
     params:
         batches=config["centroids"]["batches"],
         code=code_version("io", "manifest", "stacks"),
@@ -36,6 +38,8 @@ rule measure_centroids:
         f"{OUT}/benchmarks/measure_centroids_{{mode}}.tsv"
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("measure_centroids"),
     params:
         code=code_version("io", "manifest", "calibration", "centroids", "polynomials", "stacks"),
         options=centroid_options,
@@ -62,6 +66,8 @@ rule plot_centroids:
         f"{OUT}/logs/plot_centroids_{{mode}}.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_centroids"),
     params:
         code=code_version("plotting", "io"),
         positions=config["astrometry"]["positions"],  # the used range, marked red

@@ -200,8 +200,12 @@ def metrology_targets():
         return []
     targets = []
     for baseline in MANIFEST.baselines:
-        targets += [f"{OUT}/metrology/{baseline}.nc", *figure_pair(f"metrology_{baseline}").values(),
-                    f"{OUT}/allan/{baseline}.nc", *figure_pair(f"allan_{baseline}").values()]
+        targets += [
+            f"{OUT}/metrology/{baseline}.nc",
+            *figure_pair(f"metrology_{baseline}").values(),
+            f"{OUT}/allan/{baseline}.nc",
+            *figure_pair(f"allan_{baseline}").values(),
+        ]
     targets += [f"{OUT}/calibration/prf.nc", *figure_pair("prf").values()]
     for pair in MANIFEST.pairs:
         targets += [f"{OUT}/calibration/offsets_{pair}.nc", *figure_pair(f"offsets_{pair}").values()]
@@ -290,9 +294,13 @@ def astrometry_targets():
     """The accuracy table of the centroid modes this dataset allows, and its figure."""
     if not centroid_targets():
         return []
-    return [f"{OUT}/tables/accuracy.csv", f"{OUT}/tables/accuracy.tex", *figure_pair("procrustes_residuals").values(),
-            *figure_pair("barycentre_residuals").values(),
-            *(path for model in extra_superimpositions() for path in figure_pair(f"{model}_residuals").values())]
+    return [
+        f"{OUT}/tables/accuracy.csv",
+        f"{OUT}/tables/accuracy.tex",
+        *figure_pair("procrustes_residuals").values(),
+        *figure_pair("barycentre_residuals").values(),
+        *(path for model in extra_superimpositions() for path in figure_pair(f"{model}_residuals").values()),
+    ]
 
 
 def extra_superimpositions():
@@ -459,3 +467,75 @@ def paper_pdf_pages():
             (f"{OUT}/figures/procrustes_residuals.png", str(captions / "procrustes_residuals.rst")),
         ]
     return pages
+
+
+# --------------------------------------------------------------------------- cluster resources
+# Each rule's resources block (mem_mb, runtime) comes from step_resources: the measured cost of its step
+# (dice_core.resources) applied to the job's share of the dataset. threads stay each rule's threads:
+# directive (2 worker processes for the fits and the Allan deviations, 1 elsewhere).
+
+import functools
+
+from astropy.io import fits
+
+from dice_core import resources as dice_resources
+
+SIM_FRAMES = (
+    {rel: stop - start for rel, (_, _, start, stop) in simulation.file_jobs(SIMULATION).items()}
+    if SIMULATION is not None
+    else {}
+)
+
+
+@functools.cache
+def file_frames(path):
+    """Frames of a raw file: the simulation's plan where it simulates the file (it may not exist yet), else
+    NAXIS3 of the file's header."""
+    path = Path(path).resolve()
+    relative = (
+        path.relative_to(MANIFEST.path.parent.resolve())
+        if path.is_relative_to(MANIFEST.path.parent.resolve())
+        else None
+    )
+    if relative is not None and relative.as_posix() in SIM_FRAMES:
+        return SIM_FRAMES[relative.as_posix()]
+    try:
+        return int(fits.getheader(path).get("NAXIS3", 1))
+    except OSError as exc:
+        raise WorkflowError(f"{path}: cannot read its header for the job's resources: {exc}") from None
+
+
+def acquisition_frames(acquisition):
+    return sum(file_frames(f) for f in acquisition.files)
+
+
+def job_data(step, wildcards):
+    """{frames, positions} a job of a step reads (or writes, for the simulation)."""
+    positions = len(MANIFEST.positions)
+    if step == "simulate_file":
+        return {"frames": SIM_FRAMES[f"{wildcards.relpath}.fits"]}
+    if step == "simulate_truth":
+        return {"frames": sum(SIM_FRAMES.values()), "positions": positions}
+    if step == "measure_dark":
+        return {"frames": acquisition_frames(MANIFEST.dark) if MANIFEST.dark else 0}
+    if step == "measure_prnu":
+        return {"frames": acquisition_frames(MANIFEST.flats[wildcards.flat])}
+    if step in ("fit_fringes", "allan_deviation"):
+        return {"frames": acquisition_frames(MANIFEST.baselines[wildcards.baseline])}
+    if step == "stack_position":
+        return {"frames": acquisition_frames(manifest_position(wildcards).acquisition)}
+    return {"positions": positions}
+
+
+def step_resources(step):
+    """A rule's resources block, ``resources: **step_resources("<rule>")``: mem_mb (MB) and runtime (minutes)
+    of each job from its step's measured cost and the job's data, times the attempt on a retry."""
+    pixels = MANIFEST.detector.shape[0] * MANIFEST.detector.shape[1]
+
+    def needs(wildcards, attempt):
+        return dice_resources.job_resources(step, pixels=pixels, **job_data(step, wildcards), attempt=attempt)
+
+    return {
+        "mem_mb": lambda wildcards, attempt: needs(wildcards, attempt)["mem_mb"],
+        "runtime": lambda wildcards, attempt: needs(wildcards, attempt)["runtime"],
+    }

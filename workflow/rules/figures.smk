@@ -14,6 +14,8 @@ rule plot_dark:
         f"{OUT}/logs/plot_dark.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_dark"),
     params:
         code=code_version("plotting", "manifest", "io"),
     script:
@@ -31,6 +33,8 @@ rule plot_prnu:
         f"{OUT}/logs/plot_prnu_{{flat}}.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_prnu"),
     params:
         code=code_version("plotting", "manifest", "io"),
     script:
@@ -50,6 +54,8 @@ rule plot_prnu_difference:
         f"{OUT}/logs/plot_prnu_difference_{{flat}}.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_prnu_difference"),
     params:
         code=code_version("plotting", "manifest", "io"),
     script:
@@ -67,6 +73,8 @@ rule plot_metrology:
         f"{OUT}/logs/plot_metrology_{{baseline}}.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_metrology"),
     params:
         code=code_version("plotting", "manifest", "io"),
     script:
@@ -83,6 +91,8 @@ rule plot_allan:
         f"{OUT}/logs/plot_allan_{{baseline}}.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_allan"),
     params:
         code=code_version("plotting", "io"),
     script:
@@ -100,6 +110,8 @@ rule plot_offsets:
         f"{OUT}/logs/plot_offsets_{{pair}}.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_offsets"),
     params:
         code=code_version("plotting", "manifest", "io"),
     script:
@@ -113,12 +125,12 @@ rule plot_prf:
     output:
         png=report(f"{OUT}/figures/prf.png", category="Metrology", caption="../report/prf.rst"),
         pdf=f"{OUT}/figures/prf.pdf",
-    params:
-        code=code_version("plotting", "manifest", "io"),
     log:
         f"{OUT}/logs/plot_prf.log",
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("plotting", "manifest", "io"),
     script:
         "../scripts/plot_prf.py"
 
@@ -138,6 +150,8 @@ rule plot_offsets_difference:
         f"{OUT}/logs/plot_offsets_difference_{{pair}}.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_offsets_difference"),
     params:
         code=code_version("plotting", "manifest", "io"),
     script:

@@ -19,6 +19,8 @@ rule fit_fringes:
     conda:
         "../envs/dice.yaml"
     threads: 2
+    resources:
+        **step_resources("fit_fringes"),
     params:
         code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
         options=config["metrology"],  # a changed option (tip_sigma, tolerance...) reruns the fits
@@ -33,16 +35,16 @@ rule prf_widths:
         metrology=metrology_products,
     output:
         prf=f"{OUT}/calibration/prf.nc",
-    params:
-        code=code_version("io", "manifest", "prf"),
-        options=config["prf"],  # the assumed kernel
-        smooth_degree=config["metrology"]["smooth_degree"],
     log:
         f"{OUT}/logs/prf_widths.log",
     benchmark:
         f"{OUT}/benchmarks/prf_widths.tsv"
     conda:
         "../envs/dice.yaml"
+    params:
+        code=code_version("io", "manifest", "prf"),
+        options=config["prf"],  # the assumed kernel
+        smooth_degree=config["metrology"]["smooth_degree"],
     script:
         "../scripts/prf_widths.py"
 
@@ -57,6 +59,8 @@ rule deproject_offsets:
         f"{OUT}/logs/deproject_offsets_{{pair}}.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("deproject_offsets"),
     params:
         baselines=pair_baselines,
         code=code_version("io", "deprojection", "geometry"),
@@ -74,6 +78,8 @@ rule compare_pairs:
         f"{OUT}/logs/compare_pairs_{{pair}}.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("compare_pairs"),
     params:
         reference=MANIFEST.reference_pair,
         code=code_version("io", "deprojection", "geometry"),
@@ -96,6 +102,8 @@ rule allan_deviation:
     conda:
         "../envs/dice.yaml"
     threads: 2
+    resources:
+        **step_resources("allan_deviation"),
     params:
         code=code_version("io", "manifest", "allan", "fringes", "geometry", "parallel", "polynomials"),
     script:

@@ -25,6 +25,8 @@ rule sweep_point:
         or "(?!)",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("sweep_point"),
     params:
         study=lambda w: SWEEPS[w.sweep][0]["study"],
         parameters=point_parameters,
@@ -94,6 +96,8 @@ rule reduction_sweep_summary:
         sweep="|".join(map(re.escape, REDUCTION_SWEEPS)) or "(?!)",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("reduction_sweep_summary"),
     params:
         points=lambda w: [point for point, _ in sweep_instances(w.sweep)],
         code=code_version("plotting", "io"),
@@ -112,6 +116,8 @@ rule sweep_summary:
         sweep="|".join(map(re.escape, STUDY_SWEEPS)) or "(?!)",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("sweep_summary"),
     params:
         code=code_version("io"),
     script:
@@ -130,6 +136,8 @@ rule plot_star_accuracy:
         sweep="|".join(re.escape(n) for n, (spec, *_) in SWEEPS.items() if spec["study"] == "star_accuracy") or "(?!)",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_star_accuracy"),
     params:
         code=code_version("plotting", "io"),
     script:
@@ -148,6 +156,8 @@ rule plot_offset_bias:
         f"{OUT}/logs/plot_offset_bias.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_offset_bias"),
     params:
         code=code_version("plotting", "io"),
     script:
@@ -169,6 +179,8 @@ rule error_propagation_table:
         f"{OUT}/logs/error_propagation_table.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("error_propagation_table"),
     params:
         code=code_version("studies", "error_budget", "io"),
     script:
@@ -190,6 +202,8 @@ rule paper_comparison:
         f"{OUT}/logs/paper_comparison.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("paper_comparison"),
     params:
         code=code_version("reproduction", "plotting", "io"),
         dataset=MANIFEST.name,
@@ -211,6 +225,8 @@ rule paper_pdf:
         f"{OUT}/logs/paper_pdf.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("paper_pdf"),
     params:
         dataset=MANIFEST.name,
         code=code_version("plotting"),

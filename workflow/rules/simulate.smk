@@ -12,6 +12,8 @@ if SIMULATE:
             f"{OUT}/logs/simulate_truth.log",
         conda:
             "../envs/dice.yaml"
+        resources:
+            **step_resources("simulate_truth"),
         params:
             simulation=SIM_CONFIG,
             code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
@@ -31,6 +33,8 @@ if SIMULATE:
             relpath="(dark|flat|metrology|stars)/[A-Za-z0-9._-]+",
         conda:
             "../envs/dice.yaml"
+        resources:
+            **step_resources("simulate_file"),
         params:
             simulation=SIM_CONFIG,
             code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
@@ -47,6 +51,8 @@ if SIMULATE:
             f"{OUT}/logs/simulate_manifest.log",
         conda:
             "../envs/dice.yaml"
+        resources:
+            **step_resources("simulate_manifest"),
         params:
             simulation=SIM_CONFIG,
             code=code_version("geometry", "simulation", "manifest"),

@@ -1,0 +1,102 @@
+"""Fit each step's cost (dice_core.resources) to the workflow's benchmark files, and check the requests.
+
+    python benchmarks/job_resources.py results/sim-ci /tmp/big/results/sim-ci ...
+
+Each argument is a results folder of one run (results/<name>/, with raw/dataset.yaml and benchmarks/). Every
+``benchmark:`` file of the runs (max_rss in MB, wall time s) is matched with its job's data: the detector's
+pixels, the frames it read (its files' NAXIS3) and the positions. For each step the script prints
+
+- the non-negative least-squares fit of memory on (1, Mpixels, Mframes, Gsamples) and of time on (1,
+  Mpixels, Gsamples, positions), the coefficients of dice_core.resources.StepCost;
+- each job's measurement beside dice_core.resources' model and its request (mem_mb, runtime), and the
+  largest measured / requested ratio, which must stay below 1.
+
+The runs should differ in pixels and in frames (the ci preset, the same with a larger detector, the same
+with more frames), or the fit cannot tell the per-pixel cost from the per-sample one.
+"""
+
+import argparse
+import csv
+import re
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from astropy.io import fits
+from scipy.optimize import nnls
+
+from dice_core import resources
+from dice_core.manifest import load_manifest
+
+
+def frames(acquisition):
+    return sum(int(fits.getheader(f)["NAXIS3"]) for f in acquisition.files)
+
+
+def jobs(results):
+    """(step, pixels, frames, positions, max_rss MB, wall s, benchmark file) of each benchmark of a run."""
+    results = Path(results)
+    manifest = load_manifest(results / "raw" / "dataset.yaml")
+    pixels = manifest.detector.shape[0] * manifest.detector.shape[1]
+    positions = len(manifest.positions)
+    by_index = {str(p.index): p for p in manifest.positions}
+    for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
+        rel = tsv.relative_to(results / "benchmarks").with_suffix("").as_posix()
+        name = rel.split("/")[-1]
+        if rel.startswith("simulate/"):
+            step, n, k = "simulate_file", int(fits.getheader(results / "raw" / f"{rel[9:]}.fits")["NAXIS3"]), 0
+        elif name == "measure_dark":
+            step, n, k = name, frames(manifest.dark), 0
+        elif name.startswith("measure_prnu_"):
+            step, n, k = "measure_prnu", frames(manifest.flats[name[len("measure_prnu_"):]]), 0
+        elif m := re.fullmatch(r"(fit_fringes|allan_deviation)_(.+)", name):
+            step, n, k = m.group(1), frames(manifest.baselines[m.group(2)]), 0
+        elif m := re.fullmatch(r"stack_position_(\d+)", name):
+            step, n, k = "stack_position", frames(by_index[m.group(1)].acquisition), 0
+        elif name.startswith("measure_centroids_"):
+            step, n, k = "measure_centroids", 0, positions
+        else:
+            print(f"skipped {tsv}: no step known", file=sys.stderr)
+            continue
+        with open(tsv) as handle:
+            row = next(csv.DictReader(handle, delimiter="\t"))
+        yield step, pixels, n, k, float(row["max_rss"]), float(row["s"]), tsv
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("results", nargs="+", help="results/<name>/ folders of workflow runs")
+    args = parser.parse_args(argv)
+    by_step = defaultdict(list)
+    for folder in args.results:
+        for job in jobs(folder):
+            by_step[job[0]].append(job[1:])
+    worst = 0.0
+    for step, rows in sorted(by_step.items()):
+        pixels, n, k, rss, wall, _ = map(np.array, zip(*rows))
+        mpix, gsamples = pixels / 1e6, pixels * n / 1e9
+        memory, _ = nnls(np.column_stack([np.ones_like(mpix), mpix, n / 1e6, gsamples]), rss)
+        times, _ = nnls(np.column_stack([np.ones_like(mpix), mpix, gsamples, k]), wall)
+        print(f"\n{step}: {len(rows)} jobs; fit: base_mb={memory[0]:.0f}, mb_per_mpixel={memory[1]:.0f}, "
+              f"mb_per_mframe={memory[2]:.0f}, mb_per_gsample={memory[3]:.0f}; start_s={times[0]:.1f}, s_per_mpixel={times[1]:.1f}, "
+              f"s_per_gsample={times[2]:.1f}, s_per_position={times[3]:.3f}")
+        cost = resources.step_cost(step)
+        print(f"  {'pixels':>8} {'frames':>7} {'pos':>4} {'max_rss':>8} {'model':>7} {'mem_mb':>7} "
+              f"{'wall s':>7} {'model':>7} {'runtime s':>9}")
+        for p, f, q, r, w in zip(pixels, n, k, rss, wall):
+            model_mb = (cost.base_mb + cost.mb_per_mpixel * p / 1e6 + cost.mb_per_mframe * f / 1e6
+                        + cost.mb_per_gsample * p * f / 1e9)
+            model_s = (cost.start_s + cost.s_per_mpixel * p / 1e6 + cost.s_per_gsample * p * f / 1e9
+                       + cost.s_per_position * q)
+            asked = resources.job_resources(step, pixels=int(p), frames=int(f), positions=int(q))
+            worst = max(worst, r / (asked["mem_mb"] - resources.EXECUTOR_MB), w / (60 * asked["runtime"]))
+            print(f"  {p:8d} {f:7d} {q:4d} {r:8.0f} {model_mb:7.0f} {asked['mem_mb']:7d} {w:7.1f} {model_s:7.1f} "
+                  f"{60 * asked['runtime']:9d}")
+    print(f"\nlargest measured / requested (memory less the executor's {resources.EXECUTOR_MB} MB, or time): "
+          f"{worst:.2f}")
+    return 0 if worst < 1 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,142 @@
+"""Memory and wall time a workflow step needs, from the dataset's size.
+
+A cluster scheduler (SLURM, through Snakemake's executor plugin) needs each
+job's memory and time limit before it runs. Both follow from the data a step
+reads: its pixels, its frames and, for the pseudo-star steps, its positions.
+Each step's cost is a linear model of those,
+
+    memory (MB)  = base_mb + mb_per_mpixel * pixels / 1e6 + mb_per_mframe * frames / 1e6
+                   + mb_per_gsample * pixels * frames / 1e9
+    time (s)     = start_s + s_per_mpixel * pixels / 1e6 + s_per_gsample * pixels * frames / 1e9
+                   + s_per_position * positions
+
+whose coefficients come from the workflow's own ``benchmark:`` files (max_rss
+and wall time of each job) on the ``ci`` preset, on the ``ci`` preset with a
+detector 8 times larger on a side, and on the default and paper presets
+(BENCHMARKS.md, "Job resources"). Memory does not grow with frames for the
+streaming steps (the cubes are read in chunks) but for per-frame series (the
+fit's frame factors: tens of bytes a frame); it grows with pixels (the
+per-pixel maps and accumulators) and, for the Allan deviations, with the
+number of batches times the pixels (each batch's offset map), so with pixels
+x frames.
+
+The request adds margins to the measured cost, because a job that runs out
+of memory or time on a cluster is killed: :data:`MEMORY_MARGIN` on memory,
+the Snakemake process that runs the job on the node (:data:`EXECUTOR_MB`),
+:data:`TIME_MARGIN` on time (the benchmarks' jobs took up to 5.4 times their
+quiet-machine time with other jobs on the cores) and at least
+:data:`MIN_RUNTIME` minutes. A retried job (Snakemake's ``attempt``) asks for
+``attempt`` times as much.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["StepCost", "STEPS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
+           "step_cost"]
+
+#: Factor on the modelled memory: the spread of repeated runs (383-419 MB for one fit) and of library versions.
+MEMORY_MARGIN = 1.5
+#: MB for the Snakemake process that runs a job on a cluster node (it parses the workflow, then starts the
+#: step's script; the ``benchmark:`` files measure the script only).
+EXECUTOR_MB = 400
+#: Factor on the modelled wall time: the benchmarks' fits took 5-19 s on shared cores against 3.3-3.5 s alone.
+TIME_MARGIN = 6.0
+#: Minutes: the least wall time asked for, which covers Python's start on a busy node.
+MIN_RUNTIME = 5
+
+
+@dataclass(frozen=True)
+class StepCost:
+    """Measured cost of one workflow step, linear in the data it reads.
+
+    Attributes
+    ----------
+    base_mb : float
+        Peak resident memory, MB, of the step on a vanishing dataset (the
+        interpreter and its imports).
+    mb_per_mpixel : float
+        MB per million detector pixels (maps and accumulators).
+    mb_per_mframe : float
+        MB per million frames, whatever the pixels (per-frame series).
+    mb_per_gsample : float
+        MB per 1e9 samples read (pixels x frames): per-pixel maps kept for each part of the frames.
+    start_s : float
+        Wall time, s, of the step on a vanishing dataset.
+    s_per_mpixel : float
+        s per million pixels (per-pixel solutions, figures).
+    s_per_gsample : float
+        s per 1e9 samples read or written.
+    s_per_position : float
+        s per star position.
+    """
+
+    base_mb: float
+    mb_per_mpixel: float = 0.0
+    mb_per_mframe: float = 0.0
+    mb_per_gsample: float = 0.0
+    start_s: float = 5.0
+    s_per_mpixel: float = 0.0
+    s_per_gsample: float = 0.0
+    s_per_position: float = 0.0
+
+
+#: Cost of each step, by rule name (BENCHMARKS.md, "Job resources"). Rules not listed here cost :data:`LIGHT`.
+STEPS: dict[str, StepCost] = {
+    "simulate_file": StepCost(base_mb=230.0, mb_per_mpixel=2000.0, start_s=3.0, s_per_gsample=25.0),
+    "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
+    "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
+    "fit_fringes": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
+                            s_per_gsample=3.0),
+    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=5000.0, mb_per_gsample=110.0, start_s=3.0,
+                                s_per_gsample=3.0),
+    "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),
+    "measure_centroids": StepCost(base_mb=170.0, start_s=5.0, s_per_position=0.1),
+    # the studies' own benches, whatever the dataset: the largest point measured (offset bias, 22 s)
+    "sweep_point": StepCost(base_mb=240.0, start_s=25.0),
+}
+
+#: A step that reads products only (figures, tables, comparisons): the interpreter with matplotlib and xarray.
+LIGHT = StepCost(base_mb=250.0, mb_per_mpixel=300.0, start_s=10.0, s_per_mpixel=30.0)
+
+
+def step_cost(step: str) -> StepCost:
+    """The measured cost of a step (a rule name); :data:`LIGHT` for a step that reads products only."""
+    return STEPS.get(step, LIGHT)
+
+
+def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0, attempt: int = 1) -> dict:
+    """Memory and wall time to ask a scheduler for, for one job of a step.
+
+    Parameters
+    ----------
+    step : str
+        The rule's name (``fit_fringes``, ``measure_dark``...).
+    pixels : int
+        Detector pixels, rows x cols.
+    frames : int
+        Frames the job reads (or writes, for a simulation), over all its files.
+    positions : int
+        Star positions the job handles.
+    attempt : int
+        Snakemake's attempt number, 1 for the first: a retried job asks for that many times more.
+
+    Returns
+    -------
+    dict
+        ``mem_mb`` (int, MB) and ``runtime`` (int, minutes), Snakemake's standard resource names.
+    """
+    if pixels <= 0 or frames < 0 or positions < 0 or attempt < 1:
+        raise ValueError(f"job_resources({step!r}): pixels {pixels} must be positive, frames {frames} and "
+                         f"positions {positions} non-negative, attempt {attempt} at least 1")
+    cost = step_cost(step)
+    samples = float(pixels) * float(frames)
+    memory = (cost.base_mb + cost.mb_per_mpixel * pixels / 1e6 + cost.mb_per_mframe * frames / 1e6
+              + cost.mb_per_gsample * samples / 1e9)
+    seconds = (cost.start_s + cost.s_per_mpixel * pixels / 1e6 + cost.s_per_gsample * samples / 1e9
+               + cost.s_per_position * positions)
+    mem_mb = math.ceil(MEMORY_MARGIN * memory + EXECUTOR_MB) * attempt
+    runtime = max(MIN_RUNTIME, math.ceil(TIME_MARGIN * seconds / 60)) * attempt
+    return {"mem_mb": int(mem_mb), "runtime": int(runtime)}

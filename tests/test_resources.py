@@ -1,0 +1,61 @@
+"""Job resources from the dataset's size: the requests cover the measured jobs, and scale with the data."""
+
+import pytest
+
+from dice_core import resources
+from dice_core.resources import job_resources
+
+PAPER_PIXELS = 80 * 84
+
+
+@pytest.mark.parametrize("step, frames, max_rss_mb, seconds", [
+    # BENCHMARKS.md, the paper preset (80x84 pixels, 200,000-frame baselines): the benchmark files' max_rss
+    # and wall time with other jobs on the cores
+    ("fit_fringes", 200_000, 411, 19),
+    ("allan_deviation", 200_000, 491, 14),
+    # BENCHMARKS.md, one 20,000-frame metrology file simulated (3.4 s alone), memory_streaming.py's 221 MiB
+    ("simulate_file", 20_000, 232, 3.4),
+])
+def test_requests_cover_the_paper_scale_measurements(step, frames, max_rss_mb, seconds):
+    asked = job_resources(step, pixels=PAPER_PIXELS, frames=frames)
+    assert asked["mem_mb"] - resources.EXECUTOR_MB >= max_rss_mb
+    assert asked["mem_mb"] <= 4 * max_rss_mb + resources.EXECUTOR_MB  # a request, not the whole node
+    assert asked["runtime"] * 60 >= seconds
+
+
+def test_memory_follows_pixels_and_time_follows_samples():
+    small = job_resources("fit_fringes", pixels=PAPER_PIXELS, frames=200_000)
+    more_frames = job_resources("fit_fringes", pixels=PAPER_PIXELS, frames=2_000_000)
+    large = job_resources("fit_fringes", pixels=4096 * 4096, frames=20_000)
+    # streaming: ten times the frames, less than twice the memory (the per-frame factors only)
+    assert more_frames["mem_mb"] - resources.EXECUTOR_MB < 2 * (small["mem_mb"] - resources.EXECUTOR_MB)
+    assert more_frames["runtime"] >= small["runtime"]
+    # a 4k x 4k detector holds its per-pixel maps in memory: far more than 80x84, and more time per sample
+    assert large["mem_mb"] > 4 * small["mem_mb"]
+    huge = job_resources("fit_fringes", pixels=4096 * 4096, frames=200_000)
+    assert huge["runtime"] > 5 * large["runtime"] or huge["runtime"] == resources.MIN_RUNTIME
+
+
+def test_a_step_with_no_data_asks_for_the_floor():
+    asked = job_resources("plot_dark", pixels=40 * 44)
+    assert asked["runtime"] == resources.MIN_RUNTIME
+    assert resources.EXECUTOR_MB < asked["mem_mb"] < 2000
+
+
+def test_a_retry_asks_for_twice_as_much():
+    first = job_resources("measure_dark", pixels=PAPER_PIXELS, frames=10_000)
+    second = job_resources("measure_dark", pixels=PAPER_PIXELS, frames=10_000, attempt=2)
+    assert second == {"mem_mb": 2 * first["mem_mb"], "runtime": 2 * first["runtime"]}
+
+
+def test_every_benchmarked_rule_has_a_measured_cost():
+    for step in ("simulate_file", "measure_dark", "measure_prnu", "fit_fringes", "allan_deviation",
+                 "stack_position", "measure_centroids", "sweep_point"):
+        assert step in resources.STEPS, step
+
+
+@pytest.mark.parametrize("kwargs", [{"pixels": 0}, {"pixels": 10, "frames": -1}, {"pixels": 10, "positions": -2},
+                                    {"pixels": 10, "attempt": 0}])
+def test_bad_sizes_are_refused(kwargs):
+    with pytest.raises(ValueError, match="job_resources"):
+        job_resources("fit_fringes", **kwargs)
