@@ -242,9 +242,14 @@ def read_accuracy_table(path):
 def test_accuracy_table_follows_the_contract(out):
     rows = read_accuracy_table(out / "tables" / "accuracy.csv")
     assert {"flat", "metrology", "grouping", "accuracy", "error"} <= set(rows[0])
+    from dice_core.centroids import MODE_NEEDS
+
     for method in ("fourier", "gaussian"):  # the configured sweep: one row per mode and grouping
-        assert sorted((r["flat"], r["metrology"], r["grouping"]) for r in rows if r["method"] == method) == sorted(
-            (f, m, g) for f in ("true", "false") for m in ("true", "false") for g in ("position", "group"))
+        assert sorted((r["mode"], r["grouping"]) for r in rows if r["method"] == method) == sorted(
+            (m, g) for m in MODE_NEEDS for g in ("position", "group"))
+    for r in rows:  # the flat and metrology columns say what the mode corrects with
+        needs = MODE_NEEDS[r["mode"]]
+        assert (r["flat"], r["metrology"]) == (str("flat" in needs).lower(), str("offsets" in needs).lower())
     assert (out / "centroids" / "gaussian" / "flat+metrology.nc").is_file()
     assert all(float(r["accuracy"]) > 0 and float(r["error"]) > 0 for r in rows)
     assert "\\begin{tabular}" in (out / "tables" / "accuracy.tex").read_text()
