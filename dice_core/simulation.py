@@ -45,7 +45,7 @@ from scipy.ndimage import gaussian_filter
 
 from dice_core.detector import PixelResponse
 from dice_core.geometry import two_source_phase
-from dice_core.io import write_cube, write_product
+from dice_core.io import write_cube, write_product, write_text
 from dice_core.polynomials import polynomial_design
 from dice_core.manifest import FORMAT
 
@@ -896,11 +896,8 @@ def write_file(cfg: SimulationConfig, truth: xr.Dataset, relpath: str, outdir) -
 def write_manifest(cfg: SimulationConfig, outdir) -> Path:
     """Write ``dataset.yaml`` for the simulated dataset (atomically)."""
     path = Path(outdir) / "dataset.yaml"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(".dataset.yaml.part")
-    tmp.write_text("# Simulated DICE testbed, written by dice_core.simulation\n"
-                   + yaml.safe_dump(dataset_layout(cfg), sort_keys=False))
-    tmp.replace(path)
+    write_text(path, "# Simulated DICE testbed, written by dice_core.simulation\n"
+               + yaml.safe_dump(dataset_layout(cfg), sort_keys=False))
     return path
 
 

@@ -17,6 +17,7 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import Paramspace, validate
 
 from dice_core import DatasetError, simulation
+from dice_core.io import write_text
 from dice_core.manifest import load_manifest, parse_manifest
 
 
