@@ -517,6 +517,12 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
         batch_images = [[corrected(frame, w, s) for s, w in enumerate(windows)] for frame in batch_means]
         noise = [np.where(flags[w.slices] != 0, 0.0, _noise_weights(image, n, detector.gain, read_noise[w.slices]))
                  for image, w in zip(images, windows)]
+        for s, (weights, w) in enumerate(zip(noise, windows)):
+            if not np.all(np.isfinite(weights)):  # no signal and no read noise: a weight of 1/0
+                r, c = np.argwhere(~np.isfinite(weights))[0]
+                raise WindowError(f"star {s} at {where}: pixel row {w.row0 + r}, col {w.col0 + c} has zero noise "
+                                  "(no signal above the dark and no read noise, e.g. zero in every frame and in the "
+                                  "dark): flag it in the bad-pixel mask or check the data")
         for s, w in enumerate(windows):
             n_bad[i, s] = int(np.count_nonzero(flags[w.slices]))
         if references is None and method == "fourier" and n_bad[i].any():

@@ -433,3 +433,31 @@ def test_bad_pixels_in_a_star_window_are_left_out_or_the_star_refused(tmp_path, 
     assert np.isnan(refused.x[i, 1]) and refused.n_bad_pixels[i, 1] == 1
     assert f"star 1 at position {positions[i]} has bad pixel(s) in its window, row {r}, col {c} (hot)" in caplog.text
     assert np.isfinite(refused.x[:, [0, 2, 3, 4]]).all()
+
+
+@pytest.mark.parametrize("method", ["fourier", "gaussian"])
+def test_a_pixel_zero_in_every_frame_and_the_dark_is_named(star_dataset, method):
+    """Zero signal and zero read noise give the pixel an infinite weight: an error naming the star, the
+    position and the pixel, not the fit's bare "Residuals are not finite"."""
+    from dice_core.io import Chunk, FrameStream
+
+    manifest, truth = star_dataset
+    row, col = (int(round(v)) for v in manifest.star_approx[2])
+    row, col = row + 1, col - 1
+    streams = {p.index: FrameStream(p.acquisition, manifest.detector) for p in manifest.positions}
+
+    def zero_pixel(index):
+        for chunk in streams[index]:
+            frames = chunk.frames.copy()
+            frames[:, row, col] = 0.0
+            yield Chunk(chunk.start, frames, chunk.saturated, chunk.any_saturated)
+
+    dark = truth["bias"].values.copy()
+    dark[row, col] = 0.0
+    read_noise = np.ones(manifest.detector.shape)
+    read_noise[row, col] = 0.0
+    with pytest.raises(centroids.WindowError,
+                       match=rf"star 2 at position {manifest.positions[0].index}: pixel row {row}, col {col} has zero noise"):
+        centroids.measure_positions(stacks_of(manifest, chunks_of=zero_pixel), [p.index for p in manifest.positions],
+                                    manifest.star_approx, manifest.detector, dark, read_noise=read_noise,
+                                    method=method)

@@ -21,7 +21,38 @@ from dice_core.io import write_text
 from dice_core.manifest import load_manifest, parse_manifest
 
 
-validate(config, schema="../schemas/config.schema.yaml")
+def check_config(values, schema_path):
+    """Check the configuration against its schema, each problem in one line naming the key.
+
+    An unknown key is named with the nearest valid key (difflib) and the valid keys at its level,
+    instead of the schema in full that Snakemake's validate prints.
+    """
+    import difflib
+
+    import jsonschema
+    import yaml
+
+    schema = yaml.safe_load(Path(schema_path).read_text())
+    validator = jsonschema.validators.validator_for(schema)(schema)
+    problems = []
+    for error in sorted(validator.iter_errors(values), key=lambda e: [str(p) for p in e.absolute_path]):
+        where = "".join(f"{part}." for part in error.absolute_path)
+        if error.validator == "additionalProperties" and error.validator_value is False:
+            known = list(error.schema.get("properties", {}))
+            for key in sorted(set(error.instance) - set(known)):
+                near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+                hint = f"; did you mean {where}{near[0]}?" if near else ""
+                problems.append(f"config {where}{key}: unknown key{hint} (keys of {where.rstrip('.') or 'the config'}: "
+                                f"{', '.join(known)})")
+        else:
+            message = error.message if len(error.message) <= 200 else error.message[:200] + "..."
+            problems.append(f"config {where.rstrip('.') or '(top level)'}: {message}")
+    if problems:
+        raise WorkflowError("\n".join(problems))
+
+
+check_config(config, Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml")
+validate(config, schema="../schemas/config.schema.yaml")  # passes now; sets the defaults
 
 PRESETS = Path(workflow.basedir) / "config" / "presets"
 
