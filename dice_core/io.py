@@ -443,7 +443,7 @@ def atomic_write(path):
         except OSError as cleanup:
             exc.add_note(f"the temporary file {tmp} could not be removed: {cleanup}")
         if full:
-            raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} while writing {path} ({exc})",
+            raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} (the writer said: {exc})",
                           str(path)) from exc
         raise
 
