@@ -63,8 +63,11 @@ def error_line(exc: BaseException) -> str:
     return " ".join(text.split())  # one line, whatever the message's own line breaks
 
 
-def run_logged(log_path, step, /, *args, **kwargs):
+def run_logged(log_path, step, /, *args, provenance=None, **kwargs):
     """Run ``step(*args, **kwargs)`` with this process's log records sent to ``log_path``.
+
+    ``provenance``, a dict of :func:`dice_core.io.provenance`'s arguments (``code_version``, the
+    folders inputs are recorded relative to), is recorded in every product the step writes.
 
     For workflow steps: each writes its own log, with timestamps. An exception is
     written to the log with its traceback. A known error (:func:`known_error`: bad
@@ -91,8 +94,13 @@ def run_logged(log_path, step, /, *args, **kwargs):
     threads = [f"{name}={os.environ[name]}" for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
                                                           "MKL_NUM_THREADS") if name in os.environ]
     log.info("thread variables in the environment: %s", ", ".join(threads) or "none")
+    import contextlib
+
+    from dice_core import io
+
     try:
-        result = step(*args, **kwargs)
+        with io.provenance(**provenance) if provenance else contextlib.nullcontext():
+            result = step(*args, **kwargs)
     except Exception as exc:
         log.exception("step failed")
         if known_error(exc):

@@ -791,7 +791,7 @@ def solution_dataset(solution: FringeSolution, detector, *, fibers=None) -> xr.D
             "photon_noise_floor": (rc, as_map(floor),
                                    {"units": "pixel", "long_name": "1-sigma offset error from photon and read noise"}),
             "masked": (rc, as_map(solution.masked.astype(np.int8), np.int8(0)),
-                       {"units": "1",
+                       {"units": "1", "flag_values": np.array([0, 1], np.int8), "flag_meanings": "measured masked",
                         "long_name": "1 where the pixel has no offset (bad pixel, saturated, no contrast or "
                                      "not converged)"}),
             "kx": ((), float(solution.k[0]), {"units": "rad/pixel", "long_name": "mean wavevector along x"}),

@@ -405,3 +405,40 @@ def test_atomic_write_is_the_one_mechanism(tmp_path):
         if source.name != "io.py":
             text = source.read_text()
             assert "os.replace(" not in text and ".replace(path)" not in text and "mkstemp" not in text, source
+
+
+def test_provenance_appends_history_and_records_relative_inputs_with_checksums_and_the_code(tmp_path):
+    import hashlib
+    import json
+
+    from dice_core.io import COORDINATE_ATTRS, provenance
+
+    dataset, results = tmp_path / "bench", tmp_path / "results" / "bench"
+    raw = dataset / "raw" / "dark.fits"
+    write_cube(raw, [np.zeros((2, 6, 7))], shape=(6, 7), n_frames=2)
+    first = results / "calibration" / "dark.nc"
+    with provenance(code_version="0123abcd", dataset=dataset, results=results):
+        write_product(product(), first, title="dark maps", inputs=[raw])
+    dark = read_product(first)
+    assert dark.attrs["code_version"] == "0123abcd" and "code 0123abcd" in dark.attrs["history"]
+    [record] = json.loads(dark.attrs["inputs"])
+    assert record == {"path": "raw/dark.fits", "relative_to": "dataset",
+                      "sha256": hashlib.sha256(raw.read_bytes()).hexdigest()}
+    second = results / "calibration" / "prnu.nc"
+    write_product(product().assign_coords(row=[10, 11]), second, title="prnu", inputs=[first, raw],
+                  code_version="4567ef", roots={"dataset": dataset, "results": results})
+    prnu = read_product(second)
+    history = prnu.attrs["history"].splitlines()
+    assert history[:-1] == dark.attrs["history"].splitlines()  # the input's history kept, then this write's
+    assert "prnu.nc (prnu) written by dice_core" in history[-1] and "code 4567ef" in history[-1]
+    records = json.loads(prnu.attrs["inputs"])
+    assert [(r["path"], r["relative_to"]) for r in records] == [("calibration/dark.nc", "results"),
+                                                                ("raw/dark.fits", "dataset")]
+    assert records[0]["sha256"] == hashlib.sha256(first.read_bytes()).hexdigest()
+    # an input under neither root keeps its absolute path
+    write_product(product(), tmp_path / "x.nc", title="x", inputs=[second], roots={"dataset": dataset})
+    assert json.loads(read_product(tmp_path / "x.nc").attrs["inputs"])[0]["path"] == str(second)
+    # the shared coordinates carry units and long names, an index where the dataset had none
+    for name in ("row", "col"):
+        assert prnu[name].attrs["units"] == COORDINATE_ATTRS[name]["units"] == "pixel" and prnu[name].attrs["long_name"]
+    assert prnu["row"].values.tolist() == [10, 11] and prnu["col"].values.tolist() == [0, 1, 2]

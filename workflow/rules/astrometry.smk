@@ -10,6 +10,7 @@ rule accuracy_table:
         residuals=f"{OUT}/tables/procrustes_residuals.nc",
     params:
         code=code_version("io", "astrometry"),
+        roots=ROOTS,  # inputs are recorded relative to these
         options=lambda w: config["astrometry"],
     log:
         f"{OUT}/logs/accuracy_table.log",

@@ -10,6 +10,7 @@ rule measure_dark:
         dark=f"{OUT}/calibration/dark.nc",
     params:
         code=code_version("io", "manifest", "calibration", "polynomials"),
+        roots=ROOTS,  # inputs are recorded relative to these
     log:
         f"{OUT}/logs/measure_dark.log",
     benchmark:
@@ -29,6 +30,7 @@ rule measure_prnu:
         prnu=f"{OUT}/calibration/flats/prnu_{{flat}}.nc",
     params:
         code=code_version("io", "manifest", "calibration", "polynomials"),
+        roots=ROOTS,  # inputs are recorded relative to these
     log:
         f"{OUT}/logs/measure_prnu_{{flat}}.log",
     benchmark:
@@ -47,6 +49,7 @@ rule select_reference_prnu:
     params:
         reference=MANIFEST.reference_flat,
         code=code_version("io"),
+        roots=ROOTS,  # inputs are recorded relative to these
     log:
         f"{OUT}/logs/select_reference_prnu.log",
     conda:
@@ -64,6 +67,7 @@ rule compare_prnu:
         difference=f"{OUT}/calibration/prnu_difference_{{flat}}.nc",
     params:
         code=code_version("io", "manifest", "calibration", "polynomials"),
+        roots=ROOTS,  # inputs are recorded relative to these
     log:
         f"{OUT}/logs/compare_prnu_{{flat}}.log",
     conda:
@@ -81,6 +85,7 @@ rule find_bad_pixels:
         bad_pixels=f"{OUT}/calibration/bad_pixels.nc",
     params:
         code=code_version("io", "manifest", "calibration", "polynomials"),
+        roots=ROOTS,  # inputs are recorded relative to these
     log:
         f"{OUT}/logs/find_bad_pixels.log",
     conda:

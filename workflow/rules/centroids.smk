@@ -12,6 +12,7 @@ rule stack_position:
     params:
         batches=config["centroids"]["batches"],
         code=code_version("io", "manifest", "stacks"),
+        roots=ROOTS,  # inputs are recorded relative to these
     log:
         f"{OUT}/logs/stack_position_{{position}}.log",
     benchmark:
@@ -32,6 +33,7 @@ rule measure_centroids:
         centroids=f"{OUT}/centroids/{{mode}}.nc",
     params:
         code=code_version("io", "manifest", "calibration", "centroids", "polynomials", "stacks"),
+        roots=ROOTS,  # inputs are recorded relative to these
         options=centroid_options,
     log:
         f"{OUT}/logs/measure_centroids_{{mode}}.log",

@@ -95,6 +95,9 @@ OUT = f"{config['results']}/{MANIFEST.name}"
 RAW = local_path(config["raw"]) if config.get("raw") else f"{OUT}/raw"
 SIMULATE = SIMULATION is not None and not config.get("raw")
 MANIFEST_FILE = local_path(MANIFEST.path)
+# Products record their inputs relative to the dataset's folder (the manifest's) and to the results folder,
+# tried in that order, so that they hold no absolute path of this machine (dice_core.io.write_product).
+ROOTS = {"dataset": local_path(MANIFEST.path.parent), "results": OUT}
 
 
 wildcard_constraints:

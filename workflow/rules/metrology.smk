@@ -15,6 +15,7 @@ rule fit_fringes:
         metrology=f"{OUT}/metrology/{{baseline}}.nc",
     params:
         code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
+        roots=ROOTS,  # inputs are recorded relative to these
         options=config["metrology"],  # a changed option (tip_sigma, tolerance...) reruns the fits
     log:
         f"{OUT}/logs/fit_fringes_{{baseline}}.log",
@@ -35,6 +36,7 @@ rule deproject_offsets:
     params:
         baselines=pair_baselines,
         code=code_version("io", "deprojection", "geometry"),
+        roots=ROOTS,  # inputs are recorded relative to these
     log:
         f"{OUT}/logs/deproject_offsets_{{pair}}.log",
     conda:
@@ -52,6 +54,7 @@ rule compare_pairs:
     params:
         reference=MANIFEST.reference_pair,
         code=code_version("io", "deprojection", "geometry"),
+        roots=ROOTS,  # inputs are recorded relative to these
     log:
         f"{OUT}/logs/compare_pairs_{{pair}}.log",
     conda:
@@ -71,6 +74,7 @@ rule allan_deviation:
         allan=f"{OUT}/allan/{{baseline}}.nc",
     params:
         code=code_version("io", "manifest", "allan", "fringes", "geometry", "parallel", "polynomials"),
+        roots=ROOTS,  # inputs are recorded relative to these
     log:
         f"{OUT}/logs/allan_deviation_{{baseline}}.log",
     benchmark:

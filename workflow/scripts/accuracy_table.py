@@ -34,4 +34,5 @@ def accuracy_table(centroid_paths, csv_path, tex_path, residuals_path, config):
 
 
 dice_core.run_logged(snakemake.log[0], accuracy_table, list(snakemake.input.centroids), snakemake.output.csv,
-                     snakemake.output.tex, snakemake.output.residuals, snakemake.config)
+                     snakemake.output.tex, snakemake.output.residuals, snakemake.config,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -45,4 +45,5 @@ dice_core.run_logged(snakemake.log[0], measure_centroids, snakemake.input.manife
                      snakemake.input.get("prnu"), snakemake.input.get("offsets"),
                      list(snakemake.input.get("bad_pixels", [])), list(snakemake.input.stacks),
                      snakemake.wildcards.mode,
-                     snakemake.output.centroids, snakemake.config, snakemake.params.options)
+                     snakemake.output.centroids, snakemake.config, snakemake.params.options,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})
