@@ -521,7 +521,7 @@ def _complete_barycentre_residuals(configurations):
     return out
 
 
-def residuals_dataset(datasets: dict, rows, residuals: dict) -> xr.Dataset:
+def residuals_dataset(datasets: dict, rows, *, residuals: dict) -> xr.Dataset:
     """Procrustes residuals over the selected positions and barycentre residuals over all, per mode.
 
     ``datasets``, ``rows`` and ``residuals`` are one method's: its centroid

@@ -71,7 +71,7 @@ class Window:
         return x.astype(float), y.astype(float)
 
 
-def star_window(approx_row: float, approx_col: float, half_size: int, shape, *, label: str = "star") -> Window:
+def star_window(approx_row: float, approx_col: float, *, half_size: int, shape, label: str = "star") -> Window:
     """The (2 half_size + 1)-pixel window centred on the pixel nearest (approx_row, approx_col).
 
     Raises
@@ -188,7 +188,7 @@ def cramer_rao(fit: GaussianFit, window: Window, *, gain: float, read_noise, use
     return np.sqrt(np.diag(np.linalg.inv(fisher))[2:4])
 
 
-def isolated_half_size(approx, half_size: int, width: float, *, contrast: float = 1e-3) -> int:
+def isolated_half_size(approx, half_size: int, *, width: float, contrast: float = 1e-3) -> int:
     """The largest half-size up to ``half_size`` whose windows keep every other star's light out.
 
     Fourier resampling takes a window for one period of a band-limited image,
@@ -382,7 +382,7 @@ def _pixel_list(window, bad, flags):
     return "; ".join(items[:4]) + ("; ..." if len(items) > 4 else "")
 
 
-def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, prnu=None, dx=None, dy=None,
+def measure_positions(stacks, positions, *, approx, detector, dark, read_noise, prnu=None, dx=None, dy=None,
                       bad_pixels=None, method: str = "fourier", half_size: int = 7, label: str = "stars",
                       log=None) -> PositionCentroids:
     """Centroids of the stars at every detector position, with their precision and photon-noise limit.
@@ -485,9 +485,9 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
         if references is None:
             width = max(max(f.width_x, f.width_y) for f in (
                 gaussian_fit(mean[w.slices] - dark[w.slices], w, weights=(flags[w.slices] == 0).astype(float)) for w in
-                (star_window(r, c, half_size, detector.shape, label=f"star {s} at {where}")
+                (star_window(r, c, half_size=half_size, shape=detector.shape, label=f"star {s} at {where}")
                  for s, (r, c) in enumerate(centres))))
-            isolated = isolated_half_size(centres, half_size, width)
+            isolated = isolated_half_size(centres, half_size, width=width)
             if isolated < 2:
                 raise WindowError(f"{label}: at {where} the stars are too close for windows holding one star's light "
                                   f"alone (PSF width {width:.2f} pixel; 5x5 windows at least)")
@@ -495,7 +495,7 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
                 log.warning("%s: %dx%d windows would hold other stars' light (PSF width %.2f pixel): %dx%d windows",
                             label, size, size, width, 2 * isolated + 1, 2 * isolated + 1)
             half_size, size = isolated, 2 * isolated + 1
-        windows = [star_window(r, c, half_size, detector.shape, label=f"star {s} at {where}")
+        windows = [star_window(r, c, half_size=half_size, shape=detector.shape, label=f"star {s} at {where}")
                    for s, (r, c) in enumerate(centres)]
 
         def corrected(frame, window, star):

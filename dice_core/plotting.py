@@ -419,7 +419,7 @@ def barycentre_figure(ds, *, title="Barycentre residuals", spread: float = 3.0):
     return fig
 
 
-def save(fig, png, pdf=None):
+def save(fig, png, *, pdf=None):
     """Write a figure as PNG (150 dpi) and, optionally, PDF; then close it."""
     from dice_core.io import atomic_write
 

@@ -322,7 +322,7 @@ def test_figures_manifests_and_reports_honour_the_umask(tmp_path):
     previous = os.umask(0o027)
     try:
         fig, ax = plt.subplots()
-        plotting.save(fig, tmp_path / "f.png", tmp_path / "f.pdf")
+        plotting.save(fig, tmp_path / "f.png", pdf=tmp_path / "f.pdf")
         plotting.reproduction_pdf(tmp_path / "report.pdf", [(tmp_path / "f.png", "a caption")], title="t")
         simulation.write_manifest(simulation.load_preset(REPO / "config" / "presets" / "ci.yaml"), tmp_path / "raw")
     finally:

@@ -372,6 +372,12 @@ def test_modes_without_their_calibration_are_skipped_or_refused(workdir, out, tm
     assert said.count("skipping centroid mode flat: the dataset has no flat field") == 1
     assert "skipping centroid mode flat+metrology: the dataset has no flat field" in said
     assert "centroids/raw.nc" in said and "centroids/metrology.nc" in said and "centroids/flat.nc" not in said
+    # a reduction sweep's points evaluate the workflow again, as modules: the reason is still said once
+    (workdir / "half.yaml").write_text(yaml.safe_dump({"sweeps": {"half": {
+        "study": "reduction", "parameter": "centroids.half_size", "values": [3, 4]}}}))
+    result = snakemake(workdir, "-n", "--config", f"dataset={manifest}", "--configfile", "half.yaml")
+    said = result.stdout + result.stderr
+    assert said.count("skipping centroid mode flat: the dataset has no flat field") == 1
     (workdir / "bad_pair.yaml").write_text("centroids:\n  pair: P99\n")
     result = snakemake(workdir, "-n", "--config", "dataset=ci", "--configfile", "bad_pair.yaml", check=False)
     assert result.returncode != 0

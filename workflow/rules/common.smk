@@ -109,7 +109,9 @@ wildcard_constraints:
     method="fourier|gaussian",
 
 
-_SKIPPED = set()
+# One set for the run and the modules of its reduction sweep's points, which evaluate this file again with the
+# same workflow object: a reason is said once, not once per point.
+_SKIPPED = vars(workflow).setdefault("_dice_skipped", set())
 
 
 def skipped(what, why):

@@ -28,7 +28,7 @@ def accuracy_table(centroid_paths, csv_path, tex_path, residuals_path, config):
                  row["rms_residual"], row["factor"])
     io.write_text(csv_path, astrometry.accuracy_csv(rows))
     io.write_text(tex_path, "\n".join(tables))
-    product = astrometry.residuals_dataset(first_datasets, first_rows, first_residuals)
+    product = astrometry.residuals_dataset(first_datasets, first_rows, residuals=first_residuals)
     io.write_product(product, residuals_path, title="Procrustes residuals per calibration mode", config=config,
                      inputs=list(centroid_paths))
 

@@ -31,9 +31,9 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pix
              use_flat, use_metrology, options["method"], len(positions), len(manifest.star_approx),
              2 * options["half_size"] + 1, 2 * options["half_size"] + 1)
     result = centroids.measure_positions(
-        read_stacks(stack_paths), positions, manifest.star_approx, manifest.detector, dark["dark"].values,
-        read_noise=dark["noise"].values, prnu=prnu, dx=dx, dy=dy, bad_pixels=bad_pixels, method=options["method"],
-        half_size=options["half_size"], label=f"mode {mode}", log=log)
+        read_stacks(stack_paths), positions, approx=manifest.star_approx, detector=manifest.detector,
+        dark=dark["dark"].values, read_noise=dark["noise"].values, prnu=prnu, dx=dx, dy=dy, bad_pixels=bad_pixels,
+        method=options["method"], half_size=options["half_size"], label=f"mode {mode}", log=log)
     product = centroids.centroids_dataset(result, positions, mode=mode, method=options["method"])
     inputs = [manifest.path, dark_path, *([prnu_path] if use_flat else []), *([offsets_path] if use_metrology else []),
               *bad_pixel_paths, *stack_paths]
