@@ -40,7 +40,7 @@ def main():
     prepare(args.frames, workdir)
     manifest, truth, stream = load(args.frames, workdir)
     start = time.perf_counter()
-    solution = fringes.fit_baseline(stream, truth["bias"].values, manifest.detector,
+    solution = fringes.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
                                     flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
                                     workers=2)
     fit_seconds = time.perf_counter() - start
@@ -48,7 +48,7 @@ def main():
     dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
                        "noise": (("row", "col"), truth["read_noise"].values)})
     start = time.perf_counter()
-    ds = allan.allan_of_baseline(stream, metrology, dark, manifest.detector, workers=2)
+    ds = allan.allan_of_baseline(stream, metrology, dark=dark, detector=manifest.detector, workers=2)
     allan_seconds = time.perf_counter() - start
     print(f"{args.frames} frames; fit {fit_seconds:.1f} s; Allan step {allan_seconds:.1f} s; "
           f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB; "

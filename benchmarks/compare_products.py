@@ -39,7 +39,7 @@ def main():
     dark = io.read_product(products / "calibration/dark.nc")
     prnu = io.read_product(products / "calibration/prnu.nc")
     stream = io.FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
-    solution = fringes.fit_baseline(stream, dark["dark"].values, manifest.detector, flat=prnu["prnu"].values,
+    solution = fringes.fit_baseline(stream, dark["dark"].values, detector=manifest.detector, flat=prnu["prnu"].values,
                                     read_noise=dark["noise"].values, workers=2)
     old = fringes.solution_dataset(solution, manifest.detector)
     new = io.read_product(products / "metrology/H1H4.nc")
@@ -47,7 +47,7 @@ def main():
     diff = float(np.nanmax(np.abs(old["projected_offset"].values - new["projected_offset"].values)))
     print(f"projected offsets: largest difference {diff:.2e} pixel, {diff / floor:.2e} of the photon floor "
           f"({floor:.2e} pixel)")
-    old_allan = allan.allan_of_baseline(stream, new, dark, manifest.detector)
+    old_allan = allan.allan_of_baseline(stream, new, dark=dark, detector=manifest.detector)
     new_allan = io.read_product(products / "allan/H1H4.nc")
     limit = float(new_allan["photon_limit_pixel"].min())
     for name in ("deviation_mean", "allan_deviation_mean", "photon_limit_pixel", "deviation_block_mean"):

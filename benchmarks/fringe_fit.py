@@ -58,7 +58,7 @@ def prepare(frames, workdir):
     start = time.perf_counter()
     for relpath, (kind, _, _, _) in simulation.file_jobs(cfg).items():
         if kind == "baseline":
-            simulation.write_file(cfg, truth, relpath, workdir)
+            simulation.write_file(cfg, truth, relpath=relpath, outdir=workdir)
     simulation.write_manifest(cfg, workdir)
     print(f"simulated {frames} frames in {time.perf_counter() - start:.0f} s", file=sys.stderr)
 
@@ -81,7 +81,7 @@ def fit_child(frames, workdir, chunk_frames, workers):
 
     manifest, truth, stream = load(frames, workdir, chunk_frames)
     start = time.perf_counter()
-    solution = fringes.fit_baseline(stream, truth["bias"].values, manifest.detector,
+    solution = fringes.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
                                     flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
                                     workers=workers)
     elapsed = time.perf_counter() - start

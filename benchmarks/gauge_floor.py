@@ -31,8 +31,9 @@ def draw(seed, **metrology):
         manifest = load_manifest(simulation.simulate_dataset(cfg, Path(folder)))
         truth = read_product(Path(folder) / "truth.nc").load()
         solution = fringes.fit_baseline(FrameStream(manifest.baselines["H1H4"], manifest.detector),
-                                        truth["bias"].values, manifest.detector, flat=truth["sensitivity"].values,
-                                        read_noise=truth["read_noise"].values, label="H1H4")
+                                        truth["bias"].values, detector=manifest.detector,
+                                        flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
+                                        label="H1H4")
     difference = np.sqrt(np.nanmean((solution.offsets - solution.offsets_prnu_free) ** 2))
     return difference, solution.gauge_difference_floor, np.sqrt(np.nanmean(solution.photon_floor**2))
 

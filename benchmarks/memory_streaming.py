@@ -60,13 +60,14 @@ def child(step, frames, workdir):
         write_product(truth, raw / "truth.nc", title="benchmark truth")
         for relpath, (kind, name, _, _) in simulation.file_jobs(cfg).items():
             if kind == "baseline":
-                simulation.write_file(cfg, truth, relpath, raw)
+                simulation.write_file(cfg, truth, relpath=relpath, outdir=raw)
     else:
         read_product(raw / "truth.nc")
         manifest = parse_manifest(simulation.dataset_layout(cfg), raw / "dataset.yaml")
         stream = FrameStream(manifest.baselines[BASELINE], manifest.detector)
         zero = np.zeros(manifest.detector.shape)
-        calibration.prnu_map(stream, zero, zero + 4.0, manifest.detector, n_frames=stream.n_frames)
+        calibration.prnu_map(stream, zero, dark_noise=zero + 4.0, detector=manifest.detector,
+                             n_frames=stream.n_frames)
     elapsed = time.perf_counter() - start
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
     print(json.dumps({"step": step, "frames": frames, "peak_mib": peak_mib, "seconds": elapsed}))

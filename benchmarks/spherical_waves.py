@@ -49,7 +49,7 @@ def main():
         manifest = load_manifest(simulation.simulate_dataset(cfg, Path(folder)))
         truth = read_product(Path(folder) / "truth.nc").load()
         solutions = {b: fringes.fit_baseline(
-            FrameStream(manifest.baselines[b], manifest.detector), truth["bias"].values, manifest.detector,
+            FrameStream(manifest.baselines[b], manifest.detector), truth["bias"].values, detector=manifest.detector,
             flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
             geometry=BaselineGeometry.of_baseline(manifest.geometry, b), label=b) for b in manifest.baselines}
     bench = manifest.geometry

@@ -59,7 +59,7 @@ def _write(frames, relpath, outdir):
     from dice_core.io import read_product
 
     cfg = config(frames)
-    simulation.write_file(cfg, read_product(Path(outdir) / "truth.nc"), relpath, outdir)
+    simulation.write_file(cfg, read_product(Path(outdir) / "truth.nc"), relpath=relpath, outdir=outdir)
 
 
 def prepare(frames, data):

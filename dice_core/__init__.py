@@ -42,18 +42,44 @@ class DatasetError(ValueError):
         return type(self), (self.path, self.problem)
 
 
-__all__ = ["DatasetError", "__version__", "run_logged"]
+__all__ = ["DatasetError", "__version__", "error_line", "known_error", "run_logged"]
 
 
-def run_logged(log_path, step, /, *args, **kwargs):
+def known_error(exc: BaseException) -> bool:
+    """Whether an exception is one a user meets, not a bug: an error class that dice_core defines
+    (:class:`DatasetError`, ``FringeError``, ``WindowError``, ``GeometryError``, ``AllanError``,
+    ``AstrometryError``...), or an :class:`OSError` (a file that cannot be read or written, a full disk)."""
+    return isinstance(exc, OSError) or any(cls.__module__.split(".")[0] == __name__ for cls in type(exc).__mro__
+                                           if issubclass(cls, Exception))
+
+
+def error_line(exc: BaseException) -> str:
+    """A known error as one line: the file or step, and the problem."""
+    if isinstance(exc, OSError) and exc.strerror:
+        where = f"{exc.filename}: " if exc.filename else ""
+        text = f"{where}{exc.strerror}"
+    else:
+        text = str(exc)
+    return " ".join(text.split())  # one line, whatever the message's own line breaks
+
+
+def run_logged(log_path, step, /, *args, provenance=None, **kwargs):
     """Run ``step(*args, **kwargs)`` with this process's log records sent to ``log_path``.
 
-    For workflow steps: each writes its own log, with timestamps; an exception
-    is written to the log with its traceback, then raised again so the caller
-    (and Snakemake) sees the step fail.
+    ``provenance``, a dict of :func:`dice_core.io.provenance`'s arguments (``code_version``, the
+    folders inputs are recorded relative to), is recorded in every product the step writes.
+
+    For workflow steps: each writes its own log, with timestamps. An exception is
+    written to the log with its traceback. A known error (:func:`known_error`: bad
+    input, an unreadable file, a full disk) then ends the process with one line on
+    stderr, ``dice: <step> failed: <file>: <problem> (traceback in <log>)``, and exit
+    status 1, so that the terminal shows the problem once, not a traceback (nor a
+    worker process's traceback beside it); any other exception, a bug, is raised again
+    with its traceback.
     """
     import logging
     import os
+    import sys
 
     handler = logging.FileHandler(log_path, mode="w")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
@@ -62,15 +88,25 @@ def run_logged(log_path, step, /, *args, **kwargs):
     root.setLevel(logging.INFO)
     logging.captureWarnings(True)
     log = logging.getLogger("dice")
-    log.info("dice_core %s: %s", __version__, getattr(step, "__name__", step))
+    step_name = getattr(step, "__name__", step)
+    log.info("dice_core %s: %s", __version__, step_name)
     # What the environment asks of thread pools; the reductions set their own (dice_core.parallel).
     threads = [f"{name}={os.environ[name]}" for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
                                                           "MKL_NUM_THREADS") if name in os.environ]
     log.info("thread variables in the environment: %s", ", ".join(threads) or "none")
+    import contextlib
+
+    from dice_core import io
+
     try:
-        result = step(*args, **kwargs)
-    except Exception:
+        with io.provenance(**provenance) if provenance else contextlib.nullcontext():
+            result = step(*args, **kwargs)
+    except Exception as exc:
         log.exception("step failed")
+        if known_error(exc):
+            handler.flush()
+            print(f"dice: {step_name} failed: {error_line(exc)} (traceback in {log_path})", file=sys.stderr)
+            raise SystemExit(1) from None
         raise
     log.info("done")
     return result

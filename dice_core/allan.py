@@ -246,7 +246,7 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     centre = np.zeros(np.size(dark)) if reference is None else np.ravel(reference).astype(np.float64)
     fit = _BatchFit(idx=idx, level=(centre - np.ravel(dark))[idx],  # X - d = (X - r) + (r - d)
                     reference_phase=np.asarray(reference_phase, float),
-                    design=polynomial_design(cols.astype(float), rows.astype(float), 1),
+                    design=polynomial_design(cols.astype(float), rows.astype(float), degree=1),
                     k_norm=float(np.hypot(*k)))
     batches = np.asarray(batches)
     lanes = chunks.split(LANES) if hasattr(chunks, "split") else [chunks]
@@ -283,7 +283,7 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     return (out, kept) if return_sums else out
 
 
-def batch_floors(frame_factors, batches, pixel_factors, gain, read_noise, k_norm) -> np.ndarray:
+def batch_floors(frame_factors, batches, *, pixel_factors, gain, read_noise, k_norm) -> np.ndarray:
     """1-sigma photon-noise error of each batch's offset of each pixel, pixel (batch, pixel).
 
     The exact error of the unweighted temporal fit on the batch's own frames
@@ -294,7 +294,7 @@ def batch_floors(frame_factors, batches, pixel_factors, gain, read_noise, k_norm
     out = np.empty((len(batches), pixel_factors.shape[0]))
     for b, (start, stop) in enumerate(batches):
         FtF, third = frame_moments(frame_factors[start:stop])
-        out[b] = photon_floor(pixel_factors, FtF, third, gain, read_noise, k_norm)
+        out[b] = photon_floor(pixel_factors, FtF, third=third, gain=gain, read_noise=read_noise, k_norm=k_norm)
     return out
 
 
@@ -344,7 +344,7 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
         fitted: at most n_batches / 2 maps in memory.
     """
     fit = _BatchFit(idx=None, level=None, reference_phase=np.asarray(reference_phase, float),
-                    design=polynomial_design(np.asarray(cols, float), np.asarray(rows, float), 1),
+                    design=polynomial_design(np.asarray(cols, float), np.asarray(rows, float), degree=1),
                     k_norm=float(np.hypot(*k)))
     moments = [frame_moments(frame_factors[start:stop]) for start, stop in batches]
     # running sums of the small moments: a group's are two differences. The F'I are summed group by
@@ -361,8 +361,8 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
             lo, hi = g * m, (g + 1) * m
             FtF = cum_FtF[hi] - cum_FtF[lo]
             group_offsets[g, good] = fit.offsets_of_sums(FtF, sums[lo:hi].sum(axis=0, dtype=np.float64))[good]
-            variance[g, good] = photon_floor(pixel_factors, FtF, cum_third[hi] - cum_third[lo], gain, read_noise,
-                                             fit.k_norm)[good] ** 2
+            variance[g, good] = photon_floor(pixel_factors, FtF, third=cum_third[hi] - cum_third[lo], gain=gain,
+                                             read_noise=read_noise, k_norm=fit.k_norm)[good] ** 2
         blocks = group_offsets @ weights
         out["deviation"].append(np.where(good, _deviation_of_means(group_offsets), np.nan))
         out["allan"].append(np.where(good, _allan_of_means(group_offsets), np.nan))
@@ -412,7 +412,7 @@ def _allan_of_means(means):
     return np.sqrt(np.mean(np.diff(means, axis=0) ** 2, axis=0) / 2)
 
 
-def block_weights(rows, cols, good, *, block: int = 10) -> np.ndarray:
+def block_weights(rows, cols, *, good, block: int = 10) -> np.ndarray:
     """Averaging matrix (pixel, block) over block x block squares of the ``good`` pixels.
 
     Blocks tile the bounding box of the pixels from its first row and column;
@@ -429,7 +429,7 @@ def block_weights(rows, cols, good, *, block: int = 10) -> np.ndarray:
     return members / members.sum(axis=0)
 
 
-def photon_limit(n_frames, level, amplitude, iota, alpha, gain, read_noise, k_norm):
+def photon_limit(n_frames, level, *, amplitude, iota, alpha, gain, read_noise, k_norm):
     """1-sigma photon-noise limit of each pixel's projected offset from ``n_frames`` frames, pixel.
 
     sqrt(B iota / g + sigma_r^2) / (A alpha |K| sqrt(N / 2)); ``n_frames`` may be
@@ -440,7 +440,7 @@ def photon_limit(n_frames, level, amplitude, iota, alpha, gain, read_noise, k_no
     return per_frame[None, :] / np.sqrt(np.asarray(n_frames, dtype=float)[:, None] / 2)
 
 
-def first_frame_limit(n_frames, first_frame, amplitude, alpha, gain, read_noise, k_norm):
+def first_frame_limit(n_frames, first_frame, *, amplitude, alpha, gain, read_noise, k_norm):
     """Photon-noise limit of the pixels' offsets from the noise measured on one frame, rms over pixels, pixel.
 
     The paper's "measured photon noise using the first frame of the data
@@ -778,7 +778,7 @@ def statistics_dataset(statistics: AllanStatistics, rows, cols, shape, *, block:
 
 
 @one_blas_thread
-def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector, *, block: int = 10,
+def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detector, block: int = 10,
                       workers: int = 1, label: str = "baseline") -> xr.Dataset:
     """Allan deviations of one baseline from its raw frames and its global solution.
 
@@ -828,12 +828,13 @@ def allan_of_baseline(stream, metrology: xr.Dataset, dark: xr.Dataset, detector,
     iota, alpha = metrology["iota"].values[rows, cols], metrology["alpha"].values[rows, cols]
     read_noise = np.nan_to_num(dark["noise"].values[rows, cols])
     pixel_factors = np.column_stack([iota, alpha * np.sin(reference_phase), alpha * np.cos(reference_phase)])
-    floors = batch_floors(frame_factors, batches, pixel_factors, detector.gain, read_noise, np.hypot(*k))
+    floors = batch_floors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
+                          read_noise=read_noise, k_norm=np.hypot(*k))
     sizes = group_sizes(len(batches))
     good = np.isfinite(offsets).all(axis=0)
     groups = group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes,
                         pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise, good=good,
-                        weights=block_weights(rows, cols, good, block=block))
+                        weights=block_weights(rows, cols, good=good, block=block))
     del sums  # the groups are reduced: only the batch offsets go on
     log.info("%s: %d group sizes fitted as a whole, from %d to %d batches", label, len(sizes), sizes[0], sizes[-1])
     return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),

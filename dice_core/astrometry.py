@@ -616,7 +616,7 @@ def accuracy_tables(datasets, methods, *, models=("procrustes",), positions=None
                     identifiability[mode] = pose_identifiability(result.result, sigma=result.accuracy)
                     reports[f"{method} {mode}"] = identifiability[mode].summary()
             if method == present[0]:
-                products[model] = residuals_dataset(by_method[method], model_rows, model_residuals,
+                products[model] = residuals_dataset(by_method[method], model_rows, residuals=model_residuals,
                                                     identifiability=identifiability)
     return AccuracyTables(rows, "\n".join(tables), products, reports)
 
@@ -684,7 +684,7 @@ def _complete_barycentre_residuals(configurations):
     return out
 
 
-def residuals_dataset(datasets: dict, rows, residuals: dict, *, identifiability=None) -> xr.Dataset:
+def residuals_dataset(datasets: dict, rows, *, residuals: dict, identifiability=None) -> xr.Dataset:
     """A superimposition's residuals over the selected positions and barycentre residuals over all, per mode.
 
     ``datasets``, ``rows`` and ``residuals`` are one method's and one

@@ -176,7 +176,7 @@ def remove_gradient(image: np.ndarray, mask: np.ndarray, *, degree: int = 1):
         raise ValueError(f"degree must be >= 0, got {degree}")
     use = mask & np.isfinite(image)
     rows, cols = np.indices(image.shape)
-    design = polynomial_design(cols.ravel(), rows.ravel(), degree)  # scaled on the whole map
+    design = polynomial_design(cols.ravel(), rows.ravel(), degree=degree)  # scaled on the whole map
     coef, *_ = np.linalg.lstsq(design[use.ravel()], image[use], rcond=None)
     surface = (design @ coef).reshape(image.shape)
     return image / surface, surface
@@ -193,7 +193,7 @@ def area_rms(image: np.ndarray, detector: Detector) -> float:
 DEAD_BELOW = 0.5
 
 
-def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, detector: Detector, *,
+def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, *, dark_noise: np.ndarray, detector: Detector,
              gradient_degree: int = 1, n_frames: int | None = None, label: str = "flat") -> xr.Dataset:
     """PRNU map of a flat-field acquisition, with its photon-noise limit.
 
@@ -333,7 +333,7 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, dark_noise: np.ndarray, 
     return ds
 
 
-def prnu_difference(reference: xr.Dataset, other: xr.Dataset, detector: Detector) -> xr.Dataset:
+def prnu_difference(reference: xr.Dataset, other: xr.Dataset, *, detector: Detector) -> xr.Dataset:
     """Difference of two PRNU maps with its photon-noise limit.
 
     Parameters
@@ -390,7 +390,7 @@ def _local_median(image, size=5):
         return generic_filter(image, np.nanmedian, size=size, mode="constant", cval=np.nan)
 
 
-def bad_pixel_mask(dark: xr.Dataset, prnu: np.ndarray, detector: Detector, *, dead_below: float = 0.5,
+def bad_pixel_mask(dark: xr.Dataset, prnu: np.ndarray, *, detector: Detector, dead_below: float = 0.5,
                    dust_below: float = 0.99, hot_sigma: float = 10.0, column_fraction: float = 0.5) -> xr.Dataset:
     """Dead, hot, dust and column defects of the science area, from the dark and a PRNU map.
 

@@ -74,7 +74,7 @@ class Window:
         return x.astype(float), y.astype(float)
 
 
-def star_window(approx_row: float, approx_col: float, half_size: int, shape, *, label: str = "star") -> Window:
+def star_window(approx_row: float, approx_col: float, *, half_size: int, shape, label: str = "star") -> Window:
     """The (2 half_size + 1)-pixel window centred on the pixel nearest (approx_row, approx_col).
 
     Raises
@@ -191,7 +191,7 @@ def cramer_rao(fit: GaussianFit, window: Window, *, gain: float, read_noise, use
     return np.sqrt(np.diag(np.linalg.inv(fisher))[2:4])
 
 
-def isolated_half_size(approx, half_size: int, width: float, *, contrast: float = 1e-3) -> int:
+def isolated_half_size(approx, half_size: int, *, width: float, contrast: float = 1e-3) -> int:
     """The largest half-size up to ``half_size`` whose windows keep every other star's light out.
 
     Fourier resampling takes a window for one period of a band-limited image,
@@ -542,7 +542,7 @@ class _Locator:
         return np.array([self.anchor.x, self.anchor.y]) + self.ties[star] + shift + origin
 
 
-def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, prnu=None, dx=None, dy=None,
+def measure_positions(stacks, positions, *, approx, detector, dark, read_noise, prnu=None, dx=None, dy=None,
                       bad_pixels=None, method: str = "fourier", half_size: int = 7, label: str = "stars",
                       log=None, variance_x=None, variance_y=None) -> PositionCentroids:
     """Centroids of the stars at every detector position, with their precision and photon-noise limit.
@@ -652,6 +652,12 @@ def measure_positions(stacks, positions, approx, detector, dark, *, read_noise, 
                         for frame in batch_means]
         noise = [np.where(flags[w.slices] != 0, 0.0, _noise_weights(image, n, detector.gain, read_noise[w.slices]))
                  for image, w in zip(images, windows)]
+        for s, (weights, w) in enumerate(zip(noise, windows)):
+            if not np.all(np.isfinite(weights)):  # no signal and no read noise: a weight of 1/0
+                r, c = np.argwhere(~np.isfinite(weights))[0]
+                raise WindowError(f"star {s} at {where}: pixel row {w.row0 + r}, col {w.col0 + c} has zero noise "
+                                  "(no signal above the dark and no read noise, e.g. zero in every frame and in the "
+                                  "dark): flag it in the bad-pixel mask or check the data")
         for s, w in enumerate(windows):
             n_bad[i, s] = int(np.count_nonzero(flags[w.slices]))
         if locate is None:

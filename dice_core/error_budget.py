@@ -159,7 +159,7 @@ class Star:
 
     def window(self, x0: float, y0: float) -> centroids.Window:
         """The pipeline's window for a star at (x0, y0) pixel (:func:`dice_core.centroids.star_window`)."""
-        return centroids.star_window(y0, x0, self.half_size, self.shape, label="error-budget star")
+        return centroids.star_window(y0, x0, half_size=self.half_size, shape=self.shape, label="error-budget star")
 
 
 def star_grid(n: int, star: Star = Star()) -> np.ndarray:
@@ -174,7 +174,7 @@ def _interval(a, b):
     return np.where(a > 0, ndtr(-a) - ndtr(-b), ndtr(b) - ndtr(a))
 
 
-def render_window(x0: float, y0: float, window: centroids.Window, star: Star = Star(), *, sensitivity=None,
+def render_window(x0: float, y0: float, *, window: centroids.Window, star: Star = Star(), sensitivity=None,
                   dx=None, dy=None) -> np.ndarray:
     """A star window: pixel-integrated Gaussian PSF x sensitivities + background, electrons.
 
@@ -211,7 +211,7 @@ def render_window(x0: float, y0: float, window: centroids.Window, star: Star = S
     return signal + star.background
 
 
-def pixel_gradient(x0: float, y0: float, window: centroids.Window, star: Star = Star()):
+def pixel_gradient(x0: float, y0: float, *, window: centroids.Window, star: Star = Star()):
     """d(value)/d(dx) and d(value)/d(dy) of each pixel of :func:`render_window`, electrons per pixel of offset."""
     xg, yg = window.grid()
     s = star.psf_sigma
@@ -223,7 +223,7 @@ def pixel_gradient(x0: float, y0: float, window: centroids.Window, star: Star = 
     return star.flux * dix * iy, star.flux * ix * diy
 
 
-def fit_weights(image: np.ndarray, star: Star = Star(), weighting: str = "pipeline"):
+def fit_weights(image: np.ndarray, star: Star = Star(), *, weighting: str = "pipeline"):
     """The weights (1 / sigma per pixel) the fit is given, or None for an unweighted fit.
 
     ``"pipeline"``: the Gaussian method's weights in ``measure_positions``,
@@ -239,10 +239,10 @@ def fit_weights(image: np.ndarray, star: Star = Star(), weighting: str = "pipeli
 def _perturbed(source, amplitude, x0, y0, window, star, normals):
     """The window with the source injected at ``amplitude``; ``normals`` (2, size, size) standard normal."""
     if source == "prnu":
-        return render_window(x0, y0, window, star, sensitivity=1 + amplitude * normals[0])
+        return render_window(x0, y0, window=window, star=star, sensitivity=1 + amplitude * normals[0])
     if source == "offsets":
-        return render_window(x0, y0, window, star, dx=amplitude * normals[0], dy=amplitude * normals[1])
-    image = render_window(x0, y0, window, star)
+        return render_window(x0, y0, window=window, star=star, dx=amplitude * normals[0], dy=amplitude * normals[1])
+    image = render_window(x0, y0, window=window, star=star)
     peak = image.max()
     if source == "photon":
         return image + amplitude * np.sqrt(peak * np.clip(image, 0, None)) * normals[0]
@@ -377,7 +377,7 @@ def monte_carlo(source: str, amplitude: float, *, trials: int = 400, seed=0, sta
     for k, (x0, y0) in enumerate(truth):
         window = star.window(x0, y0)
         image = _perturbed(source, amplitude, x0, y0, window, star, normals[k])
-        fit = centroids.gaussian_fit(image, window, weights=fit_weights(image, star, weighting))
+        fit = centroids.gaussian_fit(image, window, weights=fit_weights(image, star, weighting=weighting))
         errors[k] = fit.x - x0, fit.y - y0
     return MonteCarlo(source, float(amplitude), weighting, truth[:, 0], truth[:, 1], errors[:, 0], errors[:, 1])
 
@@ -385,8 +385,8 @@ def monte_carlo(source: str, amplitude: float, *, trials: int = 400, seed=0, sta
 def _propagation(x0, y0, star, weighting):
     """Rows x, y of (J^T W J)^-1 J^T W at the best fit of the perfect window, each (pixel,), and that window."""
     window = star.window(x0, y0)
-    image = render_window(x0, y0, window, star)
-    weights = fit_weights(image, star, weighting)
+    image = render_window(x0, y0, window=window, star=star)
+    weights = fit_weights(image, star, weighting=weighting)
     fit = centroids.gaussian_fit(image, window, weights=weights)
     xg, yg = window.grid()
     jacobian = centroids._gaussian_model(fit.params, xg.ravel(), yg.ravel())[1]  # the fit's own model
@@ -403,7 +403,7 @@ def _pixel_variance(source, x0, y0, window, image, star):
         return (image.max() * np.clip(image, 0, None)).ravel()
     if source == "read":
         return np.full(image.size, image.max() ** 2)
-    gx, gy = pixel_gradient(x0, y0, window, star)
+    gx, gy = pixel_gradient(x0, y0, window=window, star=star)
     return (gx**2 + gy**2).ravel()
 
 
@@ -491,7 +491,7 @@ def cramer_rao_coefficient(source: str, *, star: Star = Star(), grid: int = 8) -
     positions = star_grid(grid, star)
     for x0, y0 in positions:
         window = star.window(x0, y0)
-        image = render_window(x0, y0, window, star)
+        image = render_window(x0, y0, window=window, star=star)
         c = _pixel_variance(source, x0, y0, window, image, star)
         fit = centroids.gaussian_fit(image, window, weights=1 / np.sqrt(c.reshape(image.shape)))
         xg, yg = window.grid()

@@ -105,7 +105,7 @@ def initial_wavevector(frame: np.ndarray, mask: np.ndarray, *, pad: int = 8) -> 
 
 
 def _smooth_basis(x, y, weight, degree):
-    return polynomial_design(x, y, degree) * weight[:, None]
+    return polynomial_design(x, y, degree=degree) * weight[:, None]
 
 
 def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 6):
@@ -398,7 +398,7 @@ def frame_moments(F):
     return F.T @ F, third
 
 
-def photon_floor(G_phys, FtF, third, gain, read_noise, k_norm):
+def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm):
     """Per-pixel 1-sigma offset error from photon and read noise for the unweighted temporal fit.
 
     Sample variance (adu^2) of pixel p at frame t: F_t.G_p / g + sigma_r^2; so
@@ -446,7 +446,7 @@ def _phase_coverage(phase, bins=16):
 
 
 @one_blas_thread
-def fit_baseline(stream, dark, detector, *, flat=None, read_noise=None, tolerance=1e-7, max_passes=10,
+def fit_baseline(stream, dark, *, detector, flat=None, read_noise=None, tolerance=1e-7, max_passes=10,
                  min_contrast=0.02, min_relative_contrast=0.5, smooth_degree=6, workers=1,
                  geometry: BaselineGeometry | None = None, bad_pixels=None, label="baseline") -> FringeSolution:
     """Global fringe solution of one metrology acquisition.
@@ -897,7 +897,7 @@ def solution_dataset(solution: FringeSolution, detector, *, fibers=None) -> xr.D
             "photon_noise_floor": (rc, as_map(floor),
                                    {"units": "pixel", "long_name": "1-sigma offset error from photon and read noise"}),
             "masked": (rc, as_map(solution.masked.astype(np.int8), np.int8(0)),
-                       {"units": "1",
+                       {"units": "1", "flag_values": np.array([0, 1], np.int8), "flag_meanings": "measured masked",
                         "long_name": "1 where the pixel has no offset (bad pixel, saturated, no contrast or "
                                      "not converged)"}),
             "kx": ((), float(solution.k[0]), {"units": "rad/pixel", "long_name": "mean wavevector along x"}),

@@ -14,8 +14,12 @@ ADU; NAXIS1 is cols, NAXIS2 rows, NAXIS3 frames.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import copy
 import datetime as _dt
+import errno
+import hashlib
 import json
 import os
 import secrets
@@ -41,6 +45,8 @@ __all__ = [
     "write_cube",
     "write_product",
     "write_text",
+    "atomic_write",
+    "provenance",
     "read_product",
     "first_chunk",
     "CHUNK_BYTES",
@@ -350,17 +356,38 @@ class FrameStream:
                         saturated = unsaturated
                     if shift is not None:
                         frames += shift
-                    if cube.disk_dtype.kind == "f":
-                        bad = ~np.isfinite(frames)
-                        if bad.any():
-                            t, r, c = np.argwhere(bad)[0]
-                            raise DatasetError(cube.path, f"{int(bad.sum())} non-finite sample(s) in frames "
-                                                          f"{first}..{first + n - 1}, first at frame {first + t}, "
-                                                          f"row {r}, col {c}")
+                    if cube.disk_dtype.kind == "f" and not (np.isfinite(frames.max()) and np.isfinite(frames.min())):
+                        raise DatasetError(cube.path, _non_finite_report(cube))
                     yield Chunk(start, frames, saturated, any_saturated)
                     start += n
             if checksum is not None:
                 _check_checksums(cube, checksum.value())
+
+
+def _non_finite_report(cube: CubeFile) -> str:
+    """Where a float cube holds NaN or infinite samples: the first such frame and pixel, and how many.
+
+    Run only once a chunk has shown one, so the whole file is read again (in chunks) to count them all.
+    """
+    data = np.memmap(cube.path, dtype=cube.disk_dtype, mode="r", offset=cube.header_bytes,
+                     shape=(cube.n_frames, *cube.shape))
+    step = auto_chunk_frames(cube.shape)
+    first = None
+    frames = samples = 0
+    for start in range(0, cube.n_frames, step):
+        bad = ~np.isfinite(data[start:start + step])
+        if not bad.any():
+            continue
+        per_frame = bad.reshape(bad.shape[0], -1).sum(axis=1)
+        frames += int(np.count_nonzero(per_frame))
+        samples += int(per_frame.sum())
+        if first is None:
+            t, r, c = np.argwhere(bad)[0]
+            first = (start + int(t), int(r), int(c))
+    del data
+    t, r, c = first
+    return (f"{samples} non-finite sample(s) (NaN or infinite) in {frames} of its {cube.n_frames} frames; "
+            f"the first in frame {t}, row {r}, col {c} (counted from 0)")
 
 
 def _atomic_target(path: Path):
@@ -377,6 +404,48 @@ def _atomic_target(path: Path):
         except FileExistsError:
             continue
         return tmp
+
+
+def _disk_full(folder: Path) -> bool:
+    """Whether the filesystem holding ``folder`` has no block left for this user."""
+    try:
+        stats = os.statvfs(folder)
+    except OSError:
+        return False
+    return stats.f_bavail * stats.f_frsize < 65536
+
+
+@contextlib.contextmanager
+def atomic_write(path):
+    """Write a file under a temporary name beside ``path``, renamed to ``path`` once the block succeeds.
+
+    Yields the temporary path (created empty, mode 0666 minus the umask, as a plain ``open`` would
+    give ``path``). On any failure the temporary file is removed and ``path`` is left as it was: a
+    new file never appears half-written, an existing one is never truncated. The error raised is the
+    writer's own: a failed clean-up is added to it as a note, never raised in its place, and a
+    writer that hides an ENOSPC behind a library error (the netCDF library's "HDF error") is
+    reported as the :class:`OSError` "No space left on device" when the filesystem is full.
+
+    Examples
+    --------
+    >>> with atomic_write("results/table.csv") as tmp:  # doctest: +SKIP
+    ...     tmp.write_text("a,b\n1,2\n")
+    """
+    path = Path(path)
+    tmp = _atomic_target(path)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException as exc:
+        full = not isinstance(exc, OSError) and isinstance(exc, Exception) and _disk_full(path.parent)
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError as cleanup:
+            exc.add_note(f"the temporary file {tmp} could not be removed: {cleanup}")
+        if full:
+            raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} (the writer said: {exc})",
+                          str(path)) from exc
+        raise
 
 
 def write_cube(path, chunks, *, shape, n_frames, dtype="uint16", header=None):
@@ -409,9 +478,8 @@ def write_cube(path, chunks, *, shape, n_frames, dtype="uint16", header=None):
         hdr["BZERO"], hdr["BSCALE"] = 32768, 1
     for key, value in (header or {}).items():
         hdr[key] = value
-    tmp = _atomic_target(path)
     written = 0
-    try:
+    with atomic_write(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(hdr.tostring().encode("ascii"))
             for chunk in chunks:
@@ -430,10 +498,6 @@ def write_cube(path, chunks, *, shape, n_frames, dtype="uint16", header=None):
                 raise ValueError(f"{written} frames given for a cube of {n_frames}")
             pad = -f.tell() % _FITS_BLOCK
             f.write(b"\0" * pad)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _jsonable(value):
@@ -452,49 +516,147 @@ def first_chunk(chunks) -> Chunk:
 
 def write_text(path, text: str):
     """Write a text file (a table) atomically: under a temporary name, then renamed."""
-    path = Path(path)
-    tmp = _atomic_target(path)
+    if not isinstance(text, str):
+        raise TypeError(f"{path}: text expected, got {type(text).__name__}")
+    with atomic_write(path) as tmp:
+        with open(tmp, "w") as f:
+            f.write(text)
+
+
+#: Units and long names of the index coordinates the products share (CF has no standard_name for a
+#: detector's pixel grid, a frame index or a star; none is set).
+COORDINATE_ATTRS = {
+    "row": {"units": "pixel", "long_name": "detector row (pixel centres at integers, counted from 0)", "axis": "Y"},
+    "col": {"units": "pixel", "long_name": "detector column (pixel centres at integers, counted from 0)",
+            "axis": "X"},
+    "frame": {"units": "1", "long_name": "frame index in the acquisition, counted from 0"},
+    "position": {"units": "1", "long_name": "star position index of the dataset's manifest"},
+    "star": {"units": "1", "long_name": "pseudo-star index in the star pattern, counted from 0"},
+    "batch": {"units": "1", "long_name": "batch of consecutive frames, counted from 0"},
+    "iteration": {"units": "1", "long_name": "pass of the iterative solution, counted from 1"},
+}
+
+_PROVENANCE = contextvars.ContextVar("dice_core_provenance", default=None)
+_DIGESTS: dict = {}  # (path, size, mtime) -> sha256, so a file read by several products is hashed once
+
+
+@contextlib.contextmanager
+def provenance(*, code_version=None, **roots):
+    """Record, in every product :func:`write_product` writes within the block, the code and relative inputs.
+
+    Parameters
+    ----------
+    code_version : str, optional
+        Hash of the code that makes the products (the workflow's ``code_version`` of the step's
+        modules), recorded as the global attribute ``code_version``: ``dice_core_version`` alone does
+        not change when an editable install's source does.
+    **roots : str or Path
+        Folders the inputs are recorded relative to, by name, tried in order (e.g.
+        ``dataset=<the manifest's folder>, results=results/<name>``); an input under none of them is
+        recorded with its absolute path.
+    """
+    token = _PROVENANCE.set({"code_version": code_version, "roots": roots})
     try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        yield
+    finally:
+        _PROVENANCE.reset(token)
 
 
-def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=()):
+def _sha256(path: Path) -> str | None:
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    key = (str(path), stat.st_size, stat.st_mtime_ns)
+    if key not in _DIGESTS:
+        with open(path, "rb") as f:
+            _DIGESTS[key] = hashlib.file_digest(f, "sha256").hexdigest()
+    return _DIGESTS[key]
+
+
+def _input_record(path, roots) -> dict:
+    """One entry of ``inputs``: the path relative to the first root holding it, and its sha256."""
+    path = Path(path)
+    absolute = path.resolve()
+    record = {"path": str(absolute), "relative_to": None}
+    for name, root in roots.items():
+        root = Path(root).resolve()
+        if absolute.is_relative_to(root):
+            record = {"path": absolute.relative_to(root).as_posix(), "relative_to": name}
+            break
+    record["sha256"] = _sha256(absolute)
+    return record
+
+
+def _history_of(path) -> list[str]:
+    """The ``history`` lines of a netCDF input ([] for other files or one without history)."""
+    path = Path(path)
+    if path.suffix != ".nc" or not path.is_file():
+        return []
+    import netCDF4
+
+    with netCDF4.Dataset(path) as nc:
+        return str(getattr(nc, "history", "")).splitlines()
+
+
+def _annotate_coordinates(ds: xr.Dataset) -> xr.Dataset:
+    """Index coordinates for the shared dims that have none, and units and long names where unset."""
+    missing = {dim: np.arange(ds.sizes[dim]) for dim in COORDINATE_ATTRS if dim in ds.dims and dim not in ds.coords}
+    ds = ds.assign_coords(missing)
+    for dim, attrs in COORDINATE_ATTRS.items():
+        if dim in ds.coords:
+            ds[dim].attrs = {**attrs, **ds[dim].attrs}
+    return ds
+
+
+def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), code_version=None, roots=None):
     """Write a netCDF product atomically, with units checked and provenance attached.
 
-    Every data variable and coordinate with a physical meaning must carry a
-    ``units`` attribute (``"1"`` for dimensionless): a variable without one is
-    refused. The global attributes receive ``Conventions``, ``title``,
-    ``source`` and ``dice_core_version`` (the software), ``configuration``
-    (JSON of ``config``), ``inputs`` (JSON list of input paths) and a ``history``
-    line. The file is written to a temporary name in the same folder and
-    renamed, so an existing product is never left half-written.
+    Every data variable with a physical meaning must carry a ``units`` attribute
+    (``"1"`` for dimensionless): a variable without one is refused. The shared
+    index coordinates (:data:`COORDINATE_ATTRS`: row, col, frame, position, star,
+    batch, iteration) get their units and long names, and an index coordinate
+    where the dataset has none. The global attributes receive ``Conventions``,
+    ``title``, ``source`` and ``dice_core_version`` (the software),
+    ``code_version`` (the hash of the code that made it, when known),
+    ``configuration`` (JSON of ``config``), ``inputs`` (JSON list of
+    ``{"path", "relative_to", "sha256"}``: each input's path relative to the
+    first of ``roots`` that holds it, whose name ``relative_to`` gives, and the
+    SHA-256 of its bytes) and ``history``: the inputs' (and the dataset's own)
+    history lines, once each, then this write's line, CF style. The file is written
+    through :func:`atomic_write`, so an existing product is never left half-written.
+
+    ``code_version`` and ``roots`` default to those of the enclosing :func:`provenance` block.
     """
     path = Path(path)
     missing = [name for name, var in ds.data_vars.items() if "units" not in var.attrs]
     if missing:
         raise ValueError(f"{path}: variables without units: {missing}")
-    ds = ds.copy()
+    context = _PROVENANCE.get() or {}
+    code_version = code_version if code_version is not None else context.get("code_version")
+    roots = roots if roots is not None else context.get("roots") or {}
+    inputs = [Path(p) for p in inputs]
+    ds = _annotate_coordinates(ds.copy())
+    history = []
+    for line in [*str(ds.attrs.get("history", "")).splitlines(), *(h for p in inputs for h in _history_of(p))]:
+        if line and line not in history:
+            history.append(line)
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    code = f", code {code_version}" if code_version else ""
+    history.append(f"{stamp} {path.name} ({title}) written by dice_core {dice_core.__version__}{code}")
     ds.attrs.update({
         "Conventions": "CF-1.10",
         "title": title,
-        "source": f"dice_core {dice_core.__version__}",
+        "source": f"dice_core {dice_core.__version__}{code}",
         "dice_core_version": dice_core.__version__,
         "configuration": _jsonable(config if config is not None else {}),
-        "inputs": _jsonable([str(p) for p in inputs]),
-        "history": f"{stamp} written by dice_core {dice_core.__version__}",
+        "inputs": json.dumps([_input_record(p, roots) for p in inputs]),
+        "history": "\n".join(history),
     })
-    tmp = _atomic_target(path)
-    try:
+    if code_version:
+        ds.attrs["code_version"] = str(code_version)
+    with atomic_write(path) as tmp:
         ds.to_netcdf(tmp, engine="netcdf4")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def read_product(path) -> xr.Dataset:

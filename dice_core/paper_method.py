@@ -59,7 +59,7 @@ class PaperSolution:
     iterations: int
 
 
-def fit_baseline_paper(stream, dark, detector, *, iterations: int = 4, label: str = "baseline") -> PaperSolution:
+def fit_baseline_paper(stream, dark, *, detector, iterations: int = 4, label: str = "baseline") -> PaperSolution:
     """The paper's alternating fringe fit (module docstring), over a re-iterable stream of chunks.
 
     Parameters

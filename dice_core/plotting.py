@@ -484,12 +484,14 @@ def barycentre_figure(ds, *, title="Barycentre residuals", spread: float = 3.0):
     return fig
 
 
-def save(fig, png, pdf=None):
+def save(fig, png, *, pdf=None):
     """Write a figure as PNG (150 dpi) and, optionally, PDF; then close it."""
+    from dice_core.io import atomic_write
+
     for path in (png, pdf):
         if path is not None:
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-            fig.savefig(path, dpi=150)
+            with atomic_write(path) as tmp:
+                fig.savefig(tmp, dpi=150, format=Path(path).suffix[1:])
     plt.close(fig)
 
 
@@ -688,15 +690,14 @@ def reproduction_pdf(path, pages, *, title: str, summary_lines=()):
     ``pages``: (PNG path, caption text) in order; ``summary_lines``: the title page's text (e.g. the
     comparison table, one line per number). Written through a temporary name, then renamed.
     """
-    import os
     import textwrap
 
     from matplotlib.backends.backend_pdf import PdfPages
 
+    from dice_core.io import atomic_write
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.part")
-    try:
+    with atomic_write(path) as tmp:
         with PdfPages(tmp) as pdf:
             fig = plt.figure(figsize=(8.27, 11.69))
             fig.text(0.06, 0.96, title, fontsize=13, va="top", weight="bold")
@@ -715,10 +716,6 @@ def reproduction_pdf(path, pages, *, title: str, summary_lines=()):
                          va="top")
                 pdf.savefig(fig)
                 plt.close(fig)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 

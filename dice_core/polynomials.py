@@ -7,7 +7,7 @@ import numpy as np
 __all__ = ["polynomial_design"]
 
 
-def polynomial_design(x, y, degree: int) -> np.ndarray:
+def polynomial_design(x, y, *, degree: int) -> np.ndarray:
     """Design matrix (point, term) of the 2-D polynomial terms x^i y^j, i + j <= degree.
 
     Coordinates are centred and scaled to about [-1, 1] first, which keeps

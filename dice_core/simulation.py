@@ -45,7 +45,7 @@ from scipy.ndimage import gaussian_filter
 
 from dice_core.detector import PixelResponse
 from dice_core.geometry import two_source_phase
-from dice_core.io import write_cube, write_product
+from dice_core.io import write_cube, write_product, write_text
 from dice_core.polynomials import polynomial_design
 from dice_core.manifest import FORMAT
 
@@ -338,7 +338,7 @@ def _acquisitions(cfg: SimulationConfig):
     return out
 
 
-def acquisition_files(cfg: SimulationConfig, kind: str, name: str) -> list[str]:
+def acquisition_files(cfg: SimulationConfig, kind: str, *, name: str) -> list[str]:
     """Relative paths of the files of one acquisition (kind: dark, flat, baseline or position)."""
     if kind == "position":
         return [f"stars/pos_{int(name):03d}.fits"]
@@ -356,10 +356,11 @@ def file_jobs(cfg: SimulationConfig) -> dict[str, tuple[str, object, int, int]]:
     """
     jobs = {}
     for kind, name, frames, _ in _acquisitions(cfg):
-        for rel, (start, stop) in zip(acquisition_files(cfg, kind, name), _file_frames(frames, cfg.frames_per_file)):
+        for rel, (start, stop) in zip(acquisition_files(cfg, kind, name=name),
+                                      _file_frames(frames, cfg.frames_per_file)):
             jobs[rel] = (kind, name, start, stop)
     for index in range(1, cfg.stars.positions + 1):
-        jobs[acquisition_files(cfg, "position", index)[0]] = ("position", index, 0, cfg.stars.frames)
+        jobs[acquisition_files(cfg, "position", name=index)[0]] = ("position", index, 0, cfg.stars.frames)
     return jobs
 
 
@@ -378,7 +379,7 @@ def dataset_layout(cfg: SimulationConfig) -> dict:
     """
     d = cfg.detector
     nominal = _nominal_pattern(cfg.stars)
-    first = project_stars(nominal, _nominal_poses(cfg.stars)[:1], cfg)[0]
+    first = project_stars(nominal, _nominal_poses(cfg.stars)[:1], cfg=cfg)[0]
     return {
         "format": FORMAT,
         "name": cfg.name,
@@ -390,16 +391,16 @@ def dataset_layout(cfg: SimulationConfig) -> dict:
             "read_noise": d.read_noise,
             "frame_rate": d.frame_rate,
         },
-        "dark": {"files": acquisition_files(cfg, "dark", "dark")},
-        "flats": {f: {"files": acquisition_files(cfg, "flat", f)} for f in cfg.flats.fibers},
+        "dark": {"files": acquisition_files(cfg, "dark", name="dark")},
+        "flats": {f: {"files": acquisition_files(cfg, "flat", name=f)} for f in cfg.flats.fibers},
         "metrology": {
-            "baselines": {b: {"files": acquisition_files(cfg, "baseline", b)} for b in cfg.metrology.baselines},
+            "baselines": {b: {"files": acquisition_files(cfg, "baseline", name=b)} for b in cfg.metrology.baselines},
             "pairs": {p: list(m) for p, m in cfg.metrology.pairs.items()},
             **({} if not cfg.metrology.spherical else {"geometry": _manifest_geometry(cfg)}),
         },
         "stars": {
             "approx": [[round(float(y), 1), round(float(x), 1)] for x, y in first],
-            "positions": [{"index": i + 1, "files": acquisition_files(cfg, "position", i + 1)}
+            "positions": [{"index": i + 1, "files": acquisition_files(cfg, "position", name=i + 1)}
                           for i in range(cfg.stars.positions)],
         },
     }
@@ -433,7 +434,7 @@ def _rotation(tip, tilt, roll):
     return rz @ ry @ rx
 
 
-def project_stars(pattern: np.ndarray, poses: np.ndarray, cfg: SimulationConfig) -> np.ndarray:
+def project_stars(pattern: np.ndarray, poses: np.ndarray, *, cfg: SimulationConfig) -> np.ndarray:
     """Exact 3-D projection of fixed star directions onto a moving, tilting detector.
 
     Parameters
@@ -487,7 +488,7 @@ def _rng(cfg: SimulationConfig, *names) -> np.random.Generator:
 def _remove_affine(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Subtract the least-squares plane a + b x + c y over ``mask`` (offsets are defined up to an affine map)."""
     rows, cols = np.indices(values.shape)
-    design = polynomial_design(cols.ravel(), rows.ravel(), 1)
+    design = polynomial_design(cols.ravel(), rows.ravel(), degree=1)
     coef, *_ = np.linalg.lstsq(design[mask.ravel()], values[mask], rcond=None)
     return values - (design @ coef).reshape(values.shape)
 
@@ -689,7 +690,7 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
         span = np.ptp(walk)
         poses[:, axis] = (walk - walk.mean()) * (st.tip_tilt_pv / span if span > 0 else 0.0)
     poses[:, 5] = st.roll_rms * rng.standard_normal(st.positions)
-    stars = project_stars(_nominal_pattern(st), poses, cfg)
+    stars = project_stars(_nominal_pattern(st), poses, cfg=cfg)
 
     rc = ("row", "col")
     ds = xr.Dataset(
@@ -805,7 +806,7 @@ def _read_out(signal: np.ndarray, truth: xr.Dataset, cfg: SimulationConfig, phot
     return samples
 
 
-def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name, start: int, stop: int):
+def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, name, start: int, stop: int):
     """Yield raw frames [start, stop) of one acquisition, in chunks of ``cfg.chunk_frames``.
 
     Parameters
@@ -879,7 +880,7 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, kind: str, name
         yield _read_out(signal, truth, cfg, photon_rngs, read_rng)
 
 
-def write_file(cfg: SimulationConfig, truth: xr.Dataset, relpath: str, outdir) -> Path:
+def write_file(cfg: SimulationConfig, truth: xr.Dataset, *, relpath: str, outdir) -> Path:
     """Simulate one FITS file of the dataset (a path listed by :func:`file_jobs`) under ``outdir``."""
     jobs = file_jobs(cfg)
     if relpath not in jobs:
@@ -888,19 +889,16 @@ def write_file(cfg: SimulationConfig, truth: xr.Dataset, relpath: str, outdir) -
     path = Path(outdir) / relpath
     log.info("simulating %s %s, frames %d..%d -> %s", kind, name, start, stop - 1, path)
     header = {"EXPTIME": 1.0 / cfg.detector.frame_rate, "FRAMERAT": cfg.detector.frame_rate}
-    write_cube(path, acquisition_chunks(cfg, truth, kind, name, start, stop), shape=cfg.detector.shape,
-               n_frames=stop - start, dtype=cfg.detector.dtype, header=header)
+    write_cube(path, acquisition_chunks(cfg, truth, kind=kind, name=name, start=start, stop=stop),
+               shape=cfg.detector.shape, n_frames=stop - start, dtype=cfg.detector.dtype, header=header)
     return path
 
 
 def write_manifest(cfg: SimulationConfig, outdir) -> Path:
     """Write ``dataset.yaml`` for the simulated dataset (atomically)."""
     path = Path(outdir) / "dataset.yaml"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(".dataset.yaml.part")
-    tmp.write_text("# Simulated DICE testbed, written by dice_core.simulation\n"
-                   + yaml.safe_dump(dataset_layout(cfg), sort_keys=False))
-    tmp.replace(path)
+    write_text(path, "# Simulated DICE testbed, written by dice_core.simulation\n"
+               + yaml.safe_dump(dataset_layout(cfg), sort_keys=False))
     return path
 
 
@@ -911,5 +909,5 @@ def simulate_dataset(cfg: SimulationConfig, outdir) -> Path:
     write_product(truth, outdir / "truth.nc", title=f"truth of simulated dataset {cfg.name}",
                   config=cfg.to_dict())
     for relpath in file_jobs(cfg):
-        write_file(cfg, truth, relpath, outdir)
+        write_file(cfg, truth, relpath=relpath, outdir=outdir)
     return write_manifest(cfg, outdir)

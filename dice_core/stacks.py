@@ -75,7 +75,7 @@ def batch_edges(n_frames: int, n_batches: int) -> np.ndarray:
     return np.linspace(0, n_frames, n_batches + 1).round().astype(int)
 
 
-def stack_position(chunks, n_frames: int, n_batches: int, *, position: int | None = None,
+def stack_position(chunks, n_frames: int, *, n_batches: int, position: int | None = None,
                    label: str = "position") -> PositionStack:
     """Mean frame, the mean frames of ``n_batches`` consecutive batches, and saturated-sample counts.
 

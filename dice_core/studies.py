@@ -110,10 +110,10 @@ def _offset_errors(cfg: simulation.SimulationConfig, workdir: Path, baseline: st
     stream = FrameStream(manifest.baselines[baseline], manifest.detector)
     dark = truth["bias"].values
     t0 = time.perf_counter()
-    ours = fringes.fit_baseline(stream, dark, manifest.detector, flat=truth["sensitivity"].values,
+    ours = fringes.fit_baseline(stream, dark, detector=manifest.detector, flat=truth["sensitivity"].values,
                                 read_noise=truth["read_noise"].values, label=f"{baseline} (ours)")
     t1 = time.perf_counter()
-    paper = fit_baseline_paper(stream, dark, manifest.detector, iterations=iterations,
+    paper = fit_baseline_paper(stream, dark, detector=manifest.detector, iterations=iterations,
                                label=f"{baseline} (paper's method)")
     log.info("fits: ours %.1f s, the paper's %.1f s", t1 - t0, time.perf_counter() - t1)
     rows, cols = ours.rows, ours.cols
@@ -306,7 +306,8 @@ def _position_chunks(cfg, truth, index: int):
     from dice_core.io import Chunk
 
     start = 0
-    for frames in simulation.acquisition_chunks(cfg, truth, "position", index, 0, cfg.stars.frames):
+    for frames in simulation.acquisition_chunks(cfg, truth, kind="position", name=index, start=0,
+                                                stop=cfg.stars.frames):
         frames = np.asarray(frames, dtype=np.float64)
         yield Chunk(start, frames, np.zeros(frames.shape, bool), False)
         start += frames.shape[0]
@@ -359,8 +360,8 @@ def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "g
     manifest = parse_manifest(simulation.dataset_layout(cfg), Path.cwd() / "star-accuracy.yaml")
     positions = [p.index for p in manifest.positions]
     t0 = time.perf_counter()
-    position_stacks = [stacks.stack_position(_position_chunks(cfg, truth, i), cfg.stars.frames, batches, position=i,
-                                             label=f"position {i}") for i in positions]
+    position_stacks = [stacks.stack_position(_position_chunks(cfg, truth, i), cfg.stars.frames, n_batches=batches,
+                                             position=i, label=f"position {i}") for i in positions]
     log.info("simulated %d positions of %d frames in %.1f s (PRF width spread %.3g, photon noise %s)",
              len(positions), cfg.stars.frames, time.perf_counter() - t0, cfg.detector.prf_width_spread,
              cfg.detector.photon_noise)
@@ -372,8 +373,8 @@ def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "g
         if "widths" in centroids.mode_needs(mode):  # the PRF variances the width maps can measure
             widths = dict(zip(("variance_x", "variance_y"), _measurable_variances(truth, manifest.detector)))
         result = centroids.measure_positions(
-            position_stacks, positions, manifest.star_approx, manifest.detector, truth["bias"].values,
-            read_noise=read_noise, prnu=truth["sensitivity"].values if use_flat else None,
+            position_stacks, positions, approx=manifest.star_approx, detector=manifest.detector,
+            dark=truth["bias"].values, read_noise=read_noise, prnu=truth["sensitivity"].values if use_flat else None,
             dx=truth["dx"].values if use_metrology else None, dy=truth["dy"].values if use_metrology else None,
             method=method, half_size=half_size, label=f"mode {mode}", log=log, **widths)
         datasets[mode] = centroids.centroids_dataset(result, positions, mode=mode, method=method)
@@ -428,7 +429,7 @@ def flat_metrology_centroids(settings: dict, *, method: str = "gaussian", half_s
     position_stacks = [stacks.stack_position(_position_chunks(cfg, truth, i), cfg.stars.frames, batches, position=i,
                                              label=f"position {i}") for i in positions]
     result = centroids.measure_positions(
-        position_stacks, positions, manifest.star_approx, manifest.detector, truth["bias"].values,
+        position_stacks, positions, approx=manifest.star_approx, detector=manifest.detector, dark=truth["bias"].values,
         read_noise=np.maximum(truth["read_noise"].values, 1e-3), prnu=truth["sensitivity"].values,
         dx=truth["dx"].values, dy=truth["dy"].values, method=method, half_size=half_size, label="flat+metrology")
     rows, cols = cfg.detector.shape

@@ -50,7 +50,7 @@ def test_block_weights_average_whole_blocks_of_good_pixels():
     rows, cols = np.divmod(np.arange(25 * 23), 23)
     good = np.ones(rows.size, bool)
     good[0] = False
-    weights = allan.block_weights(rows, cols, good, block=10)
+    weights = allan.block_weights(rows, cols, good=good, block=10)
     assert weights.shape == (rows.size, 4)  # 2 x 2 whole blocks; the partial ones are left out
     np.testing.assert_allclose(weights.sum(axis=0), 1)
     assert weights[0].sum() == 0 and np.count_nonzero(weights[:, 0]) == 99
@@ -66,12 +66,13 @@ def simulate_and_fit(tmp_path, **metrology):
     manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
     truth = read_product(tmp_path / "truth.nc")
     stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
-    solution = fringes.fit_baseline(stream, truth["bias"].values, manifest.detector,
+    solution = fringes.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
                                     flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
     dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
                        "noise": (("row", "col"), truth["read_noise"].values)})
     metrology_product = fringes.solution_dataset(solution, manifest.detector)
-    return allan.allan_of_baseline(stream, metrology_product, dark, manifest.detector), manifest, metrology_product
+    product = allan.allan_of_baseline(stream, metrology_product, dark=dark, detector=manifest.detector)
+    return product, manifest, metrology_product
 
 
 @pytest.fixture(scope="module")
@@ -130,7 +131,7 @@ def test_a_group_fitted_as_a_whole_is_the_fit_of_its_merged_frames(photon_limite
     offsets, sums = allan.batch_offsets(stream, batches, factors, dark, phase, k, rows, cols, return_sums=True)
     good = np.isfinite(offsets).all(axis=0)
     pixel_factors = np.column_stack([np.ones(rows.size), np.sin(phase), np.cos(phase)])
-    weights = allan.block_weights(rows, cols, good)
+    weights = allan.block_weights(rows, cols, good=good)
     m = 3
     groups = allan.group_fits(sums, batches, factors, phase, k, rows, cols, [m], pixel_factors=pixel_factors,
                               gain=10.0, read_noise=np.full(rows.size, 4.0), good=good, weights=weights)
@@ -148,8 +149,8 @@ def test_the_papers_formula_is_optimistic_for_one_period_batches(photon_limited)
     assert np.all((ratio > 1.1) & (ratio < 1.6))
     # the paper's formula itself is right for the whole acquisition: it matches the global fit's floor
     whole = allan.photon_limit(np.array([metrology.sizes["frame"]]), float(metrology["level"].mean()),
-                               float(metrology["amplitude"].mean()), 1.0, 1.0, 10.0, 4.0,
-                               float(np.hypot(metrology["kx"], metrology["ky"])))
+                               amplitude=float(metrology["amplitude"].mean()), iota=1.0, alpha=1.0, gain=10.0,
+                               read_noise=4.0, k_norm=float(np.hypot(metrology["kx"], metrology["ky"])))
     assert float(whole[0, 0]) == pytest.approx(float(metrology["photon_noise_floor_rms"]), rel=0.1)
 
 
@@ -179,7 +180,7 @@ def test_too_few_frames_for_two_batches(photon_limited, tmp_path):
         allan.fringe_batches(short["phase"].values)
     stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
     with pytest.raises(allan.AllanError, match="6000 frames, its solution"):
-        allan.allan_of_baseline(stream, short, xr.Dataset(), manifest.detector)
+        allan.allan_of_baseline(stream, short, dark=xr.Dataset(), detector=manifest.detector)
 
 
 def synthetic_fringes(rng, *, n_frames=1200, shape=(12, 14), k=(2.6, 0.15), noise=1.0):
@@ -226,12 +227,13 @@ def test_allan_is_the_same_bit_for_bit_whatever_the_workers(tmp_path):
     truth = read_product(tmp_path / "truth.nc")
     stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
     assert len(stream.split(2)) == 2
-    solution = fringes.fit_baseline(stream, truth["bias"].values, manifest.detector,
+    solution = fringes.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
                                     flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
     metrology = fringes.solution_dataset(solution, manifest.detector)
     dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
                        "noise": (("row", "col"), truth["read_noise"].values)})
-    one, two = (allan.allan_of_baseline(stream, metrology, dark, manifest.detector, workers=n) for n in (1, 2))
+    one, two = (allan.allan_of_baseline(stream, metrology, dark=dark, detector=manifest.detector, workers=n)
+                for n in (1, 2))
     xr.testing.assert_identical(one, two)
     # lanes are a summation order, not a different estimate: the same batch fits from one list of chunks
     phase = metrology["phase"].values

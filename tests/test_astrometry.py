@@ -134,7 +134,7 @@ def test_residuals_product_holds_each_stars_mean_position(rng):
     datasets = centroid_datasets(rng)
     datasets["flat"]["x"][10, 2] = np.nan  # star 2 unmeasured at position 11, outside the range used
     rows, residuals = astrometry.mode_accuracies(datasets, positions=(3, 9), trials=50)
-    product = astrometry.residuals_dataset(datasets, rows, residuals)
+    product = astrometry.residuals_dataset(datasets, rows, residuals=residuals)
     assert product["star_x"].dims == ("mode", "star") and product["star_x"].attrs["units"] == "pixel"
     assert product["star_y"].attrs["units"] == "pixel" and "mean centroid" in product["star_y"].attrs["long_name"]
     for mode, ds in datasets.items():

@@ -75,7 +75,7 @@ def test_maps_are_nan_outside_the_science_area(calibration_dataset, dark):
 def prnus(calibration_dataset, dark):
     manifest, _ = calibration_dataset
     return {flat: prnu_map(FrameStream(acq, manifest.detector, chunk_frames=128), dark["dark"].values,
-                           dark["noise"].values, manifest.detector, label=flat)
+                           dark_noise=dark["noise"].values, detector=manifest.detector, label=flat)
             for flat, acq in manifest.flats.items()}
 
 
@@ -108,7 +108,7 @@ def test_prnu_removes_each_fibers_gradient(calibration_dataset, prnus):
 def test_prnu_difference_at_photon_noise_limit(calibration_dataset, prnus):
     manifest, _ = calibration_dataset
     a, b = prnus["fiber_a"], prnus["fiber_b"]
-    diff = prnu_difference(a, b, manifest.detector)
+    diff = prnu_difference(a, b, detector=manifest.detector)
     assert float(diff["difference_rms"]) == pytest.approx(float(diff["photon_noise_limit_rms"]), rel=0.2)
     assert float(diff["difference_rms"]) == pytest.approx(area_rms(b["prnu"].values - a["prnu"].values,
                                                                    manifest.detector))
@@ -117,8 +117,8 @@ def test_prnu_difference_at_photon_noise_limit(calibration_dataset, prnus):
 def test_prnu_of_a_dark_frame_is_refused(calibration_dataset, dark):
     manifest, _ = calibration_dataset
     with pytest.raises(ValueError, match="no positive signal"):
-        prnu_map(FrameStream(manifest.dark, manifest.detector), dark["dark"].values, dark["noise"].values,
-                 manifest.detector)
+        prnu_map(FrameStream(manifest.dark, manifest.detector), dark["dark"].values, dark_noise=dark["noise"].values,
+                 detector=manifest.detector)
 
 
 def test_dead_hot_dust_and_column_defects_are_flagged_and_counted(tmp_path, caplog):
@@ -134,7 +134,7 @@ def test_dead_hot_dust_and_column_defects_are_flagged_and_counted(tmp_path, capl
     dark = calibration.dark_maps(FrameStream(manifest.dark, manifest.detector), manifest.detector)
     with caplog.at_level("WARNING"):
         flat = calibration.prnu_map(FrameStream(manifest.flats["fiber_a"], manifest.detector), dark["dark"].values,
-                                    dark["noise"].values, manifest.detector, label="flat fiber_a")
+                                    dark_noise=dark["noise"].values, detector=manifest.detector, label="flat fiber_a")
     prnu = flat["prnu"].values
     assert int(flat["n_not_responding"]) == 3 + 37
     assert "flat fiber_a: 40 pixel(s) respond to less than 50% of the median level" in caplog.text
@@ -144,7 +144,7 @@ def test_dead_hot_dust_and_column_defects_are_flagged_and_counted(tmp_path, capl
     error = (prnu - expected)[responding]
     assert np.sqrt(np.mean(error**2)) < 1.5 * float(flat["photon_noise_limit_rms"])
     assert float(flat["prnu_rms"]) < 0.01  # the dead pixels (PRNU about 0) not in it
-    mask = calibration.bad_pixel_mask(dark, prnu, manifest.detector)
+    mask = calibration.bad_pixel_mask(dark, prnu, detector=manifest.detector)
     flags, true = mask["bad_pixel"].values, truth["bad_pixel"].values
     flag = calibration.BAD_PIXEL_FLAGS
     dead = (flags & flag["dead"]) > 0
@@ -159,7 +159,8 @@ def test_dead_hot_dust_and_column_defects_are_flagged_and_counted(tmp_path, capl
     dust = (flags & flag["dust"]) > 0
     centres = (true & simulation.BAD_DUST) > 0
     assert centres.sum() == cfg.detector.dust_pixels and dust[centres].all()
-    true_rule = calibration.bad_pixel_mask(dark, truth["sensitivity"].values, manifest.detector)["bad_pixel"].values
+    true_rule = calibration.bad_pixel_mask(dark, truth["sensitivity"].values,
+                                           detector=manifest.detector)["bad_pixel"].values
     assert np.sum(dust != ((true_rule & flag["dust"]) > 0)) <= 2
     assert int(mask["n_dust"]) == dust.sum()
     assert np.all(flags[~manifest.detector.science_mask()] == 0)

@@ -23,7 +23,7 @@ def detector(dx=0.0, dy=0.0):
 
 
 def star(response, x, y, half=HALF):
-    window = centroids.star_window(y, x, half, SHAPE)
+    window = centroids.star_window(y, x, half_size=half, shape=SHAPE)
     return window, FLUX * response.gaussian_response(x, y, PSF_SIGMA)[window.slices]
 
 
@@ -36,12 +36,12 @@ def origin_shift(window, reference):
 
 
 def test_window_is_centred_and_refused_at_the_edge():
-    window = centroids.star_window(10.4, 20.6, 3, SHAPE)
+    window = centroids.star_window(10.4, 20.6, half_size=3, shape=SHAPE)
     assert (window.row0, window.col0, window.size) == (7, 18, 7)
     x, y = window.grid()
     assert (x[0, 0], y[0, 0], x[-1, -1], y[-1, -1]) == (18, 7, 24, 13)
     with pytest.raises(centroids.WindowError, match=r"star 3 at position 12: its 15x15 window .* leaves"):
-        centroids.star_window(5.0, 20.0, 7, SHAPE, label="star 3 at position 12")
+        centroids.star_window(5.0, 20.0, half_size=7, shape=SHAPE, label="star 3 at position 12")
 
 
 def test_noiseless_perfect_pixels_both_methods_better_than_1e_6_pixel(rng):
@@ -197,14 +197,15 @@ def stacks_of(manifest, n_batches=2, chunks_of=None):
 
     streams = {p.index: FrameStream(p.acquisition, manifest.detector) for p in manifest.positions}
     chunks_of = chunks_of or (lambda index: streams[index])
-    return [stacks.stack_position(chunks_of(i), stream.n_frames, n_batches, position=i, label=f"position {i}")
+    return [stacks.stack_position(chunks_of(i), stream.n_frames, n_batches=n_batches, position=i,
+                                  label=f"position {i}")
             for i, stream in streams.items()]
 
 
 def measure(manifest, truth, *, flat, metrology, method="fourier", n_batches=2, stacks=None):
     result = centroids.measure_positions(
-        stacks or stacks_of(manifest, n_batches), [p.index for p in manifest.positions], manifest.star_approx,
-        manifest.detector, truth["bias"].values, read_noise=np.ones(manifest.detector.shape),
+        stacks or stacks_of(manifest, n_batches), [p.index for p in manifest.positions], approx=manifest.star_approx,
+        detector=manifest.detector, dark=truth["bias"].values, read_noise=np.ones(manifest.detector.shape),
         prnu=truth["sensitivity"].values if flat else None,
         dx=truth["dx"].values if metrology else None, dy=truth["dy"].values if metrology else None,
         method=method)
@@ -279,8 +280,9 @@ def test_a_saturated_window_is_refused_counted_and_logged(star_dataset, caplog):
     positions = list(streams)
     with caplog.at_level("WARNING", logger="test-centroids"):
         result = centroids.measure_positions(
-            stacks_of(manifest, chunks_of=frames_of), positions, manifest.star_approx, manifest.detector,
-            truth["bias"].values, read_noise=np.ones(manifest.detector.shape), log=log)
+            stacks_of(manifest, chunks_of=frames_of), positions, approx=manifest.star_approx,
+            detector=manifest.detector, dark=truth["bias"].values, read_noise=np.ones(manifest.detector.shape),
+            log=log)
     assert result.n_saturated[2, 2] == 1 and result.n_saturated.sum() == 1
     assert np.isnan(result.x[2, 2]) and np.isfinite(np.delete(result.x.ravel(), 2 * 5 + 2)).all()
     assert "star 2 at position 3 has 1 saturated sample(s) in its window: not measured" in caplog.text
@@ -289,15 +291,16 @@ def test_a_saturated_window_is_refused_counted_and_logged(star_dataset, caplog):
     with pytest.raises(ValueError, match="star 2 at position 1: saturated samples in the window every later"):
         centroids.measure_positions(
             stacks_of(manifest, chunks_of=lambda i: frames_of(3) if i == first else streams[i]), positions,
-            manifest.star_approx, manifest.detector, truth["bias"].values, read_noise=np.ones(manifest.detector.shape))
+            approx=manifest.star_approx, detector=manifest.detector, dark=truth["bias"].values,
+            read_noise=np.ones(manifest.detector.shape))
 
 
 def test_windows_keep_other_stars_light_out():
     # the ci preset's 16-pixel pattern: a 15x15 window's corner 1 pixel from a neighbour's peak
     tight = ((20.3, 23.0), (12.3, 15.0), (12.3, 31.0), (28.3, 15.0), (28.3, 31.0))
-    assert centroids.isolated_half_size(tight, 7, 1.3) == 4
+    assert centroids.isolated_half_size(tight, 7, width=1.3) == 4
     wide = ((40.3, 46.0), (20.3, 26.0), (20.3, 66.0), (60.3, 26.0), (60.3, 66.0))  # the default's 40 pixels
-    assert centroids.isolated_half_size(wide, 7, 1.3) == 7
+    assert centroids.isolated_half_size(wide, 7, width=1.3) == 7
 
 
 @pytest.mark.parametrize("method", ["fourier", "gaussian"])
@@ -321,9 +324,10 @@ def test_a_tight_pattern_is_measured_in_windows_of_one_star(tmp_path, method, ca
     truth = read_product(tmp_path / "truth.nc")
     with caplog.at_level("WARNING", logger="test-tight"):
         result = centroids.measure_positions(
-            stacks_of(manifest), [p.index for p in manifest.positions], manifest.star_approx, manifest.detector,
-            truth["bias"].values, read_noise=np.ones(manifest.detector.shape), prnu=truth["sensitivity"].values,
-            dx=truth["dx"].values, dy=truth["dy"].values, method=method, log=logging.getLogger("test-tight"))
+            stacks_of(manifest), [p.index for p in manifest.positions], approx=manifest.star_approx,
+            detector=manifest.detector, dark=truth["bias"].values, read_noise=np.ones(manifest.detector.shape),
+            prnu=truth["sensitivity"].values, dx=truth["dx"].values, dy=truth["dy"].values, method=method,
+            log=logging.getLogger("test-tight"))
     assert "15x15 windows would hold other stars' light" in caplog.text and result.windows.shape == (5, 9, 9)
     errors = np.stack([result.x - truth["star_x"].values, result.y - truth["star_y"].values])
     # 9x9 windows: the neighbours' light at 1.5e-4 of their peak moves the stars by 1e-5 relative to one
@@ -372,8 +376,9 @@ def test_bad_pixels_in_a_star_window_are_left_out_or_the_star_refused(tmp_path, 
 
     manifest, truth = simulate_stars(tmp_path, prf_width_spread=0.0, step=[0.0, 0.6])  # windows follow the stars
     positions = [p.index for p in manifest.positions]
-    common = dict(read_noise=np.ones(manifest.detector.shape), prnu=truth["sensitivity"].values)
-    args = (positions, manifest.star_approx, manifest.detector, truth["bias"].values)
+    common = dict(approx=manifest.star_approx, detector=manifest.detector, dark=truth["bias"].values,
+                  read_noise=np.ones(manifest.detector.shape), prnu=truth["sensitivity"].values)
+    args = (positions,)
     clean = {m: centroids.measure_positions(stacks_of(manifest), *args, method=m, **common)
              for m in ("gaussian", "fourier")}
     size = clean["fourier"].windows.shape[-1]
@@ -381,7 +386,7 @@ def test_bad_pixels_in_a_star_window_are_left_out_or_the_star_refused(tmp_path, 
     # star 1's windows: the first on its approximate position, each later one on the previous centroid
     centres = [manifest.star_approx[1]] + [(clean["fourier"].y[i, 1], clean["fourier"].x[i, 1])
                                            for i in range(len(positions) - 1)]
-    windows = [centroids.star_window(r, c, half, manifest.detector.shape) for r, c in centres]
+    windows = [centroids.star_window(r, c, half_size=half, shape=manifest.detector.shape) for r, c in centres]
     first = windows[0]
     column = first.col0 + half + 1  # through the star's core, next to its peak
     rows = slice(first.row0, first.row0 + size)
@@ -411,7 +416,8 @@ def test_bad_pixels_in_a_star_window_are_left_out_or_the_star_refused(tmp_path, 
     assert np.isnan(unreferenced.x[:, 1]).all() and np.isfinite(unreferenced.x[:, [0, 2, 3, 4]]).all()
     assert (f"star 1 at position {positions[0]}: its reference window holds bad pixel(s) row {first.row0}, "
             f"col {column} (dead, column)") in caplog.text
-    central = centroids.star_window(*manifest.star_approx[0], half, manifest.detector.shape)  # star 0, the centre
+    # star 0, the centre
+    central = centroids.star_window(*manifest.star_approx[0], half_size=half, shape=manifest.detector.shape)
     flags_central = np.zeros(manifest.detector.shape, np.int8)
     flags_central[central.row0, central.col0] = BAD_PIXEL_FLAGS["hot"]
     with pytest.raises(centroids.WindowError, match=rf"star 0 at position {positions[0]}: its window, the reference "
@@ -452,8 +458,8 @@ def simulate_noisy_stars(path, *, prf_width_spread, frames=400):
 
 def measure_with_widths(manifest, truth, variance_x, variance_y, *, method="gaussian", stacks=None, read_noise=None):
     return centroids.measure_positions(
-        stacks or stacks_of(manifest), [p.index for p in manifest.positions], manifest.star_approx,
-        manifest.detector, truth["bias"].values,
+        stacks or stacks_of(manifest), [p.index for p in manifest.positions], approx=manifest.star_approx,
+        detector=manifest.detector, dark=truth["bias"].values,
         read_noise=np.ones(manifest.detector.shape) if read_noise is None else read_noise,
         prnu=truth["sensitivity"].values, dx=truth["dx"].values, dy=truth["dy"].values,
         variance_x=variance_x, variance_y=variance_y, method=method)
@@ -516,7 +522,8 @@ def test_with_noise_the_width_correction_reaches_the_cramer_rao_bound(noisy_star
     manifest, truth, st = noisy_stars
     read_noise = truth["read_noise"].values
     base = centroids.measure_positions(
-        st, [p.index for p in manifest.positions], manifest.star_approx, manifest.detector, truth["bias"].values,
+        st, [p.index for p in manifest.positions], approx=manifest.star_approx, detector=manifest.detector,
+        dark=truth["bias"].values,
         read_noise=read_noise, prnu=truth["sensitivity"].values, dx=truth["dx"].values, dy=truth["dy"].values,
         method="gaussian")
     widths = measure_with_widths(manifest, truth, *measurable_variances(truth), stacks=st, read_noise=read_noise)
@@ -532,7 +539,8 @@ def test_without_width_spread_the_width_mode_is_no_worse_than_flat_and_metrology
     st = stacks_of(manifest, n_batches=4)
     read_noise = truth["read_noise"].values
     base = centroids.measure_positions(
-        st, [p.index for p in manifest.positions], manifest.star_approx, manifest.detector, truth["bias"].values,
+        st, [p.index for p in manifest.positions], approx=manifest.star_approx, detector=manifest.detector,
+        dark=truth["bias"].values,
         read_noise=read_noise, prnu=truth["sensitivity"].values, dx=truth["dx"].values, dy=truth["dy"].values,
         method="gaussian")
     zero = np.zeros(manifest.detector.shape)
@@ -544,3 +552,32 @@ def test_without_width_spread_the_width_mode_is_no_worse_than_flat_and_metrology
     ratio_base, ratio_width = (affine_residual_over_bound(r, truth) for r in (base, noisy))
     assert ratio_width < 1.02 * ratio_base, (ratio_base, ratio_width)
     assert ratio_base < 1.2
+
+
+@pytest.mark.parametrize("method", ["fourier", "gaussian"])
+def test_a_pixel_zero_in_every_frame_and_the_dark_is_named(star_dataset, method):
+    """Zero signal and zero read noise give the pixel an infinite weight: an error naming the star, the
+    position and the pixel, not the fit's bare "Residuals are not finite"."""
+    from dice_core.io import Chunk, FrameStream
+
+    manifest, truth = star_dataset
+    row, col = (int(round(v)) for v in manifest.star_approx[2])
+    row, col = row + 1, col - 1
+    streams = {p.index: FrameStream(p.acquisition, manifest.detector) for p in manifest.positions}
+
+    def zero_pixel(index):
+        for chunk in streams[index]:
+            frames = chunk.frames.copy()
+            frames[:, row, col] = 0.0
+            yield Chunk(chunk.start, frames, chunk.saturated, chunk.any_saturated)
+
+    dark = truth["bias"].values.copy()
+    dark[row, col] = 0.0
+    read_noise = np.ones(manifest.detector.shape)
+    read_noise[row, col] = 0.0
+    with pytest.raises(centroids.WindowError,
+                       match=rf"star 2 at position {manifest.positions[0].index}: pixel row {row}, col {col} "
+                             "has zero noise"):
+        centroids.measure_positions(stacks_of(manifest, chunks_of=zero_pixel), [p.index for p in manifest.positions],
+                                    approx=manifest.star_approx, detector=manifest.detector, dark=dark,
+                                    read_noise=read_noise, method=method)

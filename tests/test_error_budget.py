@@ -32,21 +32,24 @@ def sweeps():
 def test_render_window_integrates_the_psf_over_each_pixels_displaced_area():
     x0, y0 = STAR.centre + 0.31, STAR.centre - 0.22
     window = STAR.window(x0, y0)
-    image = eb.render_window(x0, y0, window, STAR)
+    image = eb.render_window(x0, y0, window=window, star=STAR)
     # the 15x15 window holds all but ~1e-7 of the flux (5.4 sigma each side at least)
     assert (image - STAR.background).sum() == pytest.approx(STAR.flux, rel=1e-6)
     # every pixel displaced by (d, e) records what the star moved by (-d, -e) gives the nominal pixel
-    moved = eb.render_window(x0 - 0.2, y0 + 0.1, window, STAR)
-    shifted = eb.render_window(x0, y0, window, STAR, dx=np.full(image.shape, 0.2), dy=np.full(image.shape, -0.1))
+    moved = eb.render_window(x0 - 0.2, y0 + 0.1, window=window, star=STAR)
+    shifted = eb.render_window(x0, y0, window=window, star=STAR, dx=np.full(image.shape, 0.2),
+                               dy=np.full(image.shape, -0.1))
     np.testing.assert_allclose(shifted, moved, rtol=1e-12, atol=1e-9)
     # sensitivities multiply the star's signal, not the background
-    halved = eb.render_window(x0, y0, window, STAR, sensitivity=np.full(image.shape, 0.5))
+    halved = eb.render_window(x0, y0, window=window, star=STAR, sensitivity=np.full(image.shape, 0.5))
     np.testing.assert_allclose(halved - STAR.background, 0.5 * (image - STAR.background), rtol=1e-12, atol=1e-9)
     # the analytic gradient against a centred finite difference of one pixel's offset
-    gx, gy = eb.pixel_gradient(x0, y0, window, STAR)
+    gx, gy = eb.pixel_gradient(x0, y0, window=window, star=STAR)
     h, zero = 1e-6, np.zeros(image.shape)
-    fd_x = (eb.render_window(x0, y0, window, STAR, dx=zero + h) - eb.render_window(x0, y0, window, STAR, dx=zero - h))
-    fd_y = (eb.render_window(x0, y0, window, STAR, dy=zero + h) - eb.render_window(x0, y0, window, STAR, dy=zero - h))
+    fd_x = (eb.render_window(x0, y0, window=window, star=STAR, dx=zero + h)
+            - eb.render_window(x0, y0, window=window, star=STAR, dx=zero - h))
+    fd_y = (eb.render_window(x0, y0, window=window, star=STAR, dy=zero + h)
+            - eb.render_window(x0, y0, window=window, star=STAR, dy=zero - h))
     np.testing.assert_allclose(gx, fd_x / (2 * h), rtol=1e-5, atol=1e-6 * np.abs(gx).max())
     np.testing.assert_allclose(gy, fd_y / (2 * h), rtol=1e-5, atol=1e-6 * np.abs(gy).max())
 
@@ -103,7 +106,7 @@ def test_the_propagation_is_the_fisher_bound_where_the_fit_is_maximum_likelihood
         eb.cramer_rao_coefficient("photon", star=dark), rel=1e-9)
     # and the project's own bound for the same star and noise agrees (photon noise of gain 1 / (a^2 I_peak))
     window = dark.window(dark.centre, dark.centre)
-    image = eb.render_window(dark.centre, dark.centre, window, dark)
+    image = eb.render_window(dark.centre, dark.centre, window=window, star=dark)
     fit = centroids.gaussian_fit(image, window, weights=1 / np.sqrt(image))
     bound = centroids.cramer_rao(fit, window, gain=1 / image.max(), read_noise=1e-3)  # > 0: no empty pixel
     assert bound == pytest.approx(eb.cramer_rao_coefficient("photon", star=dark, grid=1), rel=1e-5)

@@ -33,7 +33,7 @@ def true_projection(truth, solution):
 
 def fit(manifest, truth, baseline, *, flat=True, noisy=True, stream=None, **options):
     stream = stream or FrameStream(manifest.baselines[baseline], manifest.detector)
-    return fringes.fit_baseline(stream, truth["bias"].values, manifest.detector,
+    return fringes.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
                                 flat=truth["sensitivity"].values if flat else None,
                                 read_noise=truth["read_noise"].values if noisy else None, label=baseline,
                                 **options)
@@ -105,8 +105,9 @@ def test_photon_floor_matches_the_scatter_between_noise_realisations(tmp_path):
     for noise_seed in (5, 6):  # the frames' noise streams follow the seed
         draw = dataclasses.replace(cfg, seed=noise_seed)
         chunks = [Chunk(0, frames, np.zeros(frames.shape, bool))
-                  for frames in simulation.acquisition_chunks(draw, truth, "baseline", "H1H4", 0, 3000)]
-        solutions.append(fringes.fit_baseline(chunks, truth["bias"].values, manifest.detector,
+                  for frames in simulation.acquisition_chunks(draw, truth, kind="baseline", name="H1H4", start=0,
+                                                              stop=3000)]
+        solutions.append(fringes.fit_baseline(chunks, truth["bias"].values, detector=manifest.detector,
                                               flat=truth["sensitivity"].values,
                                               read_noise=truth["read_noise"].values))
     a, b = solutions
@@ -245,7 +246,8 @@ def test_a_bad_sample_read_by_a_worker_process_is_reported_with_its_file(tmp_pat
         paths.append(tmp_path / f"part{i}.fits")
         write_cube(paths[-1], [frames], shape=frames.shape[1:], n_frames=frames.shape[0], dtype="float32")
     bad = FrameStream(Acquisition("baseline H1H4", tuple(paths)), manifest.detector)
-    with pytest.raises(DatasetError, match=r"part1\.fits: 1 non-finite sample\(s\) in frames .*frame 600, row 20, col 30"):
+    with pytest.raises(DatasetError,
+                       match=r"part1\.fits: 1 non-finite sample\(s\) .*in 1 of its .*the first in frame 600, row 20, col 30"):
         fit(manifest, truth, "H1H4", stream=bad, workers=2)
 
 

@@ -139,8 +139,8 @@ def spherical(tmp_path_factory):
     products = {}
     for baseline in manifest.baselines:
         solution = fringes.fit_baseline(
-            FrameStream(manifest.baselines[baseline], manifest.detector), truth["bias"].values, manifest.detector,
-            flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
+            FrameStream(manifest.baselines[baseline], manifest.detector), truth["bias"].values,
+            detector=manifest.detector, flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
             geometry=BaselineGeometry.of_baseline(manifest.geometry, baseline), label=baseline)
         products[baseline] = (solution, fringes.solution_dataset(solution, manifest.detector,
                                                                  fibers=manifest.geometry.baseline_fibers[baseline]))

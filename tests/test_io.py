@@ -1,5 +1,7 @@
 """FITS streaming and netCDF products: round trips, chunking, and every kind of bad input."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -10,6 +12,8 @@ from dice_core.calibration import dark_maps
 from dice_core.io import (CHUNK_BYTES, FrameStream, auto_chunk_frames, open_cube, read_product, write_cube,
                           write_product)
 from dice_core.manifest import Acquisition, Detector
+
+REPO = Path(__file__).resolve().parents[1]
 
 DETECTOR = Detector(shape=(6, 7), science_rows=(0, 6), science_cols=(0, 7), gain=2.0, saturation=60000.0)
 
@@ -145,6 +149,21 @@ def test_non_finite_samples(tmp_path, rng):
     with pytest.raises(DatasetError, match=r"1 non-finite sample.*frame 9, row 1, col 4") as info:
         collect(stream([path], chunk_frames=5))
     assert "nan.fits" in str(info.value)
+
+
+def test_non_finite_samples_are_counted_over_the_file_from_the_first_bad_frame(tmp_path, rng):
+    """The message gives the first bad frame and how many samples and frames are bad, not a chunk's range."""
+    data = cube(12, rng).astype(np.float32)
+    data[6, 2, 3] = np.inf
+    data[6, 0, 0] = -np.inf
+    data[11, 5, 6] = np.nan
+    path = tmp_path / "bad.fits"
+    write_cube(path, [data], shape=(6, 7), n_frames=12, dtype="float32")
+    with pytest.raises(DatasetError) as info:
+        collect(stream([path], chunk_frames=5))
+    message = str(info.value)
+    assert "3 non-finite sample(s) (NaN or infinite) in 2 of its 12 frames" in message
+    assert "the first in frame 6, row 0, col 0" in message and "5..9" not in message
 
 
 def test_too_few_frames(tmp_path, rng):
@@ -291,3 +310,135 @@ def test_products_tables_and_cubes_honour_the_umask(tmp_path):
         os.umask(previous)
     for name in ("table.csv", "product.nc", "cube.fits"):
         assert (tmp_path / name).stat().st_mode & 0o777 == 0o640, name
+
+
+def test_figures_manifests_and_reports_honour_the_umask(tmp_path):
+    import os
+
+    import matplotlib.pyplot as plt
+
+    from dice_core import plotting, simulation
+
+    previous = os.umask(0o027)
+    try:
+        fig, ax = plt.subplots()
+        plotting.save(fig, tmp_path / "f.png", pdf=tmp_path / "f.pdf")
+        plotting.reproduction_pdf(tmp_path / "report.pdf", [(tmp_path / "f.png", "a caption")], title="t")
+        simulation.write_manifest(simulation.load_preset(REPO / "config" / "presets" / "ci.yaml"), tmp_path / "raw")
+    finally:
+        os.umask(previous)
+    for name in ("f.png", "f.pdf", "report.pdf", "raw/dataset.yaml"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o640, name
+    assert not list(tmp_path.rglob("*.part"))
+    assert (tmp_path / "f.pdf").read_bytes()[:4] == b"%PDF" and (tmp_path / "f.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_full_disk_is_reported_as_such_and_leaves_nothing_half_written(tmp_path, monkeypatch):
+    """ENOSPC in the middle of a write is the error the user reads, even when the clean-up fails too."""
+    import errno
+    from pathlib import Path
+
+    path = tmp_path / "p.nc"
+    write_product(product(), path, title="first")
+
+    def full(self, target, **kwargs):
+        Path(target).write_bytes(b"CDF half")  # some bytes made it
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(xr.Dataset, "to_netcdf", full)
+    with pytest.raises(OSError) as info:
+        write_product(product(), path, title="second")
+    assert info.value.errno == errno.ENOSPC
+    assert list(tmp_path.iterdir()) == [path]
+    # the clean-up of the temporary file fails as well: the full disk is still what is reported
+    real_unlink = Path.unlink
+
+    def refused(self, missing_ok=False):
+        if self.name.endswith(".part"):
+            raise PermissionError(errno.EACCES, "Permission denied", str(self))
+        return real_unlink(self, missing_ok=missing_ok)
+
+    monkeypatch.setattr(Path, "unlink", refused)
+    with pytest.raises(OSError) as info:
+        write_product(product(), path, title="third")
+    assert info.value.errno == errno.ENOSPC and not isinstance(info.value, PermissionError)
+    assert any("could not be removed" in note for note in info.value.__notes__)
+    monkeypatch.undo()
+    assert read_product(path).attrs["title"] == "first"
+
+
+def test_a_library_error_on_a_full_disk_is_reported_as_no_space(tmp_path, monkeypatch):
+    """The netCDF library reports ENOSPC as "NetCDF: HDF error": on a full filesystem, the OSError is raised."""
+    import errno
+
+    from dice_core import io
+
+    def hdf_error(self, target, **kwargs):
+        raise RuntimeError("NetCDF: HDF error")
+
+    monkeypatch.setattr(xr.Dataset, "to_netcdf", hdf_error)
+    with pytest.raises(RuntimeError, match="HDF error"):  # space left: the library's error stands
+        write_product(product(), tmp_path / "p.nc", title="t")
+    monkeypatch.setattr(io, "_disk_full", lambda folder: True)
+    with pytest.raises(OSError, match="No space left on device") as info:
+        write_product(product(), tmp_path / "p.nc", title="t")
+    assert info.value.errno == errno.ENOSPC and "p.nc" in str(info.value)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_write_is_the_one_mechanism(tmp_path):
+    """Every writer goes through io.atomic_write: no other module renames a temporary file itself."""
+    from dice_core.io import atomic_write
+
+    with atomic_write(tmp_path / "sub" / "a.txt") as tmp:
+        assert tmp.parent == tmp_path / "sub" and tmp.name.endswith(".part")
+        tmp.write_text("x")
+        assert not (tmp_path / "sub" / "a.txt").exists()
+    assert (tmp_path / "sub" / "a.txt").read_text() == "x"
+    with pytest.raises(KeyError):
+        with atomic_write(tmp_path / "sub" / "a.txt") as tmp:
+            tmp.write_text("half")
+            raise KeyError("crash")
+    assert (tmp_path / "sub" / "a.txt").read_text() == "x" and len(list((tmp_path / "sub").iterdir())) == 1
+    for source in [*(REPO / "dice_core").glob("*.py"), *(REPO / "workflow").rglob("*.smk"),
+                   *(REPO / "workflow" / "scripts").glob("*.py")]:
+        if source.name != "io.py":
+            text = source.read_text()
+            assert "os.replace(" not in text and ".replace(path)" not in text and "mkstemp" not in text, source
+
+
+def test_provenance_appends_history_and_records_relative_inputs_with_checksums_and_the_code(tmp_path):
+    import hashlib
+    import json
+
+    from dice_core.io import COORDINATE_ATTRS, provenance
+
+    dataset, results = tmp_path / "bench", tmp_path / "results" / "bench"
+    raw = dataset / "raw" / "dark.fits"
+    write_cube(raw, [np.zeros((2, 6, 7))], shape=(6, 7), n_frames=2)
+    first = results / "calibration" / "dark.nc"
+    with provenance(code_version="0123abcd", dataset=dataset, results=results):
+        write_product(product(), first, title="dark maps", inputs=[raw])
+    dark = read_product(first)
+    assert dark.attrs["code_version"] == "0123abcd" and "code 0123abcd" in dark.attrs["history"]
+    [record] = json.loads(dark.attrs["inputs"])
+    assert record == {"path": "raw/dark.fits", "relative_to": "dataset",
+                      "sha256": hashlib.sha256(raw.read_bytes()).hexdigest()}
+    second = results / "calibration" / "prnu.nc"
+    write_product(product().assign_coords(row=[10, 11]), second, title="prnu", inputs=[first, raw],
+                  code_version="4567ef", roots={"dataset": dataset, "results": results})
+    prnu = read_product(second)
+    history = prnu.attrs["history"].splitlines()
+    assert history[:-1] == dark.attrs["history"].splitlines()  # the input's history kept, then this write's
+    assert "prnu.nc (prnu) written by dice_core" in history[-1] and "code 4567ef" in history[-1]
+    records = json.loads(prnu.attrs["inputs"])
+    assert [(r["path"], r["relative_to"]) for r in records] == [("calibration/dark.nc", "results"),
+                                                                ("raw/dark.fits", "dataset")]
+    assert records[0]["sha256"] == hashlib.sha256(first.read_bytes()).hexdigest()
+    # an input under neither root keeps its absolute path
+    write_product(product(), tmp_path / "x.nc", title="x", inputs=[second], roots={"dataset": dataset})
+    assert json.loads(read_product(tmp_path / "x.nc").attrs["inputs"])[0]["path"] == str(second)
+    # the shared coordinates carry units and long names, an index where the dataset had none
+    for name in ("row", "col"):
+        assert prnu[name].attrs["units"] == COORDINATE_ATTRS[name]["units"] == "pixel" and prnu[name].attrs["long_name"]
+    assert prnu["row"].values.tolist() == [10, 11] and prnu["col"].values.tolist() == [0, 1, 2]

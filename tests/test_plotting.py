@@ -19,7 +19,7 @@ def residuals_product(rng):
     """A residuals product of 12 positions, 3-9 used, for two modes; and its centroid datasets."""
     datasets = centroid_datasets(rng)
     rows, residuals = astrometry.mode_accuracies(datasets, positions=USED, trials=50)
-    return astrometry.residuals_dataset(datasets, rows, residuals), datasets
+    return astrometry.residuals_dataset(datasets, rows, residuals=residuals), datasets
 
 
 def lines(ax, gid):

@@ -10,7 +10,7 @@ from dice_core.polynomials import polynomial_design
 def test_terms_and_exact_fit(degree, rng):
     rows, cols = np.indices((30, 40))
     x, y = cols.ravel().astype(float), rows.ravel().astype(float)
-    design = polynomial_design(x, y, degree)
+    design = polynomial_design(x, y, degree=degree)
     assert design.shape == (x.size, (degree + 1) * (degree + 2) // 2)
     assert np.abs(design).max() <= 1.0 + 1e-12  # scaled to [-1, 1]
     # any polynomial of that degree in the raw coordinates is fitted exactly

@@ -67,8 +67,8 @@ def test_frames_do_not_depend_on_chunk_size(dataset):
     cfg, _, truth = dataset
     small = dataclasses.replace(cfg, chunk_frames=7)
     for kind, name in [("baseline", "V1V4"), ("flat", "fiber_b"), ("dark", "dark"), ("position", 1)]:
-        a = np.concatenate(list(simulation.acquisition_chunks(cfg, truth, kind, name, 0, 50)))
-        b = np.concatenate(list(simulation.acquisition_chunks(small, truth, kind, name, 0, 50)))
+        a = np.concatenate(list(simulation.acquisition_chunks(cfg, truth, kind=kind, name=name, start=0, stop=50)))
+        b = np.concatenate(list(simulation.acquisition_chunks(small, truth, kind=kind, name=name, start=0, stop=50)))
         np.testing.assert_array_equal(a, b)
 
 
@@ -159,14 +159,14 @@ def geometry_config(**stars):
 def test_reference_pose_projects_the_nominal_pattern():
     cfg = geometry_config()
     pattern = np.array([[46.0, 40.0], [26.0, 20.0], [66.0, 20.0], [26.0, 60.0], [66.0, 60.0]])
-    projected = simulation.project_stars(pattern, np.zeros((1, 6)), cfg)[0]
+    projected = simulation.project_stars(pattern, np.zeros((1, 6)), cfg=cfg)[0]
     np.testing.assert_allclose(projected, pattern, atol=1e-9)
 
 
 def test_translation_moves_all_stars_together():
     cfg = geometry_config()
     pattern = np.array([[46.0, 40.0], [26.0, 20.0], [66.0, 60.0]])
-    moved = simulation.project_stars(pattern, np.array([[0.3, -0.2, 0, 0, 0, 0]]), cfg)[0]
+    moved = simulation.project_stars(pattern, np.array([[0.3, -0.2, 0, 0, 0, 0]]), cfg=cfg)[0]
     np.testing.assert_allclose(moved - pattern, [[-0.3, 0.2]] * 3, atol=1e-9)
 
 
@@ -177,7 +177,7 @@ def test_tilt_gives_the_non_homogeneous_scale_of_appendix_d():
     rows, cols = 80, 84
     xc, yc = (cols - 1) / 2, (rows - 1) / 2  # on the detector's centre column
     pattern = np.array([[xc, yc], [xc, yc - side / 2], [xc, yc + side / 2]])
-    tipped = simulation.project_stars(pattern, np.array([[0, 0, 0, theta, 0, 0]]), cfg)[0]
+    tipped = simulation.project_stars(pattern, np.array([[0, 0, 0, theta, 0, 0]]), cfg=cfg)[0]
     s_low, s_high = tipped[0, 1] - tipped[1, 1], tipped[2, 1] - tipped[0, 1]
     alpha = (side / 2) / distance
     # first order: the two half-separations differ by 2*alpha*theta relative (paper's appendix D)
@@ -205,7 +205,7 @@ def test_presets_load_and_lay_out_a_valid_manifest(preset, tmp_path):
     assert len(simulation.file_jobs(cfg)) == len(manifest.all_files())
     # the stars stay inside the science area at every position, with room for a window
     truth_poses = simulation._nominal_poses(cfg.stars)
-    stars = simulation.project_stars(simulation._nominal_pattern(cfg.stars), truth_poses, cfg)
+    stars = simulation.project_stars(simulation._nominal_pattern(cfg.stars), truth_poses, cfg=cfg)
     assert stars[..., 1].min() > cfg.detector.science_rows[0] + 5
     assert stars[..., 1].max() < cfg.detector.science_rows[1] - 5
 

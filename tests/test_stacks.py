@@ -26,7 +26,7 @@ def frames(rng):
 
 @pytest.mark.parametrize("size", [1, 3, 11])  # chunks straddling the batch edges, and one chunk
 def test_means_and_batch_means_whatever_the_chunks(frames, size):
-    stack = stacks.stack_position(chunks_of(frames, size, saturated_at=(7, 2, 3)), 11, 3, position=4)
+    stack = stacks.stack_position(chunks_of(frames, size, saturated_at=(7, 2, 3)), 11, n_batches=3, position=4)
     edges = stacks.batch_edges(11, 3)
     assert edges.tolist() == [0, 4, 7, 11]
     np.testing.assert_allclose(stack.mean, frames.mean(axis=0), rtol=1e-14)
@@ -37,7 +37,7 @@ def test_means_and_batch_means_whatever_the_chunks(frames, size):
 
 
 def test_a_stack_survives_its_product(frames, tmp_path):
-    stack = stacks.stack_position(chunks_of(frames, 3), 11, 3, position=4)
+    stack = stacks.stack_position(chunks_of(frames, 3), 11, n_batches=3, position=4)
     write_product(stack.to_dataset(), tmp_path / "4.nc", title="stack")
     ds = read_product(tmp_path / "4.nc")
     assert ds["batch_frames"].values.tolist() == [4, 3, 4] and ds.attrs["position"] == 4
@@ -53,8 +53,8 @@ def test_a_stack_survives_its_product(frames, tmp_path):
 
 def test_frames_that_do_not_match_their_count_are_refused(frames):
     with pytest.raises(ValueError, match="position 4: 11 frame\\(s\\) read, 12 announced"):
-        stacks.stack_position(chunks_of(frames, 3), 12, 3, label="position 4")
+        stacks.stack_position(chunks_of(frames, 3), 12, n_batches=3, label="position 4")
     with pytest.raises(ValueError, match="frames beyond the 10 announced"):
-        stacks.stack_position(chunks_of(frames, 3), 10, 3, label="position 4")
+        stacks.stack_position(chunks_of(frames, 3), 10, n_batches=3, label="position 4")
     with pytest.raises(ValueError, match="2 frame\\(s\\) for 3 batches"):
-        stacks.stack_position(chunks_of(frames[:2], 3), 2, 3, label="position 4")
+        stacks.stack_position(chunks_of(frames[:2], 3), 2, n_batches=3, label="position 4")

@@ -116,6 +116,43 @@ def test_products_follow_the_contract(out):
     assert "dark_000.fits" in dark.attrs["inputs"]
 
 
+def test_products_record_their_code_relative_inputs_with_checksums_and_history(out):
+    """Provenance: the hash of the code that made each product, inputs relative to the dataset's and the results
+    folders with their sha256, and history appended along the chain of products, CF style."""
+    import hashlib
+    import json
+
+    dark, prnu = read_product(out / "calibration/dark.nc"), read_product(out / "calibration/prnu.nc")
+    centroids = read_product(out / "centroids/raw.nc")
+    for ds in (dark, prnu, centroids):
+        assert len(ds.attrs["code_version"]) == 16 and ds.attrs["code_version"] in ds.attrs["history"]
+        for record in json.loads(ds.attrs["inputs"]):
+            assert record["relative_to"] in ("dataset", "results") and not record["path"].startswith("/")
+            root = out / "raw" if record["relative_to"] == "dataset" else out
+            assert record["sha256"] == hashlib.sha256((root / record["path"]).read_bytes()).hexdigest()
+    assert ("dark/dark_000.fits", "dataset") in [(r["path"], r["relative_to"]) for r in json.loads(dark.attrs["inputs"])]
+    assert dark.attrs["code_version"] != centroids.attrs["code_version"]  # each its own step's modules
+    # each product's history holds its inputs' history, then its own line last
+    assert dark.attrs["history"].splitlines()[-1] in centroids.attrs["history"].splitlines()[:-1]
+    assert "raw.nc" in centroids.attrs["history"].splitlines()[-1]
+    assert centroids["position"].attrs["units"] == "1" and centroids["star"].attrs["long_name"]
+    metrology = read_product(out / "metrology/H1H4.nc")
+    assert metrology["frame"].attrs["long_name"] and metrology["iteration"].attrs["units"] == "1"
+    assert metrology["masked"].attrs["flag_meanings"] == "measured masked"
+    assert metrology["masked"].attrs["flag_values"].tolist() == [0, 1]
+
+
+def test_everything_written_is_readable_as_the_umask_allows(workdir, out):
+    """Products, tables, cubes, figures, manifests and logs: 0666 minus the umask, as a plain open gives."""
+    umask = os.umask(0)
+    os.umask(umask)
+    expected = 0o666 & ~umask
+    files = [p for p in out.rglob("*") if p.is_file()]
+    assert len(files) > 100
+    assert {str(p.relative_to(out)): oct(p.stat().st_mode & 0o777) for p in files
+            if p.stat().st_mode & 0o777 != expected} == {}
+
+
 def test_bad_pixel_mask_product(out):
     """The ci preset has no dead or hot pixels; its dust pixels are found, and the flags follow CF."""
     mask = read_product(out / "calibration/bad_pixels.nc")
@@ -420,6 +457,16 @@ def test_missing_manifest_is_a_clear_error(workdir, tmp_path):
     assert f"{missing}: manifest not found" in said
 
 
+def test_a_mistyped_config_key_is_named_with_the_nearest_valid_key(workdir):
+    (workdir / "typo.yaml").write_text("centroids:\n  half_sise: 4\nastrometry:\n  groups: many\n")
+    result = snakemake(workdir, "-n", "--config", "dataset=ci", "--configfile", "typo.yaml", check=False)
+    said = result.stdout + result.stderr
+    assert result.returncode != 0
+    assert "config centroids.half_sise: unknown key; did you mean centroids.half_size?" in said
+    assert "config astrometry.groups: 'many' is not of type 'integer'" in said
+    assert len(said.splitlines()) < 25 and "additionalProperties" not in said  # not the schema in full
+
+
 def test_unknown_preset_is_a_clear_error(workdir):
     result = snakemake(workdir, "-n", "--config", "dataset=nopreset", check=False)
     assert result.returncode != 0
@@ -438,7 +485,13 @@ def test_external_dataset_with_a_bad_cube_fails_naming_it(workdir, out, tmp_path
     result = snakemake(workdir, "--config", f"dataset={data / 'dataset.yaml'}", check=False)
     assert result.returncode != 0
     log = (workdir / "results" / "bench-broken" / "logs" / "measure_dark.log").read_text()
-    assert str(dark) in log and "frames are 40x45" in log
+    assert str(dark) in log and "frames are 40x45" in log and "Traceback" in log
+    said = result.stdout + result.stderr  # the terminal: the problem in one line, once, no traceback
+    lines = [line for line in said.splitlines() if "frames are 40x45" in line]
+    assert lines == [f"dice: measure_dark failed: {dark}: frames are 40x45 (rows x cols) but the detector is "
+                     f"{lines[0].split('detector is ')[1].split()[0]} (traceback in "
+                     "results/bench-broken/logs/measure_dark.log)"]
+    assert "Traceback" not in said
     assert not (workdir / "results" / "bench-broken" / "calibration" / "dark.nc").exists()
     assert not list((workdir / "results" / "bench-broken").rglob("*.part"))
 
@@ -461,9 +514,15 @@ def test_modes_without_their_calibration_are_skipped_or_refused(workdir, out, tm
     manifest.write_text(yaml.safe_dump(document))
     result = snakemake(workdir, "-n", "--config", f"dataset={manifest}")
     said = result.stdout + result.stderr
-    assert "skipping centroid mode flat: the dataset has no flat field" in said
+    assert said.count("skipping centroid mode flat: the dataset has no flat field") == 1
     assert "skipping centroid mode flat+metrology: the dataset has no flat field" in said
     assert "centroids/raw.nc" in said and "centroids/metrology.nc" in said and "centroids/flat.nc" not in said
+    # a reduction sweep's points evaluate the workflow again, as modules: the reason is still said once
+    (workdir / "half.yaml").write_text(yaml.safe_dump({"sweeps": {"half": {
+        "study": "reduction", "parameter": "centroids.half_size", "values": [3, 4]}}}))
+    result = snakemake(workdir, "-n", "--config", f"dataset={manifest}", "--configfile", "half.yaml")
+    said = result.stdout + result.stderr
+    assert said.count("skipping centroid mode flat: the dataset has no flat field") == 1
     (workdir / "bad_pair.yaml").write_text("centroids:\n  pair: P99\n")
     result = snakemake(workdir, "-n", "--config", "dataset=ci", "--configfile", "bad_pair.yaml", check=False)
     assert result.returncode != 0

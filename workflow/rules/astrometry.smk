@@ -17,6 +17,7 @@ rule accuracy_table:
     resources:
         **step_resources("accuracy_table"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         code=code_version("io", "astrometry"),
         options=lambda w: config["astrometry"],
         models=extra_superimpositions(),

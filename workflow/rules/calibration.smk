@@ -17,6 +17,7 @@ rule measure_dark:
     resources:
         **step_resources("measure_dark"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
         "../scripts/measure_dark.py"
@@ -38,6 +39,7 @@ rule measure_prnu:
     resources:
         **step_resources("measure_prnu"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
         "../scripts/measure_prnu.py"
@@ -55,6 +57,7 @@ rule select_reference_prnu:
     resources:
         **step_resources("select_reference_prnu"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         reference=MANIFEST.reference_flat,
         code=code_version("io"),
     script:
@@ -75,6 +78,7 @@ rule compare_prnu:
     resources:
         **step_resources("compare_prnu"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
         "../scripts/compare_prnu.py"
@@ -94,6 +98,7 @@ rule find_bad_pixels:
     resources:
         **step_resources("find_bad_pixels"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         code=code_version("io", "manifest", "calibration", "polynomials"),
     script:
         "../scripts/find_bad_pixels.py"

@@ -18,6 +18,7 @@ rule stack_position:
     resources:
         **step_resources("stack_position"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         batches=config["centroids"]["batches"],
         code=code_version("io", "manifest", "stacks"),
     script:
@@ -41,6 +42,7 @@ rule measure_centroids:
     resources:
         **step_resources("measure_centroids"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         code=code_version("io", "manifest", "calibration", "centroids", "polynomials", "stacks"),
         options=centroid_options,
     script:

@@ -18,9 +18,44 @@ from snakemake.utils import Paramspace, validate
 
 from dice_core import DatasetError, simulation
 from dice_core.centroids import MODE_NEEDS
+from dice_core.io import write_text
 from dice_core.manifest import load_manifest, parse_manifest
 
-validate(config, schema="../schemas/config.schema.yaml")
+
+def check_config(values, schema_path):
+    """Check the configuration against its schema, each problem in one line naming the key.
+
+    An unknown key is named with the nearest valid key (difflib) and the valid keys at its level,
+    instead of the schema in full that Snakemake's validate prints.
+    """
+    import difflib
+
+    import jsonschema
+    import yaml
+
+    schema = yaml.safe_load(Path(schema_path).read_text())
+    validator = jsonschema.validators.validator_for(schema)(schema)
+    problems = []
+    for error in sorted(validator.iter_errors(values), key=lambda e: [str(p) for p in e.absolute_path]):
+        where = "".join(f"{part}." for part in error.absolute_path)
+        if error.validator == "additionalProperties" and error.validator_value is False:
+            known = list(error.schema.get("properties", {}))
+            for key in sorted(set(error.instance) - set(known)):
+                near = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+                hint = f"; did you mean {where}{near[0]}?" if near else ""
+                problems.append(
+                    f"config {where}{key}: unknown key{hint} (keys of {where.rstrip('.') or 'the config'}: "
+                    f"{', '.join(known)})"
+                )
+        else:
+            message = error.message if len(error.message) <= 200 else error.message[:200] + "..."
+            problems.append(f"config {where.rstrip('.') or '(top level)'}: {message}")
+    if problems:
+        raise WorkflowError("\n".join(problems))
+
+
+check_config(config, Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml")
+validate(config, schema="../schemas/config.schema.yaml")  # passes now; sets the defaults
 
 PRESETS = Path(workflow.basedir) / "config" / "presets"
 
@@ -64,6 +99,9 @@ OUT = f"{config['results']}/{MANIFEST.name}"
 RAW = local_path(config["raw"]) if config.get("raw") else f"{OUT}/raw"
 SIMULATE = SIMULATION is not None and not config.get("raw")
 MANIFEST_FILE = local_path(MANIFEST.path)
+# Products record their inputs relative to the dataset's folder (the manifest's) and to the results folder,
+# tried in that order, so that they hold no absolute path of this machine (dice_core.io.write_product).
+ROOTS = {"dataset": local_path(MANIFEST.path.parent), "results": OUT}
 
 
 wildcard_constraints:
@@ -75,7 +113,9 @@ wildcard_constraints:
     method="fourier|gaussian",
 
 
-_SKIPPED = set()
+# One set for the run and the modules of its reduction sweep's points, which evaluate this file again with the
+# same workflow object: a reason is said once, not once per point.
+_SKIPPED = vars(workflow).setdefault("_dice_skipped", set())
 
 
 def skipped(what, why):

@@ -22,6 +22,7 @@ rule fit_fringes:
     resources:
         **step_resources("fit_fringes"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
         options=config["metrology"],  # a changed option (tip_sigma, tolerance...) reruns the fits
     script:
@@ -62,6 +63,7 @@ rule deproject_offsets:
     resources:
         **step_resources("deproject_offsets"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         baselines=pair_baselines,
         code=code_version("io", "deprojection", "geometry"),
     script:
@@ -81,6 +83,7 @@ rule compare_pairs:
     resources:
         **step_resources("compare_pairs"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         reference=MANIFEST.reference_pair,
         code=code_version("io", "deprojection", "geometry"),
     script:
@@ -105,6 +108,7 @@ rule allan_deviation:
     resources:
         **step_resources("allan_deviation"),
     params:
+        roots=ROOTS,  # inputs are recorded relative to these
         code=code_version("io", "manifest", "allan", "fringes", "geometry", "parallel", "polynomials"),
     script:
         "../scripts/allan_deviation.py"

@@ -75,10 +75,7 @@ if REDUCTION_CONFIGS:
     text = "# Written by workflow/rules/paper.smk from config sweeps; do not edit.\n\n" + "\n".join(declarations)
     generated = Path(".snakemake/dice") / f"reduction_sweeps_{hashlib.sha256(text.encode()).hexdigest()[:12]}.smk"
     if not generated.is_file():
-        generated.parent.mkdir(parents=True, exist_ok=True)
-        partial = generated.with_name(f".{generated.name}.{os.getpid()}.part")
-        partial.write_text(text)
-        os.replace(partial, generated)
+        write_text(generated, text)  # atomically, readable as the umask allows
 
     include: str(generated.resolve())
 

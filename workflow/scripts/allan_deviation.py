@@ -12,8 +12,8 @@ def allan_deviation(manifest_path, metrology_path, dark_path, baseline, output, 
     manifest = load_manifest(manifest_path)
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
                             purpose="Allan deviations", dtype="float32")
-    product = allan.allan_of_baseline(stream, io.read_product(metrology_path), io.read_product(dark_path),
-                                      manifest.detector, workers=workers,
+    product = allan.allan_of_baseline(stream, io.read_product(metrology_path), dark=io.read_product(dark_path),
+                                      detector=manifest.detector, workers=workers,
                                       label=f"baseline {baseline}")
     last = product.isel(n_frames=-1)
     log.info("baseline %s: slope %.3f; at %.0f frames per group, %.2e pixel (photon limit %.2e) for pixels, "
@@ -28,4 +28,4 @@ def allan_deviation(manifest_path, metrology_path, dark_path, baseline, output, 
 
 dice_core.run_logged(snakemake.log[0], allan_deviation, snakemake.input.manifest, snakemake.input.metrology,
                      snakemake.input.dark, snakemake.wildcards.baseline, snakemake.output.allan, snakemake.config,
-                     snakemake.threads)
+                     snakemake.threads, provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

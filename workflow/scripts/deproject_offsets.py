@@ -17,4 +17,5 @@ def deproject_offsets(first_path, second_path, pair, baselines, output, config):
 
 
 dice_core.run_logged(snakemake.log[0], deproject_offsets, snakemake.input.first, snakemake.input.second,
-                     snakemake.wildcards.pair, snakemake.params.baselines, snakemake.output.offsets, snakemake.config)
+                     snakemake.wildcards.pair, snakemake.params.baselines, snakemake.output.offsets, snakemake.config,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

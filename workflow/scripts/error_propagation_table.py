@@ -19,7 +19,7 @@ def error_propagation_table(points, csv_path, png, pdf):
                      row["coefficient_uniform"], row["error_uniform"], row["analytic_uniform"],
                      row["coefficient_2d_uniform"], row["convention_matching_paper_uniform"])
     io.write_text(csv_path, error_budget.error_propagation_csv(rows))
-    plotting.save(plotting.error_propagation_figure(sweeps), png, pdf)
+    plotting.save(plotting.error_propagation_figure(sweeps), png, pdf=pdf)
 
 
 dice_core.run_logged(snakemake.log[0], error_propagation_table, list(snakemake.input.points), snakemake.output.csv,

@@ -11,7 +11,7 @@ def find_bad_pixels(manifest_path, dark_path, prnu_path, output, config):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     mask = calibration.bad_pixel_mask(io.read_product(dark_path), io.read_product(prnu_path)["prnu"].values,
-                                      manifest.detector)
+                                      detector=manifest.detector)
     log.info("bad pixels: %s; columns %s", ", ".join(f"{int(mask[f'n_{kind}'])} {kind}"
                                                      for kind in calibration.BAD_PIXEL_FLAGS),
              mask["bad_columns"].values.tolist() or "none")
@@ -20,4 +20,5 @@ def find_bad_pixels(manifest_path, dark_path, prnu_path, output, config):
 
 
 dice_core.run_logged(snakemake.log[0], find_bad_pixels, snakemake.input.manifest, snakemake.input.dark,
-                     snakemake.input.prnu, snakemake.output.bad_pixels, snakemake.config)
+                     snakemake.input.prnu, snakemake.output.bad_pixels, snakemake.config,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -29,7 +29,7 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
              f"spherical waves of fibers {' and '.join(geometry.fibers)}, nominal tips known to "
              f"{geometry.tip_sigma * 1e3:g} mm")
     try:
-        solution = fringes.fit_baseline(stream, dark["dark"].values, manifest.detector, flat=flat,
+        solution = fringes.fit_baseline(stream, dark["dark"].values, detector=manifest.detector, flat=flat,
                                         read_noise=dark["noise"].values, tolerance=options["tolerance"],
                                         max_passes=options["max_passes"], smooth_degree=options["smooth_degree"],
                                         workers=workers, geometry=geometry, bad_pixels=bad_pixels,
@@ -50,4 +50,5 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
 dice_core.run_logged(snakemake.log[0], fit_fringes, snakemake.input.manifest, snakemake.input.dark,
                      list(snakemake.input.prnu), list(snakemake.input.bad_pixels), snakemake.wildcards.baseline,
                      snakemake.output.metrology,
-                     snakemake.config, snakemake.threads)
+                     snakemake.config, snakemake.threads,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -37,9 +37,10 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pix
              use_flat, use_metrology, ", PRF widths True" if use_widths else "", options["method"], len(positions), len(manifest.star_approx),
              2 * options["half_size"] + 1, 2 * options["half_size"] + 1)
     result = centroids.measure_positions(
-        read_stacks(stack_paths), positions, manifest.star_approx, manifest.detector, dark["dark"].values,
-        read_noise=dark["noise"].values, prnu=prnu, dx=dx, dy=dy, bad_pixels=bad_pixels, method=options["method"],
-        half_size=options["half_size"], label=f"mode {mode}", log=log, variance_x=variance_x, variance_y=variance_y)
+        read_stacks(stack_paths), positions, approx=manifest.star_approx, detector=manifest.detector,
+        dark=dark["dark"].values, read_noise=dark["noise"].values, prnu=prnu, dx=dx, dy=dy, bad_pixels=bad_pixels,
+        method=options["method"], half_size=options["half_size"], label=f"mode {mode}", log=log,
+        variance_x=variance_x, variance_y=variance_y)
     product = centroids.centroids_dataset(result, positions, mode=mode, method=options["method"])
     inputs = [manifest.path, dark_path, *([prnu_path] if use_flat else []), *([offsets_path] if use_metrology else []),
               *([prf_path] if use_widths else []),
@@ -53,4 +54,5 @@ dice_core.run_logged(snakemake.log[0], measure_centroids, snakemake.input.manife
                      list(snakemake.input.get("bad_pixels", [])), list(snakemake.input.stacks),
                      snakemake.wildcards.mode,
                      snakemake.output.centroids, snakemake.config, snakemake.params.options,
-                     snakemake.input.get("prf"))
+                     snakemake.input.get("prf"),
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

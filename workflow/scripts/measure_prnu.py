@@ -14,9 +14,9 @@ def measure_prnu(manifest_path, dark_path, flat, output, config):
     stream = io.FrameStream(manifest.flats[flat], manifest.detector, chunk_frames=config["chunk_frames"],
                             min_frames=2, purpose="a PRNU map with its noise")
     log.info("flat %s: %d frames in %d file(s)", flat, stream.n_frames, len(stream.cubes))
-    prnu = calibration.prnu_map(stream, dark["dark"].values, dark["noise"].values, manifest.detector,
-                                gradient_degree=config["prnu"]["gradient_degree"], n_frames=stream.n_frames,
-                                label=f"flat {flat}")
+    prnu = calibration.prnu_map(stream, dark["dark"].values, dark_noise=dark["noise"].values,
+                                detector=manifest.detector, gradient_degree=config["prnu"]["gradient_degree"],
+                                n_frames=stream.n_frames, label=f"flat {flat}")
     log.info("flat %s: PRNU rms %.3e, photon-noise limit %.3e", flat, float(prnu["prnu_rms"]),
              float(prnu["photon_noise_limit_rms"]))
     prnu.attrs["flat"] = flat
@@ -25,4 +25,5 @@ def measure_prnu(manifest_path, dark_path, flat, output, config):
 
 
 dice_core.run_logged(snakemake.log[0], measure_prnu, snakemake.input.manifest, snakemake.input.dark,
-                     snakemake.wildcards.flat, snakemake.output.prnu, snakemake.config)
+                     snakemake.wildcards.flat, snakemake.output.prnu, snakemake.config,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

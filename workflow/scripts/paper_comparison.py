@@ -38,7 +38,7 @@ def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, trials, met
         log.info("%-70s paper %-9.3g ours %.3g +- %.2g %s", values["quantity"], values["paper"], values["ours"],
                  values["error"], values["unit"])
     io.write_text(csv_path, reproduction.comparison_csv(rows))
-    plotting.save(plotting.paper_comparison_figure(rows), png, pdf)
+    plotting.save(plotting.paper_comparison_figure(rows), png, pdf=pdf)
 
 
 inputs = {key: (list(value) if not isinstance(value, str) else value) for key, value in snakemake.input.items()}

@@ -13,7 +13,7 @@ def plot_offsets(path, manifest_path, pair, png, pdf):
         titles=[f"horizontal offsets dx, rms {float(ds['dx_rms']):.2e} pixel",
                 f"vertical offsets dy, rms {float(ds['dy_rms']):.2e} pixel"],
         suptitle=f"Pixel offsets, pair {pair} ({ds.attrs['baselines']})")
-    plotting.save(fig, png, pdf)
+    plotting.save(fig, png, pdf=pdf)
 
 
 dice_core.run_logged(snakemake.log[0], plot_offsets, snakemake.input.offsets, snakemake.input.manifest,

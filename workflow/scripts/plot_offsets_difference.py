@@ -14,7 +14,7 @@ def plot_offsets_difference(path, manifest_path, png, pdf):
     fig = plotting.maps_figure([ds["ddx"].values, ds["ddy"].values], detector, scale=1e3,
                                units="difference [1e-3 pixel]", titles=titles,
                                suptitle=f"Pixel offsets, pair {pair} minus pair {reference}")
-    plotting.save(fig, png, pdf)
+    plotting.save(fig, png, pdf=pdf)
 
 
 dice_core.run_logged(snakemake.log[0], plot_offsets_difference, snakemake.input.difference,

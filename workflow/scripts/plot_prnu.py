@@ -13,7 +13,7 @@ def plot_prnu(prnu_path, manifest_path, flat, png, pdf):
             "frames)")
     fig = plotting.map_figure((prnu["prnu"].values - 1), detector, title=f"PRNU, flat {flat}",
                               units="PRNU - 1 [1e-3]", scale=1e3, symmetric=True, note=note)
-    plotting.save(fig, png, pdf)
+    plotting.save(fig, png, pdf=pdf)
 
 
 dice_core.run_logged(snakemake.log[0], plot_prnu, snakemake.input.prnu, snakemake.input.manifest,

@@ -13,7 +13,7 @@ def plot_prnu_difference(diff_path, manifest_path, png, pdf):
             f"{float(diff['photon_noise_limit_rms']):.2e}, relative to the mean response")
     fig = plotting.map_figure(diff["difference"].values, detector, title=title, units="difference [1e-4]",
                               scale=1e4, symmetric=True, note=note)
-    plotting.save(fig, png, pdf)
+    plotting.save(fig, png, pdf=pdf)
 
 
 dice_core.run_logged(snakemake.log[0], plot_prnu_difference, snakemake.input.difference,

@@ -6,8 +6,8 @@ from dice_core import io, plotting
 
 def plot_procrustes_residuals(path, png, pdf, barycentre_png, barycentre_pdf):
     residuals = io.read_product(path)
-    plotting.save(plotting.procrustes_figure(residuals), png, pdf)
-    plotting.save(plotting.barycentre_figure(residuals), barycentre_png, barycentre_pdf)
+    plotting.save(plotting.procrustes_figure(residuals), png, pdf=pdf)
+    plotting.save(plotting.barycentre_figure(residuals), barycentre_png, pdf=barycentre_pdf)
 
 
 dice_core.run_logged(snakemake.log[0], plot_procrustes_residuals, snakemake.input.residuals, snakemake.output.png,

@@ -26,7 +26,7 @@ def reduction_sweep_summary(tables, points, csv_path, png, pdf, sweep):
     writer.writeheader()
     writer.writerows(rows)
     io.write_text(csv_path, buffer.getvalue())
-    plotting.save(figure, png, pdf)
+    plotting.save(figure, png, pdf=pdf)
 
 
 dice_core.run_logged(snakemake.log[0], reduction_sweep_summary, list(snakemake.input.tables),

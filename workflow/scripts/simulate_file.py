@@ -10,7 +10,7 @@ from dice_core.io import read_product
 def simulate_file(settings, truth_path, output):
     cfg = simulation.SimulationConfig.from_dict(settings)
     raw = Path(truth_path).parent
-    simulation.write_file(cfg, read_product(truth_path), Path(output).relative_to(raw).as_posix(), raw)
+    simulation.write_file(cfg, read_product(truth_path), relpath=Path(output).relative_to(raw).as_posix(), outdir=raw)
 
 
 dice_core.run_logged(snakemake.log[0], simulate_file, snakemake.params.simulation, snakemake.input.truth,

@@ -11,4 +11,5 @@ def simulate_truth(settings, output):
     write_product(truth, output, title=f"truth of simulated dataset {cfg.name}", config=settings)
 
 
-dice_core.run_logged(snakemake.log[0], simulate_truth, snakemake.params.simulation, snakemake.output.truth)
+dice_core.run_logged(snakemake.log[0], simulate_truth, snakemake.params.simulation, snakemake.output.truth,
+                     provenance={"code_version": snakemake.params.code})

@@ -13,7 +13,7 @@ def stack_position(manifest_path, position, output, config, n_batches):
     acquisition = next(p for p in manifest.positions if str(p.index) == position).acquisition
     stream = io.FrameStream(acquisition, manifest.detector, chunk_frames=config["chunk_frames"], min_frames=n_batches,
                             purpose=f"{n_batches} batches of a position")
-    stack = stacks.stack_position(stream, stream.n_frames, n_batches, position=int(position),
+    stack = stacks.stack_position(stream, stream.n_frames, n_batches=n_batches, position=int(position),
                                   label=f"position {position}")
     log.info("position %s: %d frames in %d batches; %d saturated sample(s)", position, stack.n_frames, n_batches,
              int(stack.n_saturated.sum()))
@@ -23,4 +23,5 @@ def stack_position(manifest_path, position, output, config, n_batches):
 
 
 dice_core.run_logged(snakemake.log[0], stack_position, snakemake.input.manifest, snakemake.wildcards.position,
-                     snakemake.output.stack, snakemake.config, snakemake.params.batches)
+                     snakemake.output.stack, snakemake.config, snakemake.params.batches,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -15,4 +15,4 @@ def sweep_point(output, study, parameters, bench, options, sweep, config):
 
 dice_core.run_logged(snakemake.log[0], sweep_point, snakemake.output.point, snakemake.params.study,
                      dict(snakemake.params.parameters), dict(snakemake.params.bench), dict(snakemake.params.options),
-                     snakemake.wildcards.sweep, snakemake.config)
+                     snakemake.wildcards.sweep, snakemake.config, provenance={"code_version": snakemake.params.code})

@@ -1,0 +1,35 @@
+"""dice_core's public functions: options after the first two arguments are keyword-only."""
+
+import importlib
+import inspect
+import pkgutil
+
+import dice_core
+
+#: Functions whose third and later arguments are data of the same kind as the first two, passed as a
+#: group (a pair of fiber tips as ``*tips``, the x and y of a point or of the offsets), or that forward
+#: extra positional arguments (``map_lanes``), and the passes of the Allan and fringe reductions that
+#: another change splits. Each is a deliberate exception, not a default.
+EXCEPTIONS = {
+    "allan.batch_offsets", "allan.group_fits", "allan.allan_dataset",
+    "centroids.offset_corrected", "deprojection.deproject", "deprojection.pair_difference",
+    "deprojection.deproject_floor", "fringes.projected_offsets", "fringes.perfect_pixel_design",
+    "geometry.two_source_phase", "geometry.tip_jacobian", "geometry.fit_two_source", "parallel.map_lanes",
+    "studies.affine_free",
+}
+
+
+def public_functions():
+    for info in pkgutil.iter_modules(dice_core.__path__):
+        module = importlib.import_module(f"dice_core.{info.name}")
+        for name, function in vars(module).items():
+            if not name.startswith("_") and inspect.isfunction(function) and function.__module__ == module.__name__:
+                yield f"{info.name}.{name}", function
+
+
+def test_options_after_the_first_two_arguments_are_keyword_only():
+    positional = {name for name, function in public_functions()
+                  if sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+                         for p in inspect.signature(function).parameters.values()) > 2}
+    assert positional - EXCEPTIONS == set()
+    assert EXCEPTIONS - positional == set()  # an exception that no longer is one leaves the list
