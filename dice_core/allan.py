@@ -572,7 +572,7 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
     frames_per_batch = float(np.mean(batches[:, 1] - batches[:, 0]))
     n_frames = sizes * frames_per_batch
     good = np.isfinite(offsets).all(axis=0)
-    weights = block_weights(rows, cols, good, block=block)
+    weights = block_weights(rows, cols, good=good, block=block)
     blocks = np.where(good, offsets, 0.0) @ weights
     # white noise of the same per-pixel (and per-block) scatter as the data at one batch per group
     rng = np.random.default_rng(seed)
@@ -605,13 +605,14 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
         per_block, per_block_allan = groups["block_deviation"], groups["block_allan"]
         limit_pixel, limit_block = groups["limit_pixel"], groups["limit_block"]
     k_norm = float(np.hypot(*k))
-    paper = np.where(good, photon_limit(n_frames, level, amplitude, iota, alpha, gain, read_noise, k_norm), 0.0)
+    paper = np.where(good, photon_limit(n_frames, level, amplitude=amplitude, iota=iota, alpha=alpha, gain=gain,
+                                        read_noise=read_noise, k_norm=k_norm), 0.0)
     first = {}
     if first_frame is not None:
         use = good & np.isfinite(first_frame)
         pixels = [np.broadcast_to(np.asarray(v, float), good.shape)[use] for v in (first_frame, alpha, read_noise)]
         first["photon_limit_pixel_first_frame"], first["first_frame_noise"] = first_frame_limit(
-            n_frames, pixels[0], amplitude, pixels[1], gain, pixels[2], k_norm)
+            n_frames, pixels[0], amplitude=amplitude, alpha=pixels[1], gain=gain, read_noise=pixels[2], k_norm=k_norm)
 
     def log_slope(values, use=None):
         use = np.ones(len(sizes), bool) if use is None else use

@@ -455,8 +455,8 @@ def _isolated_windows_half_size(mean, dark, centres, flags, half_size, shape, *,
     """The half-size whose windows hold one star's light, from the widest Gaussian fit at the first position."""
     width = max(max(f.width_x, f.width_y) for f in (
         gaussian_fit(mean[w.slices] - dark[w.slices], w, weights=(flags[w.slices] == 0).astype(float)) for w in
-        (star_window(r, c, half_size, shape, label=f"star {s} at {where}") for s, (r, c) in enumerate(centres))))
-    isolated = isolated_half_size(centres, half_size, width)
+        (star_window(r, c, half_size=half_size, shape=shape, label=f"star {s} at {where}") for s, (r, c) in enumerate(centres))))
+    isolated = isolated_half_size(centres, half_size, width=width)
     size = 2 * half_size + 1
     if isolated < 2:
         raise WindowError(f"{label}: at {where} the stars are too close for windows holding one star's light "
@@ -645,7 +645,7 @@ def measure_positions(stacks, positions, *, approx, detector, dark, read_noise, 
         if locate is None:
             half_size = _isolated_windows_half_size(mean, dark, centres, flags, half_size, detector.shape,
                                                     where=where, label=label, log=log)
-        windows = [star_window(r, c, half_size, detector.shape, label=f"star {s} at {where}")
+        windows = [star_window(r, c, half_size=half_size, shape=detector.shape, label=f"star {s} at {where}")
                    for s, (r, c) in enumerate(centres)]
         images = [calibrations.corrected(mean, w, star=s, where=where) for s, w in enumerate(windows)]
         batch_images = [[calibrations.corrected(frame, w, star=s, where=where) for s, w in enumerate(windows)]

@@ -772,7 +772,8 @@ def _pixel_solution(passes: _Passes, x, y, *, geometry, read_noise, gain, label)
     iota = G_phys[:, 0]
     alpha = np.hypot(G_phys[:, 1], G_phys[:, 2])
     return _PixelSolution(theta=theta, iota=iota, alpha=alpha,
-                          floor=photon_floor(G_phys, passes.FtF, passes.third, gain, noise_px, k_norm), k=k,
+                          floor=photon_floor(G_phys, passes.FtF, third=passes.third, gain=gain,
+                                                     read_noise=noise_px, k_norm=k_norm), k=k,
                           level=F_phys[:, 0] * iota.mean(), amplitude=np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean(),
                           phase=np.arctan2(F_phys[:, 2], F_phys[:, 1]), two_source=two_source)
 

@@ -141,7 +141,7 @@ def log_contrast_variance(product: xr.Dataset, *, gain: float, read_noise=None) 
 
 def pixel_scale(values, x, y, *, degree: int):
     """``values`` (pixel,) minus their least-squares polynomial of ``degree`` in (x, y): the pixel-scale part."""
-    design = polynomial_design(x, y, degree)
+    design = polynomial_design(x, y, degree=degree)
     q, _ = np.linalg.qr(design)
     values = np.asarray(values, float)
     return values - q @ (q.T @ values)

@@ -426,7 +426,7 @@ def flat_metrology_centroids(settings: dict, *, method: str = "gaussian", half_s
     truth = simulation.make_truth(cfg)
     manifest = parse_manifest(simulation.dataset_layout(cfg), Path.cwd() / "tip-tilt.yaml")
     positions = [p.index for p in manifest.positions]
-    position_stacks = [stacks.stack_position(_position_chunks(cfg, truth, i), cfg.stars.frames, batches, position=i,
+    position_stacks = [stacks.stack_position(_position_chunks(cfg, truth, i), cfg.stars.frames, n_batches=batches, position=i,
                                              label=f"position {i}") for i in positions]
     result = centroids.measure_positions(
         position_stacks, positions, approx=manifest.star_approx, detector=manifest.detector, dark=truth["bias"].values,

@@ -16,6 +16,10 @@ EXCEPTIONS = {
     "deprojection.deproject_floor", "fringes.projected_offsets", "fringes.perfect_pixel_design",
     "geometry.two_source_phase", "geometry.tip_jacobian", "geometry.fit_two_source", "parallel.map_lanes",
     "studies.affine_free",
+    # data of one kind passed as a group: the window's offsets and PRF variances, a pixel list's values and
+    # coordinates, the Allan statistics' per-pixel arrays, the pose model's directions, poses and bench
+    "centroids.response_corrected", "prf.log_transfer", "prf.pixel_scale", "allan.allan_statistics",
+    "allan.statistics_dataset", "astrometry.pose_project",
 }
 
 

@@ -31,7 +31,7 @@ def stage(n_positions, tip_tilt_pv, *, seed=3, constant=False):
                                        centre=((cols - 1) / 2, (rows - 1) / 2))
     directions = np.column_stack([(pattern[:, 0] - geometry.centre[0]) / geometry.distance
                                   + np.tan(geometry.off_axis), (pattern[:, 1] - geometry.centre[1]) / geometry.distance])
-    return simulation.project_stars(pattern, poses, cfg), poses, directions, geometry
+    return simulation.project_stars(pattern, poses, cfg=cfg), poses, directions, geometry
 
 
 def test_the_projection_is_the_simulators_and_its_jacobian_the_derivative():

@@ -32,7 +32,7 @@ def metrology_products(manifest, truth):
     products = {}
     for name, acquisition in manifest.baselines.items():
         solution = fringes.fit_baseline(FrameStream(acquisition, manifest.detector), truth["bias"].values,
-                                        manifest.detector, flat=truth["sensitivity"].values,
+                                        detector=manifest.detector, flat=truth["sensitivity"].values,
                                         read_noise=truth["read_noise"].values, label=name)
         fibers = (f"{name}a", f"{name}b") if solution.two_source is not None else None
         products[name] = fringes.solution_dataset(solution, manifest.detector, fibers=fibers)

@@ -9,7 +9,7 @@ TITLES = {"projective": "Projective residuals (a homography per position)",
 
 def plot_superimposition_residuals(path, model, png, pdf):
     residuals = io.read_product(path)
-    plotting.save(plotting.procrustes_figure(residuals, title=TITLES[model]), png, pdf)
+    plotting.save(plotting.procrustes_figure(residuals, title=TITLES[model]), png, pdf=pdf)
 
 
 dice_core.run_logged(snakemake.log[0], plot_superimposition_residuals, snakemake.input.residuals,
