@@ -13,14 +13,16 @@ def accuracy_table(centroid_paths, csv_path, tex_path, residuals_path, config):
     for path in centroid_paths:
         ds = io.read_product(path)
         by_method.setdefault(ds.attrs["method"], {})[ds.attrs["mode"]] = ds
-    methods = [m for m in config["centroids"]["methods"] if m in by_method]
+    primary = config["centroids"]["method"]  # its products are centroids/<mode>.nc, which the figures show
+    methods = [m for m in [primary, *config["centroids"]["methods"]] if m in by_method]
+    methods = list(dict.fromkeys(methods))
     rows, tables = [], []
     for method in methods:
         method_rows, method_residuals = astrometry.mode_accuracies(
             by_method[method], positions=options["positions"], groups=options["groups"], trials=options["trials"])
         rows += method_rows
         tables.append(f"% centroid method: {method}\n" + astrometry.latex_table(method_rows))
-        if method == methods[0]:  # the figures show the first method, whose products are centroids/<mode>.nc
+        if method == methods[0]:  # centroids.method's, the products centroids/<mode>.nc
             first_datasets, first_rows, first_residuals = by_method[method], method_rows, method_residuals
     for row in rows:
         log.info("%-8s mode %-15s %-8s n=%-3d accuracy %.2e +- %.1e pixel (rms residual %.2e x factor %.3f)",
