@@ -5,7 +5,7 @@ analytic linear propagation, per axis and 2-D, against the paper's values; see
 docs/centroids.md, "Error propagation coefficients".
 
     python benchmarks/error_propagation.py [--trials 400] [--seed 0] [--weighting pipeline|uniform]
-                                           [--csv tables/error_propagation.csv] [--figure fig.png]
+                                           [--csv error_propagation_benchmark.csv] [--figure fig.png]
 """
 
 import argparse
@@ -18,7 +18,8 @@ parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("--trials", type=int, default=400, help="trials per amplitude")
 parser.add_argument("--seed", type=int, default=0)
 parser.add_argument("--weighting", choices=error_budget.WEIGHTINGS, default="pipeline")
-parser.add_argument("--csv", help="also write the table's CSV here")
+parser.add_argument("--csv", help="also write the table's CSV here (one weighting: not the layout of the workflow's "
+                                   "tables/error_propagation.csv, which has both, so never that path)")
 parser.add_argument("--figure", help="also save the figure here (PNG or PDF)")
 args = parser.parse_args()
 
@@ -41,6 +42,9 @@ for r in rows:
 print(f"\n{args.weighting} weights, {args.trials} trials x {len(sweeps[0].runs)} amplitudes per source, "
       f"seed {args.seed}: {elapsed:.1f} s", file=sys.stderr)
 if args.csv:
+    if args.csv.replace("\\", "/").endswith("tables/error_propagation.csv"):
+        sys.exit(f"--csv {args.csv}: that is the workflow's product (both weightings in one row per source); "
+                 "write this one-weighting table elsewhere")
     error_budget.write_error_propagation_csv(rows, args.csv)
 if args.figure:
     from dice_core import plotting

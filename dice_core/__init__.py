@@ -19,7 +19,8 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.paper_method` -- the paper's own fringe reduction as its text describes it, for comparison;
 - :mod:`dice_core.error_budget` -- error-propagation coefficients of the centroids, Monte Carlo and analytic;
 - :mod:`dice_core.studies` -- the simulation studies that sweep points run;
-- :mod:`dice_core.reproduction` -- the paper's numbers beside ours.
+- :mod:`dice_core.reproduction` -- the paper's numbers beside ours;
+- :mod:`dice_core.overrides` -- dotted-key overrides of nested configurations (sweeps, benches, presets).
 """
 
 from importlib.metadata import PackageNotFoundError, version

@@ -38,6 +38,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# _pass is fringes' private streaming pass (frame factors, then per-pixel normal equations): the paper's
+# method must run the very same pass as ours, so that the comparison shows the method and not two
+# implementations of the numerics; it stays private to fringes because its arguments and returns are that
+# module's internals, which only this sibling module, tested against fringes' own results, may rely on.
 from dice_core.fringes import (FringeError, _pass, initial_wavevector, perfect_pixel_design, projected_offsets,
                                wavevector_per_frame)
 from dice_core.io import first_chunk

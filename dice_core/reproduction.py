@@ -3,8 +3,12 @@
 Every number the workflow regenerates of Crouzier et al. (A&A) is listed in
 :data:`PAPER` with the section it comes from, its value and unit; the
 functions below take our products and return rows of (quantity, section,
-paper, ours, error, unit, dataset, note). ``error`` is our number's 1-sigma
-error where one is known, NaN otherwise.
+paper, ours, error, unit, dataset, note), one per quantity: where one paper
+number is regenerated several ways (the unweighted fit beside the pipeline's,
+each baseline's Allan deviation), each way is its own quantity, the paper's
+name with the way in brackets. Our numbers that the paper gives none for (the
+rms of each offset-bias map) have an empty ``paper``. ``error`` is our
+number's 1-sigma error where one is known, NaN otherwise.
 """
 
 from __future__ import annotations
@@ -34,7 +38,8 @@ PAPER = {
     "coefficient_prnu": ("centroid error per unit PRNU RSD", SIMULATIONS, error_budget.PAPER_COEFFICIENTS["prnu"], "pixel"),
     "coefficient_photon": ("centroid error per unit relative photon noise of the brightest pixel", SIMULATIONS, error_budget.PAPER_COEFFICIENTS["photon"],
                            "pixel"),
-    "coefficient_offsets": ("centroid error per unit pixel-offset rms", SIMULATIONS, error_budget.PAPER_COEFFICIENTS["offsets"], "1"),
+    "coefficient_offsets": ("centroid error per unit pixel-offset rms", SIMULATIONS, error_budget.PAPER_COEFFICIENTS["offsets"],
+                            "pixel per pixel"),
     "coefficient_read": ("centroid error per unit relative read noise of the brightest pixel", SIMULATIONS, error_budget.PAPER_COEFFICIENTS["read"],
                          "pixel"),
     "requirement_prnu": ("PRNU calibration for a 5e-6 pixel centroid error", SIMULATIONS, error_budget.PAPER_REQUIREMENTS["prnu"], "1"),
@@ -54,27 +59,60 @@ PAPER = {
 
 PAPER_ALLAN_FRAMES = 100_000  # frames per group of the paper's largest Allan group
 
+#: The offset-bias study's maps (the figure's panels), each one's rms a row: variable -> what it is.
+BIAS_MAPS = {"error_paper": "offset error rms of the paper's method, with photon noise",
+             "error_ours": "offset error rms of ours (true flat), with photon noise",
+             "bias_paper": "offset bias rms of the paper's method, noiseless, first PRNU pattern",
+             "bias_ours": "offset bias rms of ours (true flat), noiseless, first PRNU pattern",
+             "photon_floor": "photon-noise floor rms of the offsets"}
+
 COLUMNS = ("quantity", "section", "paper", "ours", "error", "unit", "dataset", "note")
 
 
 @dataclass
 class Row:
-    """One line of the comparison; ``key`` names the paper's number in :data:`PAPER`."""
+    """One line of the comparison.
 
-    key: str
+    ``key`` names the paper's number in :data:`PAPER`; ``variant`` (e.g.
+    "unweighted fit", a baseline) tells apart several of ours for the same
+    number, in brackets after the paper's quantity. A row of ours that the
+    paper has no number for has ``key`` None and gives its own ``quantity``,
+    ``section`` and ``unit`` (its ``paper`` is NaN).
+    """
+
+    key: str | None
     ours: float
     error: float = math.nan
     dataset: str = ""
     note: str = ""
+    variant: str = ""
+    quantity: str = ""
+    section: str = SIMULATIONS
+    unit: str = "pixel"
 
     def as_dict(self) -> dict:
-        quantity, section, paper, unit = PAPER[self.key]
+        if self.key is None:
+            quantity, section, paper, unit = self.quantity, self.section, math.nan, self.unit
+        else:
+            quantity, section, paper, unit = PAPER[self.key]
+        if self.variant:
+            quantity = f"{quantity} ({self.variant})"
         return {"quantity": quantity, "section": section, "paper": paper, "ours": self.ours, "error": self.error,
                 "unit": unit, "dataset": self.dataset, "note": self.note}
 
 
 def comparison_csv(rows) -> str:
-    """CSV text of :class:`Row` s, the products contract's columns first (floats to 4 significant digits)."""
+    """CSV text of :class:`Row` s, the products contract's columns first (floats to 4 significant digits).
+
+    Raises
+    ------
+    ValueError
+        Two rows with the same quantity (the table has one row per number).
+    """
+    quantities = [row.as_dict()["quantity"] for row in rows]
+    twice = sorted({q for q in quantities if quantities.count(q) > 1})
+    if twice:
+        raise ValueError(f"the comparison table has more than one row for {twice}: one row per quantity")
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(COLUMNS)
@@ -122,25 +160,42 @@ def accuracy_rows(rows, *, dataset: str, note: str) -> list[Row]:
 
 
 def allan_rows(allan, *, dataset: str) -> list[Row]:
-    """Largest-group Allan deviations of one ``allan/<baseline>.nc`` product (pixels and blocks)."""
+    """Largest-group Allan deviations of one ``allan/<baseline>.nc`` product (pixels and blocks), as measured.
+
+    The paper's numbers are at :data:`PAPER_ALLAN_FRAMES` frames per group;
+    ours at this product's largest group, which the quantity names with the
+    baseline. The note gives ours scaled there as white noise (1/sqrt(N)),
+    which the measured slope and the photon limit let a reader check, but the
+    row holds the measured value: a scaled one is not a measurement.
+    """
     n = int(allan["n_frames"].values[-1])
-    dataset = f"{dataset} {allan.attrs.get('baseline', '')}".strip()
-    # The paper's numbers are at 100,000 frames per group: ours scaled there as white noise (1/sqrt(N)),
-    # which the measured slope and the photon limit beside it let a reader check.
+    baseline = allan.attrs.get("baseline", "")
     to_paper = math.sqrt(n / PAPER_ALLAN_FRAMES)
-    note = (f"measured {{:.2e}} at {n} frames per group, scaled as 1/sqrt(N) to the paper's {PAPER_ALLAN_FRAMES}; "
-            f"slope {float(allan['slope']):.2f}; photon limit there {{:.2e}} pixel")
     rows = []
     for key, measured, limit in (("allan_pixel", "deviation_mean", "photon_limit_pixel"),
                                  ("allan_block", "deviation_block_mean", "photon_limit_block")):
-        value = float(allan[measured].values[-1])
-        rows.append(Row(key, value * to_paper, math.nan, dataset,
-                        note.format(value, float(allan[limit].values[-1]) * to_paper)))
+        value, photon = float(allan[measured].values[-1]), float(allan[limit].values[-1])
+        note = (f"measured at {n} frames per group (the paper's: {PAPER_ALLAN_FRAMES}); photon limit there "
+                f"{photon:.2e} pixel; slope {float(allan['slope']):.2f}; as white noise (1/sqrt(N)) at the paper's "
+                f"{PAPER_ALLAN_FRAMES} frames: {value * to_paper:.2e} pixel")
+        rows.append(Row(key, value, math.nan, f"{dataset} {baseline}".strip(), note,
+                        variant=", ".join(filter(None, (baseline, f"{n} frames per group")))))
     return rows
+
+
+def _level(prnu: float) -> str:
+    """A PRNU level as the paper writes it: 5e-5, 2e-3."""
+    mantissa, exponent = f"{prnu:.1e}".split("e")
+    return f"{float(mantissa):g}e{int(exponent)}"
 
 
 def offset_bias_rows(points) -> list[Row]:
     """Rows from the offset-bias study: ``points`` maps a PRNU RSD to its study dataset.
+
+    The paper's two numbers (its method's offset error with photon noise at
+    5e-5, and its bias at 2e-3, which we compare with the noiseless bias, rms
+    over the PRNU patterns), then the rms of each map of the figure
+    (:data:`BIAS_MAPS`) at each level, the paper's number where it is one.
 
     Raises
     ------
@@ -164,31 +219,41 @@ def offset_bias_rows(points) -> list[Row]:
                            f"the paper's method reproduced, noiseless, rms over {draws.size} PRNU patterns (error: "
                            f"their spread); with photon noise {float(ds['rms_error_paper']):.2e} against a floor of "
                            f"{float(ds['rms_photon_floor']):.2e}; {ours}; docs/metrology.md"))
-        elif math.isclose(prnu, 5e-5, rel_tol=1e-6):
-            out.append(Row("bias_paper_5e-5", float(ds["rms_error_paper"]), math.nan, "offset_bias study",
-                           f"the paper's method reproduced, with photon noise, floor "
-                           f"{float(ds['rms_photon_floor']):.2e}; {ours}"))
+        paper_row = math.isclose(prnu, 5e-5, rel_tol=1e-6)  # the paper's 2e-5 is the noisy map's rms at 5e-5
+        for name, what in BIAS_MAPS.items():
+            value = float(ds[f"rms_{name}"])
+            if paper_row and name == "error_paper":
+                out.append(Row("bias_paper_5e-5", value, math.nan, "offset_bias study",
+                               f"the paper's method reproduced, with photon noise, floor "
+                               f"{float(ds['rms_photon_floor']):.2e}; {ours}"))
+                continue
+            noisy = name.startswith(("error", "photon"))
+            frames = ds.attrs.get("frames" if noisy else "noiseless_frames", "?")
+            out.append(Row(None, value, math.nan, "offset_bias study",
+                           f"the figure's map, {frames} frames {'with' if noisy else 'without'} noise; not in the paper",
+                           quantity=f"{what}, PRNU RSD {_level(prnu)}"))
     return out
 
 
 def error_propagation_rows(records) -> list[Row]:
     """Rows from ``tables/error_propagation.csv`` records (dicts: source, coefficient, error, ...): the
-    pipeline's weighted fit, and the unweighted fit's where the table has it (``*_uniform`` columns)."""
+    pipeline's weighted fit, and the unweighted fit's where the table has it (``*_uniform`` columns), the
+    latter as their own quantities ("... (unweighted fit)")."""
     out = []
     for record in records:
         source = record["source"]
-        fits = [("", "pipeline's weighted fit")]
+        fits = [("", "pipeline's weighted fit", "")]
         if record.get("coefficient_uniform"):
-            fits.append(("_uniform", "unweighted fit"))
-        for suffix, fit in fits:
+            fits.append(("_uniform", "unweighted fit", "unweighted fit"))
+        for suffix, fit, variant in fits:
             coefficient, error = float(record[f"coefficient{suffix}"]), float(record[f"error{suffix}"])
             dataset = f"error_propagation study, {fit}"
             if f"coefficient_{source}" in PAPER:
                 note = f"per axis; 2-D {float(record[f'coefficient_2d{suffix}']):.3g}; analytic " \
                        f"{float(record[f'analytic{suffix}']):.3g}; matches: {record[f'convention_matching_paper{suffix}']}"
-                out.append(Row(f"coefficient_{source}", coefficient, error, dataset, note))
+                out.append(Row(f"coefficient_{source}", coefficient, error, dataset, note, variant=variant))
             if f"requirement_{source}" in PAPER:
                 requirement = error_budget.REQUIRED_ERROR / coefficient
                 out.append(Row(f"requirement_{source}", requirement, requirement * error / coefficient, dataset,
-                               "5e-6 pixel / the per-axis coefficient"))
+                               "5e-6 pixel / the per-axis coefficient", variant=variant))
     return out

@@ -30,10 +30,10 @@ electrons per adu for the gain.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import math
-import re
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,6 +48,7 @@ from dice_core.geometry import two_source_phase
 from dice_core.io import write_cube, write_product, write_text
 from dice_core.polynomials import polynomial_design
 from dice_core.manifest import FORMAT
+from dice_core.overrides import apply_dotted, typed_value
 
 __all__ = [
     "SimulationConfig",
@@ -290,29 +291,29 @@ class SimulationConfig:
         return json.loads(json.dumps(dataclasses.asdict(self)))
 
 
-_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
-
-
 def load_preset(path, overrides: dict | None = None) -> SimulationConfig:
     """Read a simulation preset (YAML of :class:`SimulationConfig` keys; missing keys take defaults).
 
-    ``overrides`` sets dotted keys on top of the file's (``{"detector.prf_width_spread": 0.02}``).
+    ``overrides`` sets dotted keys on top of the file's (``{"detector.prf_width_spread": 0.02}``;
+    :func:`dice_core.overrides.apply_dotted`). Overrides make another dataset: unless they set ``name``,
+    its name is the preset's followed by a short hash of them (``sim-default-1a2b3c4d``), so that its
+    products never overwrite the preset's own.
     """
     path = Path(path)
     try:
         values = yaml.safe_load(path.read_text()) or {}
     except (OSError, yaml.YAMLError) as exc:
         raise ValueError(f"{path}: cannot read simulation preset ({exc})") from None
-    for dotted, value in (overrides or {}).items():
-        *parents, leaf = dotted.split(".")
-        node = values
-        for part in parents:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise ValueError(f"{path}: override {dotted}: {part} is not a section")
-        if isinstance(value, str) and _NUMBER.fullmatch(value):  # YAML 1.1 reads 2e-3 (no dot) as a string
-            value = float(value)
-        node[leaf] = value
+    if overrides:
+        try:
+            changed = apply_dotted(values, overrides, what="simulation preset")
+        except (KeyError, ValueError) as exc:
+            raise ValueError(f"{path}: override {exc.args[0]}") from None
+        if "name" not in overrides:
+            typed = {k: typed_value(k, v, None) for k, v in overrides.items()}
+            digest = hashlib.sha256(json.dumps(typed, sort_keys=True).encode()).hexdigest()[:8]
+            changed["name"] = f"{values.get('name', SimulationConfig.name)}-{digest}"
+        values = changed
     try:
         return SimulationConfig.from_dict(values)
     except (TypeError, ValueError) as exc:
@@ -486,7 +487,11 @@ def _rng(cfg: SimulationConfig, *names) -> np.random.Generator:
 
 
 def _remove_affine(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Subtract the least-squares plane a + b x + c y over ``mask`` (offsets are defined up to an affine map)."""
+    """Subtract the least-squares plane a + b x + c y over ``mask`` (offsets are defined up to an affine map).
+
+    The plane fitted over the mask is subtracted from the whole detector, which
+    :func:`dice_core.geometry.remove_modes` (the samples' own projection) does not do.
+    """
     rows, cols = np.indices(values.shape)
     design = polynomial_design(cols.ravel(), rows.ravel(), degree=1)
     coef, *_ = np.linalg.lstsq(design[mask.ravel()], values[mask], rcond=None)

@@ -18,7 +18,6 @@ Units: pixel, adu, relative where the parameter says so.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import logging
@@ -29,9 +28,10 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from dice_core import fringes, simulation
+from dice_core import fringes, geometry, simulation
 from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
+from dice_core.overrides import apply_dotted
 from dice_core.paper_method import fit_baseline_paper
 
 __all__ = ["OFFSET_BIAS_BENCH", "STAR_ACCURACY_BENCH", "TIP_TILT_BENCH", "STUDIES", "star_accuracy", "tip_tilt",
@@ -62,42 +62,22 @@ OFFSET_BIAS_BENCH = {
 
 
 def apply_overrides(base: dict, overrides: dict) -> dict:
-    """A copy of a nested config with dotted keys set: ``{"detector.prnu_rms": 5e-5}``.
-
-    A string where the base holds a number is read as one (YAML 1.1 reads
-    ``2e-3``, with no dot, as a string).
+    """A copy of a study's bench with dotted keys set: ``{"detector.prnu_rms": 5e-5}``
+    (:func:`dice_core.overrides.apply_dotted`, which reads ``2e-3``, a string in YAML 1.1, as a number).
 
     Raises
     ------
     KeyError
-        A dotted key whose parent section the base config does not have.
+        A dotted key whose parent section the bench does not have.
     ValueError
-        A string that is not a number where the base holds a number.
+        A string that is not a number where the bench holds a number.
     """
-    out = copy.deepcopy(base)
-    for dotted, value in overrides.items():
-        *parents, leaf = dotted.split(".")
-        node = out
-        for part in parents:
-            if not isinstance(node.get(part), dict):
-                raise KeyError(f"{dotted}: the study's config has no section {part!r}")
-            node = node[part]
-        value = value.item() if isinstance(value, np.generic) else value
-        current = node.get(leaf)
-        if isinstance(current, (int, float)) and not isinstance(current, bool) and isinstance(value, str):
-            # YAML 1.1 reads 2e-3 (no dot) as a string: a number where the bench holds one
-            try:
-                value = float(value)
-            except ValueError:
-                raise ValueError(f"{dotted}: {value!r} is not a number, which the study's bench expects") from None
-        node[leaf] = value
-    return out
+    return apply_dotted(base, overrides, new_sections=False, what="study's bench")
 
 
 def affine_free(values: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Values minus their least-squares plane over the pixels given (the offsets' gauge)."""
-    design = np.column_stack([np.ones_like(x), x, y])
-    return values - design @ np.linalg.lstsq(design, values, rcond=None)[0]
+    return geometry.remove_modes(values, geometry.affine_basis(x, y))
 
 
 def _offset_errors(cfg: simulation.SimulationConfig, workdir: Path, baseline: str, iterations: int):

@@ -5,10 +5,9 @@ import re
 import matplotlib.colors
 import numpy as np
 import pytest
-import xarray as xr
 
 from dice_core import allan, astrometry, plotting
-from dice_core.manifest import Detector
+from test_allan import allan_inputs
 from test_astrometry import centroid_datasets
 
 USED = (3, 9)
@@ -120,53 +119,6 @@ def test_centroids_figure_draws_the_used_positions_in_red(rng, positions):
     np.testing.assert_allclose(line.get_xydata(), np.column_stack([x, y])[used])
     assert ax.get_xlabel() == "x [pixel]" and ax.get_ylabel() == "y [pixel]"
     plotting.save(fig, None)
-
-
-def allan_inputs(rng, n_batches=8, frames=100, side=20):
-    """Synthetic batch offsets on a side x side detector, one pixel without offsets."""
-    detector = Detector(shape=(side, side), science_rows=(0, side), science_cols=(0, side), gain=2.5,
-                        saturation=6e4)
-    rows, cols = np.divmod(np.arange(side * side), side)
-    offsets = 1e-3 * rng.standard_normal((n_batches, rows.size))
-    offsets[:, 7] = np.nan
-    batches = np.column_stack([np.arange(n_batches) * frames, np.arange(1, n_batches + 1) * frames])
-    iota, alpha = rng.uniform(0.8, 1.2, rows.size), rng.uniform(0.5, 0.9, rows.size)
-    read_noise = rng.uniform(3, 5, rows.size)
-    keywords = dict(level=2000.0, amplitude=800.0, iota=iota, alpha=alpha, read_noise=read_noise, k=(1.2, 0.3),
-                    block=10)
-    return (offsets, np.full(offsets.shape, 1e-3), batches, rows, cols, detector), keywords
-
-
-def test_first_frame_limit_is_the_papers_formula_on_the_measured_noise(rng):
-    """photon_limit_pixel_first_frame: sqrt(f/g + sr^2) / (A alpha |K| sqrt(N/2)), rms over the pixels with
-    offsets, f the first frame minus the dark (a negative f counts as 0); first_frame_noise: the rms of
-    sqrt(f/g + sr^2)."""
-    args, keywords = allan_inputs(rng)
-    rows = args[3]
-    first = rng.uniform(500, 3000, rows.size)
-    first[3] = -20.0
-    ds = allan.allan_dataset(*args, **keywords, first_frame=first)
-    good = np.arange(rows.size) != 7
-    noise = np.sqrt(np.maximum(first, 0) / 2.5 + keywords["read_noise"] ** 2)[good]
-    per_frame = noise / (800.0 * keywords["alpha"][good] * np.hypot(1.2, 0.3))
-    n = ds["n_frames"].values
-    np.testing.assert_allclose(n, ds["group_size"].values * 100)
-    expected = np.sqrt(np.mean(per_frame**2)) / np.sqrt(n / 2)
-    np.testing.assert_allclose(ds["photon_limit_pixel_first_frame"].values, expected, rtol=1e-12)
-    assert float(ds["first_frame_noise"]) == pytest.approx(np.sqrt(np.mean(noise**2)), rel=1e-12)
-    assert ds["photon_limit_pixel_first_frame"].attrs["units"] == "pixel"
-    assert ds["first_frame_noise"].attrs["units"] == "adu"
-    # single-batch deviation, scaled by 1/sqrt(batches per group) along the curve
-    np.testing.assert_allclose(ds["photon_limit_pixel_first_frame"].values,
-                               expected[0] / np.sqrt(ds["group_size"].values), rtol=1e-12)
-    # a first frame at the model's level B iota gives the paper's theoretical limit
-    model = allan.allan_dataset(*args, **keywords, first_frame=2000.0 * keywords["iota"])
-    np.testing.assert_allclose(model["photon_limit_pixel_first_frame"], model["photon_limit_pixel_paper"],
-                               rtol=1e-12)
-    # without a first frame, the product is as before
-    plain = allan.allan_dataset(*args, **keywords)
-    assert "photon_limit_pixel_first_frame" not in plain and "first_frame_noise" not in plain
-    xr.testing.assert_identical(plain, ds.drop_vars(["photon_limit_pixel_first_frame", "first_frame_noise"]))
 
 
 def test_allan_figure_draws_the_first_frame_limit_in_red(rng):

@@ -111,21 +111,54 @@ def test_the_comparison_table_follows_the_contract():
 
 
 def test_offset_bias_rows_take_the_noisy_error_at_5e_5_and_the_bias_at_2e_3(bias_points):
-    rows = {row.key: row for row in reproduction.offset_bias_rows(bias_points)}
+    all_rows = reproduction.offset_bias_rows(bias_points)
+    rows = {row.key: row for row in all_rows if row.key}
     assert rows["bias_paper_5e-5"].ours == float(bias_points[5e-5].rms_error_paper)
     assert rows["bias_paper_2e-3"].ours == float(bias_points[2e-3].rms_bias_paper)
     assert rows["bias_paper_2e-3"].error == pytest.approx(np.std(bias_points[2e-3].draw_bias_paper.values, ddof=1))
+    # the rms of each map of the figure has its own row (the paper's number where it is one), no quantity twice
+    maps = {row.as_dict()["quantity"]: row.ours for row in all_rows}
+    assert len(maps) == len(all_rows) == 2 + 2 * len(reproduction.BIAS_MAPS) - 1
+    for level, text in ((5e-5, "5e-5"), (2e-3, "2e-3")):
+        ds = bias_points[level]
+        assert maps[f"offset error rms of ours (true flat), with photon noise, PRNU RSD {text}"] == float(
+            ds.rms_error_ours)
+        assert maps[f"offset bias rms of the paper's method, noiseless, first PRNU pattern, PRNU RSD {text}"] == float(
+            ds.rms_bias_paper)
+    assert maps["offset error rms of the paper's method, with photon noise, PRNU RSD 2e-3"] == float(
+        bias_points[2e-3].rms_error_paper)
 
 
-def test_allan_rows_are_scaled_to_the_papers_group_size():
+def test_allan_rows_hold_the_measured_value_and_name_its_group_size():
+    """Ours as measured at our largest group, the quantity saying how many frames; the paper's 100,000-frame
+    scaling only in the note (a scaled value is no measurement)."""
     import xarray as xr
 
     allan = xr.Dataset({"deviation_mean": ("n_frames", [4e-4, 2e-4]), "deviation_block_mean": ("n_frames", [4e-5, 2e-5]),
                         "photon_limit_pixel": ("n_frames", [4e-4, 2e-4]), "photon_limit_block": ("n_frames", [4e-5, 2e-5]),
                         "slope": ((), -0.5)}, coords={"n_frames": [625, 2500]}, attrs={"baseline": "H1H4"})
     pixel, block = reproduction.allan_rows(allan, dataset="sim")
-    assert pixel.ours == pytest.approx(2e-4 * np.sqrt(2500 / 1e5)) and block.ours == pytest.approx(2e-5 * 0.158113883)
-    assert pixel.dataset == "sim H1H4" and "2500 frames per group" in pixel.note
+    assert pixel.ours == 2e-4 and block.ours == 2e-5
+    assert pixel.as_dict()["quantity"].endswith("individual pixels (H1H4, 2500 frames per group)")
+    assert pixel.dataset == "sim H1H4" and f"{2e-4 * np.sqrt(2500 / 1e5):.2e}" in pixel.note
+
+
+def test_the_comparison_table_refuses_a_quantity_twice():
+    """One row per number of the paper: a second way to get it is its own quantity (a variant)."""
+    rows = [reproduction.Row("coefficient_prnu", 0.4), reproduction.Row("coefficient_prnu", 0.28)]
+    with pytest.raises(ValueError, match="more than one row"):
+        reproduction.comparison_csv(rows)
+    rows[1].variant = "unweighted fit"
+    text = reproduction.comparison_csv(rows)
+    assert "centroid error per unit PRNU RSD (unweighted fit)" in text
+    records = [{"source": "prnu", "coefficient": "0.28", "error": "0.01", "coefficient_2d": "0.4",
+                "analytic": "0.28", "convention_matching_paper": "2-D", "coefficient_uniform": "0.4",
+                "error_uniform": "0.01", "coefficient_2d_uniform": "0.57", "analytic_uniform": "0.4",
+                "convention_matching_paper_uniform": "per-axis"},
+               {"source": "offsets", "coefficient": "0.22", "error": "0.01", "coefficient_2d": "0.31",
+                "analytic": "0.22", "convention_matching_paper": "neither"}]
+    quantities = [row.as_dict()["quantity"] for row in reproduction.error_propagation_rows(records)]
+    assert len(set(quantities)) == len(quantities) == 6  # prnu: 2 coefficients and 2 requirements; offsets: 2
 
 
 def test_star_accuracy_shows_the_prf_width_spread_that_neither_calibration_sees():

@@ -305,18 +305,20 @@ def test_a_mode_added_to_the_sweep_runs_only_its_own_jobs(workdir, out):
     assert (out / "centroids" / "metrology.nc").is_file()
 
 
-def rules_planned_after_editing(workdir, module_name):
+def rules_planned_after_editing(workdir, module_name, *target):
     """The rules a dry run plans once ``dice_core/<module_name>.py`` is edited (the edit then undone), the
-    workflow being up to date before and after."""
-    assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+    workflow being up to date before and after (``target``: a target and its options, the default target's
+    on the ci preset if none)."""
+    target = target or ("--config", "dataset=ci")
+    assert "Nothing to be done" in snakemake(workdir, "-n", *target).stdout
     module = workdir / "dice_core" / f"{module_name}.py"
     original = module.read_text()
     try:
         module.write_text(original + "\n# a change to the module\n")
-        plan = snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+        plan = snakemake(workdir, "-n", *target).stdout
     finally:
         module.write_text(original)
-    assert "Nothing to be done" in snakemake(workdir, "-n", "--config", "dataset=ci").stdout
+    assert "Nothing to be done" in snakemake(workdir, "-n", *target).stdout
     return {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
 
 
@@ -737,7 +739,7 @@ def test_a_reduction_sweep_reruns_the_workflow_per_point_in_its_own_folder(workd
 
     main_products = {p: p.stat().st_mtime_ns for p in out.rglob("*.nc")}
     ran = sweep([3, 4])  # windows of 7x7 and 9x9 pixels (the ci preset's stars allow 9x9 at most)
-    assert "rule simulate_" not in ran and "rule sweep_half_0_measure_centroids:" in ran
+    assert "rule simulate_" not in ran and "rule sweep_half_half_size_3_" in ran and "_measure_centroids:" in ran
     summary = (workdir / target).read_text().splitlines()
     assert summary[0].startswith("centroids.half_size,") and {line.split(",")[0] for line in summary[1:]} == {"3", "4"}
     assert "accuracy [pixel]" in summary[0].split(",")
@@ -750,12 +752,108 @@ def test_a_reduction_sweep_reruns_the_workflow_per_point_in_its_own_folder(workd
     before = {p: p.stat().st_mtime_ns for p in (workdir / "results" / "sweeps" / "half").rglob("*.nc")}
     plan = sweep([3, 4, 2], "-n")
     planned = {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
-    assert planned and all(r.startswith("sweep_half_2_") for r in planned - {"reduction_sweep_summary"})
+    assert planned and all(r.startswith("sweep_half_half_size_2_") for r in planned - {"reduction_sweep_summary"})
+    # the first point removed: the other's modules keep their names, so nothing of theirs is planned
+    plan = sweep([4], "-n")
+    planned = {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
+    assert planned == {"reduction_sweep_summary"}
     assert all(p.stat().st_mtime_ns == t for p, t in before.items())
     assert all(p.stat().st_mtime_ns == t for p, t in main_products.items())
-    # a simulation key makes the point simulate its own dataset, in its own folder
+    # a simulation key makes the point simulate its own dataset, in its own folder, named by its overrides
     (workdir / "reduction.yaml").write_text(yaml.safe_dump({"sweeps": {"wide": {
         "study": "reduction", "parameter": "simulation.detector.prf_width_spread", "values": [0.03]}}}))
     plan = snakemake(workdir, "results/sweeps/wide/summary.csv", "-n", "--config", "dataset=ci",
                      "--configfile=reduction.yaml").stdout
-    assert "rule sweep_wide_0_simulate_truth:" in plan and "results/sweeps/wide/prf_width_spread~0.03/sim-ci/raw" in plan
+    assert "simulate_truth:" in plan and "results/sweeps/wide/prf_width_spread~0.03/sim-ci-" in plan
+    assert "rule sweep_wide_prf_width_spread_0_03_" in plan
+
+
+def planned_rules(plan):
+    return {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
+
+
+def test_a_reduction_sweep_over_lists_of_modes_gives_each_point_its_folder(workdir, out):
+    """A list value (centroids.modes) is one point: its folder named by the joined values; the run's own accuracy
+    table is not the sweep's."""
+    (workdir / "modes.yaml").write_text(yaml.safe_dump({"sweeps": {"modes": {
+        "study": "reduction", "parameter": "centroids.modes", "values": [["raw"], ["raw", "flat+metrology"]]}}}))
+    plan = snakemake(workdir, "results/sweeps/modes/summary.csv", "-n", "--config", "dataset=ci",
+                     "--configfile=modes.yaml").stdout
+    for folder in ("modes~raw", "modes~raw,flat+metrology"):
+        assert f"results/sweeps/modes/{folder}/sim-ci/tables/accuracy.csv" in plan
+    assert "results/sweeps/modes/modes~raw/sim-ci/centroids/flat+metrology.nc" not in plan
+    assert "results/sim-ci/tables/accuracy.csv" not in plan and "rule simulate_" not in plan
+
+
+def test_the_centroid_method_of_the_products_does_not_follow_the_list_order(workdir):
+    """centroids/<mode>.nc holds centroids.method's centroids, whatever the order of centroids.methods."""
+    (workdir / "order.yaml").write_text("centroids:\n  methods: [gaussian, fourier]\n")
+    plan = snakemake(workdir, "-n", "--config", "dataset=ci", "--configfile", "order.yaml").stdout
+    assert "Nothing to be done" in plan, plan
+    (workdir / "method.yaml").write_text("centroids:\n  method: gaussian\n")
+    plan = snakemake(workdir, "-n", "--config", "dataset=ci", "--configfile", "method.yaml").stdout
+    assert "results/sim-ci/centroids/fourier/raw.nc" in plan and "rule measure_centroids_by_method:" in plan
+
+
+def test_simulation_overrides_are_another_dataset_with_its_own_results(workdir):
+    """A top-level simulation: key changes the simulated data, so it changes the results' name too: the preset's
+    own products are never overwritten by another dataset's."""
+    (workdir / "overrides.yaml").write_text(yaml.safe_dump({"simulation": {"detector.prnu_rms": "3e-3"}}))
+    plan = snakemake(workdir, "-n", "--config", "dataset=ci", "--configfile", "overrides.yaml").stdout
+    assert "results/sim-ci-" in plan and "results/sim-ci/" not in plan
+    assert "rule simulate_truth:" in plan
+
+
+# The paper target on the ci preset, its studies shrunk (sweeps of their own names, so as to leave the
+# configured ones alone): about a minute beyond the ci workflow that the module's fixture runs.
+PAPER_CI = {
+    "sweeps": {
+        "bias_ci": {"study": "offset_bias", "parameter": "detector.prnu_rms", "values": [5.0e-5, 2.0e-3],
+                    "bench": {"metrology.frames": 2000}, "options": {"noiseless_frames": 1000, "noiseless_draws": 2}},
+        "errors_ci": {"study": "error_propagation", "grid": {"source": ["prnu", "photon", "offsets", "read"],
+                                                             "weighting": ["pipeline", "uniform"]},
+                      "options": {"trials": 20, "amplitudes": [1.0e-3]}},
+    },
+    "paper": {"offset_bias": "bias_ci", "error_propagation": "errors_ci"},
+}
+
+
+@pytest.fixture(scope="module")
+def paper_run(workdir):
+    (workdir / "paper_ci.yaml").write_text(yaml.safe_dump(PAPER_CI))
+    run = snakemake(workdir, "paper", "--config", "dataset=ci", "--configfile=paper_ci.yaml")
+    return run.stdout + run.stderr
+
+
+def test_the_paper_target_runs_and_its_tables_follow_the_contract(paper_run, out):
+    assert "rule paper_comparison:" in paper_run and "rule fit_fringes:" not in paper_run
+    with open(out / "tables" / "paper_comparison.csv", newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert list(rows[0])[:6] == ["quantity", "section", "paper", "ours", "error", "unit"]
+    quantities = [r["quantity"] for r in rows]
+    assert len(set(quantities)) == len(quantities)  # one row per number
+    by_quantity = {r["quantity"]: r for r in rows}
+    for quantity in ("centroid error per unit PRNU RSD", "centroid error per unit PRNU RSD (unweighted fit)",
+                     "Procrustes deflation factor, 5 stars, 33 positions", "accuracy, flat and metrology (p)",
+                     "offset bias rms of the paper's method, PRNU RSD 2e-3",
+                     "offset error rms of ours (true flat), with photon noise, PRNU RSD 2e-3",
+                     "offset bias rms of the paper's method, noiseless, first PRNU pattern, PRNU RSD 5e-5"):
+        assert quantity in by_quantity and float(by_quantity[quantity]["ours"]) > 0
+    assert by_quantity["offset error rms of ours (true flat), with photon noise, PRNU RSD 2e-3"]["paper"] == ""
+    allan = [q for q in quantities if q.startswith("Allan deviation of the largest group, individual pixels (")]
+    assert len(allan) == 4 and all("frames per group" in q for q in allan)  # each ci baseline, as measured
+    assert float(by_quantity["Procrustes deflation factor, 5 stars, 33 positions"]["ours"]) == pytest.approx(1.4,
+                                                                                                          abs=0.06)
+    with open(out / "tables" / "error_propagation.csv", newline="") as handle:
+        errors = list(csv.DictReader(handle))
+    assert list(errors[0])[:5] == ["source", "normalisation", "coefficient", "error", "paper_coefficient"]
+    assert [r["source"] for r in errors] == ["prnu", "photon", "offsets", "read"]
+    assert (out / "figures" / "error_propagation.png").is_file() and (out / "figures" / "offset_bias.png").is_file()
+    assert (out / "report" / "paper_reproduction.pdf").read_bytes()[:5] == b"%PDF-"
+
+
+def test_a_plot_edit_reruns_the_papers_plots_and_no_monte_carlo(paper_run, workdir):
+    rules = rules_planned_after_editing(workdir, "plotting", "paper", "--config", "dataset=ci",
+                                        "--configfile=paper_ci.yaml")
+    assert {"plot_error_propagation", "plot_offset_bias", "paper_comparison", "paper_pdf"} <= rules
+    assert not rules & {"error_propagation_table", "procrustes_deflation", "sweep_point", "accuracy_table"}

@@ -69,6 +69,8 @@ rule plot_superimposition_residuals:
         model="projective|pose",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_superimposition_residuals"),
     params:
         code=code_version("plotting", "io"),
     script:

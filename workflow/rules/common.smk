@@ -20,6 +20,7 @@ from dice_core import DatasetError, simulation
 from dice_core.centroids import MODE_NEEDS
 from dice_core.io import write_text
 from dice_core.manifest import load_manifest, parse_manifest
+from dice_core.overrides import apply_dotted
 
 
 def check_config(values, schema_path):
@@ -302,7 +303,13 @@ def centroid_options(wildcards):
     """What a product depends on: the method and the window options, not the list of modes or methods,
     so that adding an entry to either list runs only the new jobs (the batches are the stacks')."""
     options = {k: v for k, v in config["centroids"].items() if k not in ("modes", "methods", "batches")}
-    return {**options, "method": getattr(wildcards, "method", config["centroids"]["methods"][0])}
+    return {**options, "method": getattr(wildcards, "method", config["centroids"]["method"])}
+
+
+def other_methods():
+    """The centroid methods besides centroids.method, each under centroids/<method>/: in the order of
+    centroids.methods, whose order decides nothing else."""
+    return [m for m in config["centroids"]["methods"] if m != config["centroids"]["method"]]
 
 
 def centroid_targets():
@@ -326,7 +333,7 @@ def centroid_targets():
             skipped(f"centroid mode {mode}", f"the metrology is not reduced ({metrology_unavailable()})")
             continue
         targets += [f"{OUT}/centroids/{mode}.nc", *figure_pair(f"centroids_{mode}").values()]
-        targets += [f"{OUT}/centroids/{method}/{mode}.nc" for method in config["centroids"]["methods"][1:]]
+        targets += [f"{OUT}/centroids/{method}/{mode}.nc" for method in other_methods()]
     return targets
 
 
@@ -361,8 +368,25 @@ def centroid_products(wildcards):
 SWEEP_ROOT = f"{config['results']}/sweeps"
 
 
+SWEEP_VALUES = {}  # sweep -> its points as {dotted key: value}, list values included (reduction sweeps)
+
+
+def folder_value(value):
+    """How a point's value is spelt in its folder name: itself, or a list's items joined by commas (a short
+    hash where an item is not a plain word or number), so that a list is one folder of its own."""
+    if not isinstance(value, (list, dict)):
+        return value
+    items = value if isinstance(value, list) else None
+    if items is not None and all(
+        isinstance(v, (str, int, float)) and re.fullmatch(r"[A-Za-z0-9_.+-]+", str(v)) for v in items
+    ):
+        return ",".join(map(str, items)) or "none"
+    return "h" + hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()[:10]
+
+
 def sweep_space(name, spec):
-    """(Paramspace with one wildcard 'point', column -> parameter key) of a configured sweep."""
+    """(Paramspace with one wildcard 'point', column -> parameter key) of a configured sweep; its points'
+    values in SWEEP_VALUES[name]."""
     if "points" in spec:
         points = [dict(p) for p in spec["points"]]
     elif "grid" in spec:  # every combination, the first parameter varying slowest
@@ -376,14 +400,15 @@ def sweep_space(name, spec):
     columns = {key.rsplit(".", 1)[-1]: key for key in keys}  # folder names: the key's last part
     if len(columns) != len(keys):
         raise WorkflowError(f"config sweeps.{name}: parameters {keys} share a last name; folders would clash")
-    if any(isinstance(v, (list, dict)) for p in points for v in p.values()):
+    if spec["study"] != "reduction" and any(isinstance(v, (list, dict)) for p in points for v in p.values()):
         raise WorkflowError(
             f"config sweeps.{name}: a parameter's value must be a number, a string or a boolean "
-            "(one folder per point)"
+            "(one folder per point; lists, e.g. of centroids.modes, only in a reduction sweep)"
         )
-    frame = DataFrame([{column: p[key] for column, key in columns.items()} for p in points])
+    frame = DataFrame([{column: folder_value(p[key]) for column, key in columns.items()} for p in points])
     if frame.duplicated().any():
         raise WorkflowError(f"config sweeps.{name}: a point is listed twice")
+    SWEEP_VALUES[name] = points
     return Paramspace(frame, single_wildcard="point"), columns
 
 
@@ -420,6 +445,7 @@ def comparison_inputs(wildcards=None):
     inputs = {
         "offset_bias": sweep_points(paper_sweep("offset_bias")),
         "error_propagation": f"{OUT}/tables/error_propagation.csv",
+        "deflation": f"{OUT}/tables/procrustes_deflation.csv",
     }
     if astrometry_targets():
         inputs["accuracy"] = f"{OUT}/tables/accuracy.csv"
@@ -428,25 +454,12 @@ def comparison_inputs(wildcards=None):
     return inputs
 
 
-def deep_update(base, dotted):
-    """A copy of a nested dict with dotted keys set (``{"centroids.half_size": 5}``)."""
-    out = json.loads(json.dumps(base))
-    for key, value in dotted.items():
-        *parents, leaf = key.split(".")
-        node = out
-        for part in parents:
-            node = node.setdefault(part, {})
-        node[leaf] = value
-    return out
-
-
 def sweep_instances(name):
     """[(parameters by their dotted keys, the point's folder)] of a configured sweep, in order."""
     spec, space, columns = SWEEPS[name]
-    rows = space.dataframe.to_dict("records")
     return [
-        ({columns[c]: (v.item() if hasattr(v, "item") else v) for c, v in row.items()}, folder)
-        for row, folder in zip(rows, space.instance_patterns)
+        ({key: (v.item() if hasattr(v, "item") else v) for key, v in point.items()}, folder)
+        for point, folder in zip(SWEEP_VALUES[name], space.instance_patterns)
     ]
 
 
@@ -467,7 +480,10 @@ def reduction_point_config(name, point, folder):
     reduction = {k: v for k, v in point.items() if not k.startswith("simulation.")}
     if simulated and SIMULATION is None:
         raise WorkflowError(f"config sweeps.{name}: simulation.* parameters need a simulation preset as the dataset")
-    point_config = deep_update({k: v for k, v in config.items() if k != "sweeps"}, reduction)
+    try:
+        point_config = apply_dotted({k: v for k, v in config.items() if k != "sweeps"}, reduction, what="config")
+    except (KeyError, ValueError) as exc:
+        raise WorkflowError(f"config sweeps.{name}: {exc.args[0]}") from None
     point_config["sweeps"] = {n: s for n, (s, *_) in SWEEPS.items() if s["study"] != "reduction"}
     point_config["simulation"] = {**(config.get("simulation") or {}), **simulated}
     point_config["results"] = f"{SWEEP_ROOT}/{name}/{folder}"
@@ -475,12 +491,29 @@ def reduction_point_config(name, point, folder):
     return point_config
 
 
+def point_dataset_name(point_config):
+    """The name of a reduction point's dataset: the run's, or, where the point sets simulation.* keys, that of
+    the preset with the point's overrides (simulation.load_preset names it by their hash)."""
+    if SIMULATION is None or point_config["simulation"] == (config.get("simulation") or {}):
+        return MANIFEST.name
+    return simulation.load_preset(PRESETS / f"{config['dataset']}.yaml", overrides=point_config["simulation"]).name
+
+
 def reduction_point_tables(wildcards):
     """Each point's tables/accuracy.csv of a reduction sweep, in the config's order."""
+    name = wildcards.sweep
     return [
-        f"{SWEEP_ROOT}/{wildcards.sweep}/{folder}/{MANIFEST.name}/tables/accuracy.csv"
-        for _, folder in sweep_instances(wildcards.sweep)
+        f"{SWEEP_ROOT}/{name}/{folder}/{point_dataset_name(REDUCTION_CONFIGS[module_name(name, folder)])}"
+        "/tables/accuracy.csv"
+        for _, folder in sweep_instances(name)
     ]
+
+
+def module_name(sweep, folder):
+    """The Snakemake module of a reduction sweep's point, named by the point (its folder) and not by its place
+    in the list, so that removing a point renames no other's rules."""
+    words = re.sub(r"\W+", "_", f"{sweep}_{folder}").strip("_")[:60]
+    return f"sweep_{words}_{hashlib.sha256(folder.encode()).hexdigest()[:6]}"
 
 
 def paper_pdf_pages():

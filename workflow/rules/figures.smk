@@ -129,6 +129,8 @@ rule plot_prf:
         f"{OUT}/logs/plot_prf.log",
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_prf"),
     params:
         code=code_version("plotting", "manifest", "io"),
     script:

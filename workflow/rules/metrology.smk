@@ -42,6 +42,8 @@ rule prf_widths:
         f"{OUT}/benchmarks/prf_widths.tsv"
     conda:
         "../envs/dice.yaml"
+    resources:
+        **step_resources("prf_widths"),
     params:
         code=code_version("io", "manifest", "prf"),
         options=config["prf"],  # the assumed kernel

@@ -45,15 +45,17 @@ RUN_LEVEL_RULES = (
     "paper_comparison",
     "plot_offset_bias",
     "error_propagation_table",
+    "plot_error_propagation",
+    "procrustes_deflation",
     "sweep_point",
     "sweep_summary",
     "plot_star_accuracy",
     "reduction_sweep_summary",
 )
 REDUCTION_CONFIGS = {
-    f"sweep_{name}_{k}": reduction_point_config(name, point, folder)
+    module_name(name, folder): reduction_point_config(name, point, folder)
     for name in REDUCTION_SWEEPS
-    for k, (point, folder) in enumerate(sweep_instances(name))
+    for point, folder in sweep_instances(name)
 }
 
 if REDUCTION_CONFIGS:
@@ -62,13 +64,13 @@ if REDUCTION_CONFIGS:
     # so their declarations are written out (the configs stay here, named), then included; the file is
     # named by its content, so that runs with other sweeps in the same folder never share one.
     declarations = []
-    for module_name in REDUCTION_CONFIGS:
+    for point_module in REDUCTION_CONFIGS:
         declarations += [
-            f"module {module_name}:",
+            f"module {point_module}:",
             f"    snakefile: {workflow.main_snakefile!r}",
-            f"    config: REDUCTION_CONFIGS[{module_name!r}]",
+            f"    config: REDUCTION_CONFIGS[{point_module!r}]",
             "",
-            f"use rule * from {module_name} exclude {', '.join(RUN_LEVEL_RULES)} as {module_name}_*",
+            f"use rule * from {point_module} exclude {', '.join(RUN_LEVEL_RULES)} as {point_module}_*",
             "",
             "",
         ]
@@ -96,7 +98,7 @@ rule reduction_sweep_summary:
     resources:
         **step_resources("reduction_sweep_summary"),
     params:
-        points=lambda w: [point for point, _ in sweep_instances(w.sweep)],
+        points=lambda w: [{k: folder_value(v) for k, v in point.items()} for point, _ in sweep_instances(w.sweep)],
         code=code_version("plotting", "io"),
     script:
         "../scripts/reduction_sweep_summary.py"
@@ -166,12 +168,6 @@ rule error_propagation_table:
         points=lambda w: sweep_points(paper_sweep("error_propagation")),
     output:
         csv=f"{OUT}/tables/error_propagation.csv",
-        png=report(
-            f"{OUT}/figures/error_propagation.png",
-            category="Numerical simulations",
-            caption="../report/error_propagation.rst",
-        ),
-        pdf=f"{OUT}/figures/error_propagation.pdf",
     log:
         f"{OUT}/logs/error_propagation_table.log",
     conda:
@@ -182,6 +178,46 @@ rule error_propagation_table:
         code=code_version("studies", "error_budget", "io"),
     script:
         "../scripts/error_propagation_table.py"
+
+
+rule plot_error_propagation:  # apart from the table: a plot edit re-runs the plot alone
+    input:
+        points=lambda w: sweep_points(paper_sweep("error_propagation")),
+    output:
+        png=report(
+            f"{OUT}/figures/error_propagation.png",
+            category="Numerical simulations",
+            caption="../report/error_propagation.rst",
+        ),
+        pdf=f"{OUT}/figures/error_propagation.pdf",
+    log:
+        f"{OUT}/logs/plot_error_propagation.log",
+    conda:
+        "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_error_propagation"),
+    params:
+        code=code_version("studies", "plotting", "io"),
+    script:
+        "../scripts/plot_error_propagation.py"
+
+
+rule procrustes_deflation:  # a Monte Carlo of its own: the comparison's figure never re-runs it
+    output:
+        csv=f"{OUT}/tables/procrustes_deflation.csv",
+    log:
+        f"{OUT}/logs/procrustes_deflation.log",
+    benchmark:
+        f"{OUT}/benchmarks/procrustes_deflation.tsv"
+    conda:
+        "../envs/dice.yaml"
+    resources:
+        **step_resources("procrustes_deflation"),
+    params:
+        trials=config["astrometry"]["trials"],
+        code=code_version("reproduction"),
+    script:
+        "../scripts/procrustes_deflation.py"
 
 
 rule paper_comparison:
@@ -205,8 +241,7 @@ rule paper_comparison:
         code=code_version("reproduction", "plotting", "io"),
         dataset=MANIFEST.name,
         positions=config["astrometry"]["positions"],
-        trials=config["astrometry"]["trials"],
-        method=config["centroids"]["methods"][0],  # the method of centroids/<mode>.nc
+        method=config["centroids"]["method"],  # the method of centroids/<mode>.nc
     script:
         "../scripts/paper_comparison.py"
 
@@ -240,5 +275,6 @@ rule paper:
         astrometry_targets(),
         rules.plot_offset_bias.output,
         rules.error_propagation_table.output,
+        rules.plot_error_propagation.output,
         rules.paper_comparison.output,
         [f"{SWEEP_ROOT}/{paper_sweep(study)}/summary.csv" for study in ("offset_bias", "error_propagation")],

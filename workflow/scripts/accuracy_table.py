@@ -15,7 +15,7 @@ def accuracy_table(centroid_paths, csv_path, tex_path, residual_paths, config):
     geometry = astrometry.PoseGeometry(pose.get("distance", 25000.0), np.radians(pose.get("off_axis_deg", 2.0)),
                                        pose.get("centre"))
     tables = astrometry.accuracy_tables(
-        [io.read_product(path) for path in centroid_paths], config["centroids"]["methods"],
+        [io.read_product(path) for path in centroid_paths], list(dict.fromkeys([config["centroids"]["method"], *config["centroids"]["methods"]])),
         models=superimpositions(options), positions=options["positions"], groups=options["groups"],
         trials=options["trials"], geometry=geometry)
     for row in tables.rows:

@@ -1,12 +1,12 @@
-"""Snakemake step: the paper's error-propagation coefficients, tables/error_propagation.csv and its figure."""
+"""Snakemake step: the paper's error-propagation coefficients, tables/error_propagation.csv (its figure: plot_error_propagation)."""
 
 import logging
 
 import dice_core
-from dice_core import error_budget, io, plotting, studies
+from dice_core import error_budget, io, studies
 
 
-def error_propagation_table(points, csv_path, png, pdf):
+def error_propagation_table(points, csv_path):
     log = logging.getLogger("dice")
     sweeps = [studies.sweep_from_dataset(io.read_product(p)) for p in points]
     rows = error_budget.combined_table(sweeps)
@@ -19,8 +19,6 @@ def error_propagation_table(points, csv_path, png, pdf):
                      row["coefficient_uniform"], row["error_uniform"], row["analytic_uniform"],
                      row["coefficient_2d_uniform"], row["convention_matching_paper_uniform"])
     io.write_text(csv_path, error_budget.error_propagation_csv(rows))
-    plotting.save(plotting.error_propagation_figure(sweeps), png, pdf=pdf)
 
 
-dice_core.run_logged(snakemake.log[0], error_propagation_table, list(snakemake.input.points), snakemake.output.csv,
-                     snakemake.output.png, snakemake.output.pdf)
+dice_core.run_logged(snakemake.log[0], error_propagation_table, list(snakemake.input.points), snakemake.output.csv)
