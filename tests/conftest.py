@@ -7,6 +7,9 @@ import xarray as xr
 from dice_core import simulation
 from dice_core.manifest import load_manifest
 
+# tests/cluster/slurm.sh is opt-in (it installs and starts a SLURM cluster): never collected
+collect_ignore = ["cluster"]
+
 
 def small_config(**sections):
     """A small simulated testbed (40x44 pixels); ``sections`` override config sections."""
