@@ -62,8 +62,8 @@ PAPER_ALLAN_FRAMES = 100_000  # frames per group of the paper's largest Allan gr
 #: The offset-bias study's maps (the figure's panels), each one's rms a row: variable -> what it is.
 BIAS_MAPS = {"error_paper": "offset error rms of the paper's method, with photon noise",
              "error_ours": "offset error rms of ours (true flat), with photon noise",
-             "bias_paper": "offset bias rms of the paper's method, noiseless, first PRNU pattern",
-             "bias_ours": "offset bias rms of ours (true flat), noiseless, first PRNU pattern",
+             "bias_paper": "offset bias rms of the paper's method, noiseless, rms over the PRNU patterns",
+             "bias_ours": "offset bias rms of ours (true flat), noiseless, rms over the PRNU patterns",
              "photon_floor": "photon-noise floor rms of the offsets"}
 
 COLUMNS = ("quantity", "section", "paper", "ours", "error", "unit", "dataset", "note")
@@ -229,8 +229,10 @@ def offset_bias_rows(points) -> list[Row]:
                 continue
             noisy = name.startswith(("error", "photon"))
             frames = ds.attrs.get("frames" if noisy else "noiseless_frames", "?")
+            where = ("the figure's map" if noisy else "rms over every noiseless PRNU pattern (the figure's map is the "
+                     "first)")
             out.append(Row(None, value, math.nan, "offset_bias study",
-                           f"the figure's map, {frames} frames {'with' if noisy else 'without'} noise; not in the paper",
+                           f"{where}, {frames} frames {'with' if noisy else 'without'} noise; not in the paper",
                            quantity=f"{what}, PRNU RSD {_level(prnu)}"))
     return out
 

@@ -20,6 +20,8 @@ EXCEPTIONS = {
     # coordinates, the Allan statistics' per-pixel arrays, the pose model's directions, poses and bench
     "centroids.response_corrected", "prf.log_transfer", "prf.pixel_scale", "allan.allan_statistics",
     "allan.statistics_dataset", "astrometry.pose_project",
+    # a dotted key, the value to set there and the value it replaces
+    "overrides.typed_value",
 }
 
 

@@ -5,8 +5,10 @@ import re
 import matplotlib.colors
 import numpy as np
 import pytest
+import xarray as xr
 
 from dice_core import allan, astrometry, plotting
+from dice_core.manifest import Detector
 from test_allan import allan_inputs
 from test_astrometry import centroid_datasets
 

@@ -123,7 +123,7 @@ def test_offset_bias_rows_take_the_noisy_error_at_5e_5_and_the_bias_at_2e_3(bias
         ds = bias_points[level]
         assert maps[f"offset error rms of ours (true flat), with photon noise, PRNU RSD {text}"] == float(
             ds.rms_error_ours)
-        assert maps[f"offset bias rms of the paper's method, noiseless, first PRNU pattern, PRNU RSD {text}"] == float(
+        assert maps[f"offset bias rms of the paper's method, noiseless, rms over the PRNU patterns, PRNU RSD {text}"] == float(
             ds.rms_bias_paper)
     assert maps["offset error rms of the paper's method, with photon noise, PRNU RSD 2e-3"] == float(
         bias_points[2e-3].rms_error_paper)

@@ -837,7 +837,7 @@ def test_the_paper_target_runs_and_its_tables_follow_the_contract(paper_run, out
                      "Procrustes deflation factor, 5 stars, 33 positions", "accuracy, flat and metrology (p)",
                      "offset bias rms of the paper's method, PRNU RSD 2e-3",
                      "offset error rms of ours (true flat), with photon noise, PRNU RSD 2e-3",
-                     "offset bias rms of the paper's method, noiseless, first PRNU pattern, PRNU RSD 5e-5"):
+                     "offset bias rms of the paper's method, noiseless, rms over the PRNU patterns, PRNU RSD 5e-5"):
         assert quantity in by_quantity and float(by_quantity[quantity]["ours"]) > 0
     assert by_quantity["offset error rms of ours (true flat), with photon noise, PRNU RSD 2e-3"]["paper"] == ""
     allan = [q for q in quantities if q.startswith("Allan deviation of the largest group, individual pixels (")]
