@@ -362,6 +362,7 @@ def snakemake_locks(root):
     return sorted((root / ".snakemake" / "locks").glob("*.lock"))
 
 
+@pytest.mark.slow  # a whole workflow run or more (4 min on 2 shared cores): pytest -m slow
 def test_a_killed_run_is_finished_by_running_the_same_command_again(out, tmp_path):
     """kill -9 of Snakemake and its jobs leaves an output marked incomplete and Snakemake's lock; the same
     command, run again once, finishes the run (README, "After a crash") with the uninterrupted run's products.
@@ -726,6 +727,7 @@ def test_the_paper_target_plans_the_studies_and_the_comparison(workdir):
     assert "rule fit_fringes:" not in plan  # the ci reduction is done: the paper target adds only its own jobs
 
 
+@pytest.mark.slow  # a whole workflow run or more (4 min on 2 shared cores): pytest -m slow
 def test_a_reduction_sweep_reruns_the_workflow_per_point_in_its_own_folder(workdir, out):
     """Study reduction: each point is the whole workflow again (a Snakemake module) with the point's config,
     reading the run's raw files; a point added runs only its own jobs; the run's own products are untouched."""

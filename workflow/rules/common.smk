@@ -49,7 +49,7 @@ def check_config(values, schema_path):
                     f"{', '.join(known)})"
                 )
         else:
-            message = error.message if len(error.message) <= 200 else error.message[:200] + "..."
+            message = error.message if len(error.message) <= 200 else f"{error.message[:200]}..."
             problems.append(f"config {where.rstrip('.') or '(top level)'}: {message}")
     if problems:
         raise WorkflowError("\n".join(problems))
@@ -381,7 +381,7 @@ def folder_value(value):
         isinstance(v, (str, int, float)) and re.fullmatch(r"[A-Za-z0-9_.+-]+", str(v)) for v in items
     ):
         return ",".join(map(str, items)) or "none"
-    return "h" + hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()[:10]
+    return f"h{hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()[:10]}"
 
 
 def sweep_space(name, spec):
@@ -502,11 +502,10 @@ def point_dataset_name(point_config):
 def reduction_point_tables(wildcards):
     """Each point's tables/accuracy.csv of a reduction sweep, in the config's order."""
     name = wildcards.sweep
-    return [
-        f"{SWEEP_ROOT}/{name}/{folder}/{point_dataset_name(REDUCTION_CONFIGS[module_name(name, folder)])}"
-        "/tables/accuracy.csv"
-        for _, folder in sweep_instances(name)
-    ]
+    datasets = {
+        folder: point_dataset_name(REDUCTION_CONFIGS[module_name(name, folder)]) for _, folder in sweep_instances(name)
+    }
+    return [f"{SWEEP_ROOT}/{name}/{folder}/{dataset}/tables/accuracy.csv" for folder, dataset in datasets.items()]
 
 
 def module_name(sweep, folder):
