@@ -516,16 +516,20 @@ def noisy_stars(tmp_path_factory):
     return manifest, truth, stacks_of(manifest, n_batches=4)
 
 
+def measure_flat_metrology(manifest, truth, stacks, *, read_noise):
+    """Gaussian centroids corrected with the true flat and offsets (no widths)."""
+    return centroids.measure_positions(
+        stacks, [p.index for p in manifest.positions], approx=manifest.star_approx, detector=manifest.detector,
+        dark=truth["bias"].values, read_noise=read_noise, prnu=truth["sensitivity"].values, dx=truth["dx"].values,
+        dy=truth["dy"].values, method="gaussian")
+
+
 def test_with_noise_the_width_correction_reaches_the_cramer_rao_bound(noisy_stars):
     """400 frames per position (bound about 4.4e-5 pixel): the width spread's 6e-5 shows in flat+metrology,
     and the width mode sits at the bound (per-position affine removed)."""
     manifest, truth, st = noisy_stars
     read_noise = truth["read_noise"].values
-    base = centroids.measure_positions(
-        st, [p.index for p in manifest.positions], approx=manifest.star_approx, detector=manifest.detector,
-        dark=truth["bias"].values,
-        read_noise=read_noise, prnu=truth["sensitivity"].values, dx=truth["dx"].values, dy=truth["dy"].values,
-        method="gaussian")
+    base = measure_flat_metrology(manifest, truth, st, read_noise=read_noise)
     widths = measure_with_widths(manifest, truth, *measurable_variances(truth), stacks=st, read_noise=read_noise)
     ratio_base, ratio_width = (affine_residual_over_bound(r, truth) for r in (base, widths))
     assert ratio_width < 1.2, ratio_width
@@ -538,11 +542,7 @@ def test_without_width_spread_the_width_mode_is_no_worse_than_flat_and_metrology
     manifest, truth = simulate_noisy_stars(tmp_path, prf_width_spread=0.0)
     st = stacks_of(manifest, n_batches=4)
     read_noise = truth["read_noise"].values
-    base = centroids.measure_positions(
-        st, [p.index for p in manifest.positions], approx=manifest.star_approx, detector=manifest.detector,
-        dark=truth["bias"].values,
-        read_noise=read_noise, prnu=truth["sensitivity"].values, dx=truth["dx"].values, dy=truth["dy"].values,
-        method="gaussian")
+    base = measure_flat_metrology(manifest, truth, st, read_noise=read_noise)
     zero = np.zeros(manifest.detector.shape)
     exact = measure_with_widths(manifest, truth, zero, zero, stacks=st, read_noise=read_noise)
     np.testing.assert_array_equal(exact.x, base.x)  # no width differences: the offset correction itself
