@@ -55,6 +55,7 @@ __all__ = [
     "residuals_dataset",
     "SUPERIMPOSITIONS",
     "superimpose",
+    "configured_superimpositions",
     "ProjectiveResult",
     "projective",
     "PoseGeometry",
@@ -422,6 +423,19 @@ def _corrected(residuals, factors):
 #: The superimpositions :func:`accuracy` offers: Procrustes (5 parameters per position), projective
 #: (a homography, 8) and pose (the detector's 3-D pose, 6, with the star directions shared).
 SUPERIMPOSITIONS = ("procrustes", "projective", "pose")
+
+
+def configured_superimpositions(value) -> list:
+    """The superimpositions a configuration asks for, Procrustes first and always (its rows and residuals are
+    the products contract's), then the others in their configured order without repeats.
+
+    ``value`` is one name of :data:`SUPERIMPOSITIONS` or a list of them.
+    """
+    names = [value] if isinstance(value, str) else list(value)
+    unknown = [name for name in names if name not in SUPERIMPOSITIONS]
+    if unknown:
+        raise AstrometryError(f"unknown superimposition {unknown[0]!r}: one of {', '.join(SUPERIMPOSITIONS)}")
+    return ["procrustes", *(name for name in dict.fromkeys(names) if name != "procrustes")]
 
 
 def superimpose(configurations, model: str = "procrustes", *, geometry=None):

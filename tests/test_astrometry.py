@@ -189,3 +189,12 @@ def test_the_paper_comparison_reads_only_the_procrustes_rows():
                {"mode": "raw", "grouping": "position", "accuracy": "1e-4", "error": "1e-5", "superimposition": "pose"}]
     rows = reproduction.accuracy_rows(records, dataset="d", note="n")
     assert [(row.key, row.ours) for row in rows] == [("accuracy_raw_position", 2e-4)]
+
+
+def test_configured_superimpositions_put_procrustes_first_once_and_refuse_unknown_names():
+    assert astrometry.configured_superimpositions("procrustes") == ["procrustes"]
+    assert astrometry.configured_superimpositions("pose") == ["procrustes", "pose"]
+    assert astrometry.configured_superimpositions(["pose", "procrustes", "pose", "projective"]) == [
+        "procrustes", "pose", "projective"]
+    with pytest.raises(astrometry.AstrometryError, match="unknown superimposition 'affine'"):
+        astrometry.configured_superimpositions(["pose", "affine"])

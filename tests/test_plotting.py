@@ -228,6 +228,7 @@ def integer_ticks(axis):
 
 def overlapping_labels(fig, axis):
     """Pairs of the axis's visible tick labels whose drawn boxes overlap."""
+    fig.canvas.draw()  # constrained layout places the panels and legends at draw time
     renderer = fig.canvas.get_renderer()
     boxes = [label.get_window_extent(renderer) for label in axis.get_ticklabels(which="both")
              if label.get_visible() and label.get_text()]
@@ -328,8 +329,47 @@ def test_allan_figure_numbers_carry_units_and_the_legend_leaves_the_curves(rng):
     fig.canvas.draw()
     (ax,) = fig.axes
     assert ax.get_legend() is None and len(fig.legends) == 1
+    fig.canvas.draw()  # constrained layout places the panels and legends at draw time
     renderer = fig.canvas.get_renderer()
     assert not fig.legends[0].get_window_extent(renderer).overlaps(ax.get_window_extent(renderer))
     assert not overlapping_labels(fig, ax.xaxis)
     assert {text: numbers_without_unit(text) for text in texts(fig) if numbers_without_unit(text)} == {}
     plotting.save(fig, None)
+
+
+def tip_tilt_point(pv, positions, *, snr_per_rad=900.0, threshold=3.0):
+    """A synthetic tip_tilt sweep point: Procrustes growing with the amplitude, the others flat."""
+    snr = snr_per_rad * pv
+    ds = xr.Dataset(coords={"model": ["procrustes", "projective", "pose"]})
+    ds["accuracy"] = ("model", [5e-5 + 0.1 * pv, 6e-5, 5e-5])
+    ds["error"] = ("model", [5e-6, 6e-6, 5e-6])
+    for angle in ("tip", "tilt"):
+        ds[f"pose_{angle}_snr"] = snr
+        ds[f"pose_{angle}_identifiable"] = int(snr >= threshold)
+        ds[f"pose_{angle}_error"] = 6e-5
+        ds[f"pose_{angle}_crlb_nominal_field"] = 5e-5
+    ds.attrs.update({"positions": positions, "method": "gaussian",
+                     "point": f'{{"stars.positions": {positions}, "stars.tip_tilt_pv": {pv}}}'})
+    return ds
+
+
+def test_the_tip_tilt_sweep_figure_marks_what_the_pose_identifies():
+    """Left: one line per model and number of positions; middle: filled markers exactly where the angle was
+    identified, the threshold drawn; right: only identified points, in bounds; every text inside the figure."""
+    amplitudes = (0.0, 2.5e-3, 5e-3, 1e-2)
+    fig = plotting.tip_tilt_sweep_figure([tip_tilt_point(pv, n) for n in (6, 33) for pv in amplitudes])
+    accuracy, identifiability, against_truth = fig.axes[:3]
+    assert len(accuracy.containers) == 3 * 2  # errorbars: models x numbers of positions
+    markers = [line for line in identifiability.get_lines() if line.get_marker() not in ("None", "", None)]
+    filled = sorted(float(x) for line in markers if line.get_markerfacecolor() != "none" for x in line.get_xdata())
+    hollow = sorted(float(x) for line in markers if line.get_markerfacecolor() == "none" for x in line.get_xdata())
+    assert filled == sorted([5e-3, 1e-2] * 4) and hollow == sorted([0.0, 2.5e-3] * 4)  # tip, tilt x 2 positions
+    assert any(np.allclose(line.get_ydata(), 3.0) for line in identifiability.get_lines())
+    drawn = [x for line in against_truth.get_lines() for x in line.get_xdata() if line.get_linestyle() != "--"]
+    assert sorted(set(map(float, drawn))) == [5e-3, 1e-2]
+    fig.canvas.draw()  # constrained layout places the panels and legends at draw time
+    renderer = fig.canvas.get_renderer()
+    for artist in [*fig.axes, fig._suptitle]:  # each panel with its ticks, labels and legend; the title
+        extent = artist.get_tightbbox(renderer) if artist in fig.axes else artist.get_window_extent(renderer)
+        assert fig.bbox.x0 - 1 <= extent.x0 and extent.x1 <= fig.bbox.x1 + 1
+        assert fig.bbox.y0 - 1 <= extent.y0 and extent.y1 <= fig.bbox.y1 + 1

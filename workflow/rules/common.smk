@@ -16,7 +16,7 @@ from pandas import DataFrame
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import Paramspace, validate
 
-from dice_core import DatasetError, simulation
+from dice_core import DatasetError, astrometry, simulation
 from dice_core.centroids import MODE_NEEDS
 from dice_core.io import write_text
 from dice_core.manifest import load_manifest, parse_manifest
@@ -352,9 +352,7 @@ def astrometry_targets():
 
 def extra_superimpositions():
     """The superimpositions configured besides Procrustes (which always runs): projective, pose."""
-    value = config["astrometry"].get("superimposition", "procrustes")
-    value = [value] if isinstance(value, str) else list(value)
-    return [m for m in dict.fromkeys(value) if m != "procrustes"]
+    return astrometry.configured_superimpositions(config["astrometry"].get("superimposition", "procrustes"))[1:]
 
 
 def centroid_products(wildcards):

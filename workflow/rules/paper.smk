@@ -143,6 +143,26 @@ rule plot_star_accuracy:
         "../scripts/plot_star_accuracy.py"
 
 
+rule plot_tip_tilt:
+    input:
+        points=lambda w: sweep_points(w.sweep),
+    output:
+        png=f"{SWEEP_ROOT}/{{sweep}}/tip_tilt.png",
+        pdf=f"{SWEEP_ROOT}/{{sweep}}/tip_tilt.pdf",
+    log:
+        f"{SWEEP_ROOT}/{{sweep}}/tip_tilt.log",
+    wildcard_constraints:
+        sweep="|".join(re.escape(n) for n, (spec, *_) in SWEEPS.items() if spec["study"] == "tip_tilt") or "(?!)",
+    conda:
+        "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_tip_tilt"),
+    params:
+        code=code_version("plotting", "io"),
+    script:
+        "../scripts/plot_tip_tilt.py"
+
+
 rule plot_offset_bias:
     input:
         points=lambda w: sweep_points(paper_sweep("offset_bias")),

@@ -14,10 +14,11 @@ def accuracy_table(centroid_paths, csv_path, tex_path, residual_paths, config):
     pose = options.get("pose", {})
     geometry = astrometry.PoseGeometry(pose.get("distance", 25000.0), np.radians(pose.get("off_axis_deg", 2.0)),
                                        pose.get("centre"))
+    methods = list(dict.fromkeys([config["centroids"]["method"], *config["centroids"]["methods"]]))
     tables = astrometry.accuracy_tables(
-        [io.read_product(path) for path in centroid_paths], list(dict.fromkeys([config["centroids"]["method"], *config["centroids"]["methods"]])),
-        models=superimpositions(options), positions=options["positions"], groups=options["groups"],
-        trials=options["trials"], geometry=geometry)
+        [io.read_product(path) for path in centroid_paths], methods,
+        models=astrometry.configured_superimpositions(options.get("superimposition", "procrustes")),
+        positions=options["positions"], groups=options["groups"], trials=options["trials"], geometry=geometry)
     for row in tables.rows:
         log.info("%-8s mode %-15s %-10s %-8s n=%-3d accuracy %.2e +- %.1e pixel (rms residual %.2e x factor %.3f)",
                  row["method"], row["mode"], row["superimposition"], row["grouping"], row["n"], row["accuracy"],
@@ -29,13 +30,6 @@ def accuracy_table(centroid_paths, csv_path, tex_path, residual_paths, config):
     for model, path in residual_paths.items():
         io.write_product(tables.residuals[model], path, title=f"{model} residuals per calibration mode",
                          config=config, inputs=list(centroid_paths))
-
-
-def superimpositions(options):
-    """Procrustes first, always (the contract's rows and residuals), then the others configured."""
-    value = options.get("superimposition", "procrustes")
-    value = [value] if isinstance(value, str) else list(value)
-    return ["procrustes", *(m for m in dict.fromkeys(value) if m != "procrustes")]
 
 
 dice_core.run_logged(snakemake.log[0], accuracy_table, list(snakemake.input.centroids), snakemake.output.csv,
