@@ -558,7 +558,7 @@ def offset_bias_figure(datasets, *, title="Pixel-offset error against truth: the
                 if name.startswith("error"):
                     extra = f" = {shown_rms / floor:.2f} x floor"
                 else:  # the map is the first PRNU pattern; the study also gives the rms over all
-                    extra = (f" (this pattern);\n{float(ds[f'rms_{name}']):.2e} over "
+                    extra = (f" (this pattern);\n{float(ds[f'rms_{name}']):.2e} pixel over "
                              f"{ds.attrs.get('noiseless_draws', 1)} patterns")
                 ax.set_title(f"PRNU {ds.attrs['prnu_rms']:.0e}: {label}\nrms {shown_rms:.2e} pixel{extra}", fontsize=8)
                 ax.set_xlabel("column x [pixel]")
@@ -761,7 +761,7 @@ def prf_widths_figure(ds, detector, *, title="PRF widths from the fringe contras
         spread = float(np.sqrt(np.nanmean((width - mean) ** 2))) if np.isfinite(width).any() else float("nan")
         err = float(np.sqrt(np.nanmean(error**2))) if np.isfinite(error).any() else float("nan")
         _show_map(axes[0, j], fig, width - mean, detector, scale=1e3, units="width - mean [1e-3 pixel]",
-                  symmetric=True, title=f"width along {axis} minus {mean:.4f} pixel, rms {spread:.2e}")
+                  symmetric=True, title=f"width along {axis} minus {mean:.4f} pixel, rms {spread:.2e} pixel")
         _show_map(axes[1, j], fig, error, detector, scale=1e3, units="1-sigma error [1e-3 pixel]", symmetric=False,
                   title=f"its photon-noise error, rms {err:.2e} pixel")
     chi2 = float(ds["chi2"])

@@ -198,7 +198,7 @@ def texts(fig):
 
 UNITS = ("pixel", "adu", "rad/pixel", "mm", "frames", "e-/adu")
 #: numbers that are ratios or exponents: a slope, a scale factor (x5.2e-04), a ratio, powers of ten in units
-DIMENSIONLESS = re.compile(r"(slope|ratio|layout x)\s*[-+]?$")
+DIMENSIONLESS = re.compile(r"(slope|ratio|layout x|PRNU|chi2/dof.*)\s*[-+]?$")  # a PRNU level is relative
 
 
 def numbers_without_unit(text):
@@ -414,6 +414,22 @@ def offset_bias_datasets(rng, side=12):
     return out
 
 
+def prf_product(rng, detector, side=12):
+    """A calibration/prf.nc-like dataset: widths of 0.2064 +- 2e-3 pixel with errors of 3e-4 pixel."""
+    maps = {f"{kind}_{axis}": (("row", "col"), scale * rng.standard_normal((side, side)) + offset)
+            for axis in "xy" for kind, scale, offset in (("width", 2e-3, 0.2064), ("error_width", 1e-5, 3e-4))}
+    return xr.Dataset({**maps, "mean_width": ((), 0.2064), "chi2": ((), 0.99)},
+                      coords={"baseline": ["H1H4", "V2V4"]})
+
+
+def test_prf_and_offset_bias_numbers_carry_their_units(rng):
+    _, detector = metrology_product(rng)
+    for fig in (plotting.prf_widths_figure(prf_product(rng, detector), detector),
+                plotting.offset_bias_figure(offset_bias_datasets(rng))):
+        assert {text: numbers_without_unit(text) for text in texts(fig) if numbers_without_unit(text)} == {}
+        plotting.save(fig, None)
+
+
 MODES = ("raw", "flat+metrology+width")  # the longest mode name of the configuration
 
 
@@ -435,6 +451,7 @@ def every_figure(rng):
     yield "map", plotting.map_figure(image, detector, title="PRNU, flat F1", units="PRNU - 1 [1e-3]", scale=1e3,
                                      note="rms 3.29e-03, photon-noise limit 2.5e-04, relative to the mean "
                                           "response (80 frames)")  # the PRNU map's note, once cut
+    yield "prf", plotting.prf_widths_figure(prf_product(rng, detector), detector)
     yield "maps", plotting.maps_figure([image, image], detector, titles=["dx", "dy"], units="1e-3 pixel",
                                        scale=1e3, suptitle="offsets")
 
