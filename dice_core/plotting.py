@@ -345,6 +345,8 @@ def centroids_figure(ds, *, title, positions=None):
     if shown.size:  # a decade around the points, so that a factor 2 between them reads
         ax.set_yscale("log")
         ax.set_ylim(shown.min() / 2, shown.max() * 2)
+        # some minor ticks labelled up to two decades: 1e-4 and 1e-3 alone would be the only labels
+        ax.yaxis.set_minor_formatter(matplotlib.ticker.LogFormatterSciNotation(minor_thresholds=(2, 0.5)))
     for first, last in ((position[used].min(), position[used].max()),) if used.any() and not used.all() else ():
         ax.axvspan(first - 0.5, last + 0.5, color="red", alpha=0.07, lw=0, label=f"{used_text} (accuracies)")
     ax.set_xlabel("position index")
