@@ -399,7 +399,7 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
         ax.set_ylabel("residual [pixel]")
         ax.set_title(f"{mode}: dashed ±σ, σ = {sigma:.2e} pixel (rms of these residuals)\ncorrected accuracy "
                      f"{accuracy:.2e} pixel; x plain, y dotted", fontsize=9)  # two lines: the longest mode fits
-    axes[0, 0].legend(fontsize=7, ncol=5)
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=5)  # off the data
     axes[-1, 0].set_xlabel("position index")
     _integer_ticks(axes[-1, 0].xaxis)
     fig.suptitle(f"{title}, positions {position.min()}-{position.max()}", fontsize=11)
@@ -499,7 +499,7 @@ def barycentre_figure(ds, *, title="Barycentre residuals", spread: float = 3.0):
             row[1].set_ylabel(f"y residual + scaled layout [{unit}]")
             row[1].set_title(f"{mode}: y against x at each star's place\nlayout x{scale:.1e} (dashed: the corner "
                              f"stars' square);\ncircled: positions {used.min()}-{used.max()}", fontsize=9)
-    axes[0, 0].legend(fontsize=7, ncol=5)
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=5)  # off the data
     axes[-1, 0].set_xlabel("position index")
     fig.suptitle(title, fontsize=11)
     return fig

@@ -547,3 +547,19 @@ def test_offset_bias_noiseless_maps_have_their_own_colour_scale(rng):
             assert "own colour scale" in ax.get_title()
     assert texts_outside(fig) == []
     plotting.save(fig, None)
+
+
+def test_residual_figures_legends_sit_outside_every_panel(residuals_product):
+    """The star legend under the panels: inside one, the residual curves, which fill it, ran under it."""
+    product, _ = residuals_product
+    for figure in (plotting.procrustes_figure, plotting.barycentre_figure):
+        fig = figure(product)
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        assert not [ax for ax in fig.axes if ax.get_legend() is not None]
+        (legend,) = fig.legends
+        assert [t.get_text() for t in legend.get_texts()][0] == "star 0 (central)"
+        box = legend.get_window_extent(renderer)
+        assert not any(box.overlaps(ax.get_window_extent(renderer)) for ax in fig.axes)
+        assert texts_outside(fig) == []
+        plotting.save(fig, None)
