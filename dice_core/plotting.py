@@ -587,8 +587,16 @@ def paper_comparison_figure(rows, *, title="Regenerated numbers against the pape
                     capsize=2)
     ax.axvline(1.0, color="black", lw=0.8)
     ax.set_xscale("log")
-    ticks = [t for t in (0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 20) if 0.5 * ratios.min() <= t <= 2 * ratios.max()]
+    # limits just beyond labelled ticks that bracket every point and error bar: the last label inside the data
+    # would leave the farthest points (the Allan rows, 20x) past the last number
+    candidates = np.array([0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000])
+    reach = np.concatenate([ratios - np.minimum(errors, 0.9 * ratios), ratios + errors, [1.0]])
+    reach = reach[np.isfinite(reach) & (reach > 0)]
+    low = candidates[candidates <= reach.min()].max(initial=candidates[0])
+    high = candidates[candidates >= reach.max()].min(initial=candidates[-1])
+    ticks = candidates[(candidates >= low) & (candidates <= high)]
     ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
+    ax.set_xlim(low / 1.2, high * 1.2)
     ax.set_yticks(y, [f"{r['quantity']} ({r['dataset']})" for r in records], fontsize=7)
     ax.set_xlabel("ours / paper's\nblue: numerical simulations; orange: experimental section, on the simulated bench")
     ax.grid(True, axis="x", which="both", alpha=0.3)

@@ -563,3 +563,21 @@ def test_residual_figures_legends_sit_outside_every_panel(residuals_product):
         assert not any(box.overlaps(ax.get_window_extent(renderer)) for ax in fig.axes)
         assert texts_outside(fig) == []
         plotting.save(fig, None)
+
+
+def test_paper_comparison_points_lie_within_the_labelled_ticks():
+    """Every ratio and error bar between two labelled ticks, whatever the spread (0.14 to 23 on the ci run)."""
+    from dice_core import reproduction
+
+    rows = [reproduction.Row("allan_pixel", 23 * 2e-5, dataset="sim-ci H2H4"),
+            reproduction.Row("bias_paper_2e-3", 0.14e-4, 0.06e-4, dataset="offset_bias study"),
+            reproduction.Row("deflation", 1.44, 0.004, dataset="nominal geometry")]
+    fig = plotting.paper_comparison_figure(rows)
+    (ax,) = fig.axes
+    fig.canvas.draw()
+    low, high = ax.get_xlim()
+    ticks = [t for t in ax.get_xticks() if low <= t <= high]
+    ratios = [23.0, 0.14, 1.44 / 1.4]
+    assert min(ticks) <= 0.14 - 0.06 and max(ratios) <= max(ticks) and len(labelled_ticks(fig, ax.xaxis)) >= 3
+    assert texts_outside(fig) == [] and not overlapping_labels(fig, ax.xaxis)
+    plotting.save(fig, None)
