@@ -51,8 +51,12 @@ def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str,
     -------
     matplotlib.figure.Figure
     """
+    import textwrap
+
     fig, ax = plt.subplots(figsize=(6.0, 5.2), constrained_layout=True)
-    _show_map(ax, fig, image, detector, title=title if note is None else f"{title}\n{note}", units=units,
+    if note is not None:  # lines that fit the axes' width: a longer title is cut at the figure's edges
+        title = f"{title}\n" + textwrap.fill(note, 70)
+    _show_map(ax, fig, image, detector, title=title, units=units,
               scale=scale, symmetric=symmetric, clip_percentile=clip_percentile, cmap=cmap)
     return fig
 
@@ -117,7 +121,7 @@ def metrology_figure(ds, detector, *, title):
     ax.set_xlabel("frame")
     ax.set_ylabel(f"K(t) - mean [1e{exponent} rad/pixel]" if exponent else "K(t) - mean [rad/pixel]")
     ax.set_title("wavevector fitted per frame (pass 1)", fontsize=9)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14))  # under the axes: the curves fill them
     ax = axes[1, 0]
     ax.plot(frame, ds["level"].values, lw=0.4, label="B(t), mean level")
     ax.plot(frame, ds["amplitude"].values, lw=0.4, label="A(t), amplitude")
@@ -129,6 +133,11 @@ def metrology_figure(ds, detector, *, title):
     iteration = ds["iteration"].values
     ax.semilogy(iteration, ds["max_change"].values, "o-", label="largest change")
     ax.semilogy(iteration, ds["rms_change"].values, "s-", label="rms change")
+    changes = np.concatenate([ds["max_change"].values, ds["rms_change"].values])
+    changes = changes[np.isfinite(changes) & (changes > 0)]
+    if changes.size:  # whole decades, each labelled: every point between two labelled ticks
+        ax.set_ylim(10.0 ** np.floor(np.log10(changes.min() * 0.999)), 10.0 ** np.ceil(np.log10(changes.max() * 1.001)))
+        ax.yaxis.set_major_locator(matplotlib.ticker.LogLocator(numticks=99))
     ax.set_xlabel("pass")
     _integer_ticks(ax.xaxis)
     ax.set_xlim(iteration.min() - 0.5, iteration.max() + 0.5)
@@ -214,11 +223,12 @@ def allan_figure(ds, *, title):
         ax.loglog(n, ds["photon_limit_pixel_first_frame"].values, color="red", lw=1.4, zorder=1.5,
                   gid="first frame", label=f"measured photon limit (first frame{noise}), pixels")
     ax.set_xlabel("frames per group")
-    # plain numbers (30, 40, 100) instead of 3x10^1 on a span of less than a decade
+    # plain numbers (30, 40, 100) instead of 3x10^1, and minor ticks labelled too where the axis spans few
+    # decades (the group sizes often span 1-2: one power of ten alone would be the only label)
     ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}"))
-    ax.xaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(  # 2, 3, 4, 5, 6, 8 x 10^n within a decade
-        lambda value, _: f"{value:g}" if np.log10(ax.get_xlim()[1] / ax.get_xlim()[0]) < 1
-        and round(value / 10.0 ** np.floor(np.log10(value))) in (2, 3, 4, 5, 6, 8) else ""))
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(
+        lambda value, _: f"{value:g}" if round(value / 10.0 ** np.floor(np.log10(value)))
+        in _labelled_mantissas(np.log10(ax.get_xlim()[1] / ax.get_xlim()[0])) else ""))
     ax.set_ylabel("deviation of projected offsets [pixel]")
     ax.set_title(f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (one fringe period) "
                  f"on average", fontsize=9)
@@ -226,6 +236,12 @@ def allan_figure(ds, *, title):
     fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=2)  # off the curves
     fig.suptitle(title, fontsize=11)
     return fig
+
+
+def _labelled_mantissas(decades):
+    """The mantissas (2 for 200, 2000...) of the minor ticks to label on a log axis spanning ``decades``:
+    more on a short axis, none beyond three decades, so that at least three ticks read and none overlap."""
+    return (2, 3, 4, 5, 6, 8) if decades < 1 else (2, 3, 5) if decades < 2 else (2, 5) if decades < 3 else ()
 
 
 def _used_positions(position, positions):
@@ -297,11 +313,14 @@ def centroids_figure(ds, *, title, positions=None):
         _integer_ticks(ax.xaxis)
         ax.set_ylabel(f"{axis} - {offset:.3f} [pixel]")
         ax.set_title(f"central star's {axis} against the position index", fontsize=9)
-        ax.legend(fontsize=7)
+        if axis == "y":  # one legend for both panels, under the lower one: inside, it would hide points
+            ax.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.2), title="both panels",
+                      title_fontsize=7)
     ax = fig.add_subplot(grid[1:3, half:])
     x, y = ds["x"].values[:, central], ds["y"].values[:, central]
     ax.plot(x, y, "-", color="0.6", lw=0.8)
-    ax.plot(x[~used], y[~used], "o", ls="none", color="C0", ms=3, label="other positions")
+    if not used.all():  # a legend entry only for what is drawn
+        ax.plot(x[~used], y[~used], "o", ls="none", color="C0", ms=3, label="other positions")
     ax.plot(x[used], y[used], "o", ls="none", color="red", ms=3.5, gid="used positions", label=used_text)
     for end in (0, -1):
         if np.isfinite(x[end]) and np.isfinite(y[end]):
@@ -310,7 +329,7 @@ def centroids_figure(ds, *, title, positions=None):
     ax.set_ylabel("y [pixel]")
     ax.set_title("stage path seen by the central star, y against x\n(each axis to its own scale; "
                  "first and last index marked)", fontsize=9)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.08))  # the path fills the axes
     ax = fig.add_subplot(grid[3, :])
     ratios = []
     for axis, colour, marker, line in (("x", "C0", "o", "-"), ("y", "C1", "s", "--")):  # the bounds often equal
@@ -327,6 +346,8 @@ def centroids_figure(ds, *, title, positions=None):
     if shown.size:  # a decade around the points, so that a factor 2 between them reads
         ax.set_yscale("log")
         ax.set_ylim(shown.min() / 2, shown.max() * 2)
+        # some minor ticks labelled up to two decades: 1e-4 and 1e-3 alone would be the only labels
+        ax.yaxis.set_minor_formatter(matplotlib.ticker.LogFormatterSciNotation(minor_thresholds=(2, 0.5)))
     for first, last in ((position[used].min(), position[used].max()),) if used.any() and not used.all() else ():
         ax.axvspan(first - 0.5, last + 0.5, color="red", alpha=0.07, lw=0, label=f"{used_text} (accuracies)")
     ax.set_xlabel("position index")
@@ -362,7 +383,7 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
     the superimposition absorbs). The central star is black.
     """
     modes = list(ds["mode"].values)
-    fig, axes = plt.subplots(len(modes), 1, figsize=(9, 2.6 * len(modes)), sharex=True, squeeze=False,
+    fig, axes = plt.subplots(len(modes), 1, figsize=(9, 2.9 * len(modes)), sharex=True, squeeze=False,
                              constrained_layout=True)
     position = ds["position"].values
     for ax, mode in zip(axes[:, 0], modes):
@@ -377,9 +398,9 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
         for sign in (-1, 1):
             ax.axhline(sign * sigma, color="0.35", ls="--", lw=0.8, gid="sigma")
         ax.set_ylabel("residual [pixel]")
-        ax.set_title(f"{mode}: dashed ±σ, σ = {sigma:.2e} pixel (rms of these residuals); corrected accuracy "
-                     f"{accuracy:.2e} pixel; x plain, y dotted", fontsize=9)
-    axes[0, 0].legend(fontsize=7, ncol=5)
+        ax.set_title(f"{mode}: dashed ±σ, σ = {sigma:.2e} pixel (rms of these residuals)\ncorrected accuracy "
+                     f"{accuracy:.2e} pixel; x plain, y dotted", fontsize=9)  # two lines: the longest mode fits
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=5)  # off the data
     axes[-1, 0].set_xlabel("position index")
     _integer_ticks(axes[-1, 0].xaxis)
     fig.suptitle(f"{title}, positions {position.min()}-{position.max()}", fontsize=11)
@@ -477,9 +498,9 @@ def barycentre_figure(ds, *, title="Barycentre residuals", spread: float = 3.0):
         else:
             row[1].set_xlabel(f"x residual + scaled layout [{unit}]")
             row[1].set_ylabel(f"y residual + scaled layout [{unit}]")
-            row[1].set_title(f"{mode}: y against x at each star's place, layout x{scale:.1e}\n(dashed: "
-                             f"the corner stars' square; circled: positions {used.min()}-{used.max()})", fontsize=9)
-    axes[0, 0].legend(fontsize=7, ncol=5)
+            row[1].set_title(f"{mode}: y against x at each star's place\nlayout x{scale:.1e} (dashed: the corner "
+                             f"stars' square);\ncircled: positions {used.min()}-{used.max()}", fontsize=9)
+    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=5)  # off the data
     axes[-1, 0].set_xlabel("position index")
     fig.suptitle(title, fontsize=11)
     return fig
@@ -506,8 +527,10 @@ def offset_bias_figure(datasets, *, title="Pixel-offset error against truth: the
     """The paper's pixel-offset-bias figure, one row per PRNU level (datasets of the offset_bias study).
 
     Columns: the paper's method and ours with photon noise (one colour scale
-    for both), then the same without noise (the bias alone; one scale for
-    both), each map's rms in its title, in units of 1e-5 pixel.
+    for both, 1e-5 pixel), then the same without noise (the bias alone), each
+    on its own colour scale in its own power of ten of the pixel: ours can be
+    four decades below the paper's, blank on a shared scale. Each map's rms
+    in its title.
     """
     datasets = list(datasets)
     fig, axes = plt.subplots(len(datasets), 4, figsize=(16, 3.6 * len(datasets)), squeeze=False,
@@ -521,22 +544,29 @@ def offset_bias_figure(datasets, *, title="Pixel-offset error against truth: the
                   (("bias_paper", "the paper's method, noiseless"), ("bias_ours", "ours, noiseless")))
         for g, group in enumerate(groups):
             values = [ds[name].values[window] * scale for name, _ in group]
-            limit = max(np.nanpercentile(np.abs(v), 99.5) for v in values) or 1.0
+            shared = max(np.nanpercentile(np.abs(v), 99.5) for v in values) or 1.0
             for k, ((name, label), shown) in enumerate(zip(group, values)):
                 ax = row[2 * g + k]
+                unit, limit = "1e-5 pixel", shared
+                if g == 1:  # its own scale, in the power of ten of its own 99.5th percentile
+                    own = np.nanpercentile(np.abs(shown), 99.5) / scale
+                    exponent = int(np.floor(np.log10(own))) if np.isfinite(own) and own > 0 else -5
+                    shown = shown / scale / 10.0**exponent
+                    limit = np.nanpercentile(np.abs(shown), 99.5) or 1.0
+                    unit, label = f"1e{exponent} pixel", f"{label} (own colour scale)"
                 rows_, cols_ = shown.shape
                 im = ax.imshow(shown, origin="lower", cmap="RdBu_r", vmin=-limit, vmax=limit, interpolation="nearest",
                                extent=(c0 - 0.5, c0 + cols_ - 0.5, r0 - 0.5, r0 + rows_ - 0.5))
-                shown_rms = float(np.sqrt(np.nanmean(np.square(shown)))) / scale  # of this map
+                shown_rms = float(np.sqrt(np.nanmean(np.square(ds[name].values[window]))))  # of this map, pixel
                 if name.startswith("error"):
                     extra = f" = {shown_rms / floor:.2f} x floor"
                 else:  # the map is the first PRNU pattern; the study also gives the rms over all
-                    extra = (f" (this pattern);\n{float(ds[f'rms_{name}']):.2e} over "
+                    extra = (f" (this pattern);\n{float(ds[f'rms_{name}']):.2e} pixel over "
                              f"{ds.attrs.get('noiseless_draws', 1)} patterns")
                 ax.set_title(f"PRNU {ds.attrs['prnu_rms']:.0e}: {label}\nrms {shown_rms:.2e} pixel{extra}", fontsize=8)
                 ax.set_xlabel("column x [pixel]")
                 ax.set_ylabel("row y [pixel]")
-                fig.colorbar(im, ax=ax, shrink=0.8).set_label("1e-5 pixel")
+                fig.colorbar(im, ax=ax, shrink=0.8).set_label(unit)
     fig.suptitle(f"{title}\nprojected offsets of {datasets[0].attrs.get('baseline', '')}, "
                  f"{datasets[0].attrs.get('frames', '?')} frames (photon floor "
                  f"{float(datasets[0]['rms_photon_floor']):.2e} pixel), "
@@ -558,8 +588,16 @@ def paper_comparison_figure(rows, *, title="Regenerated numbers against the pape
                     capsize=2)
     ax.axvline(1.0, color="black", lw=0.8)
     ax.set_xscale("log")
-    ticks = [t for t in (0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 20) if 0.5 * ratios.min() <= t <= 2 * ratios.max()]
+    # limits just beyond labelled ticks that bracket every point and error bar: the last label inside the data
+    # would leave the farthest points (the Allan rows, 20x) past the last number
+    candidates = np.array([0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 20, 50, 100, 200, 500, 1000])
+    reach = np.concatenate([ratios - np.minimum(errors, 0.9 * ratios), ratios + errors, [1.0]])
+    reach = reach[np.isfinite(reach) & (reach > 0)]
+    low = candidates[candidates <= reach.min()].max(initial=candidates[0])
+    high = candidates[candidates >= reach.max()].min(initial=candidates[-1])
+    ticks = candidates[(candidates >= low) & (candidates <= high)]
     ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
+    ax.set_xlim(low / 1.2, high * 1.2)
     ax.set_yticks(y, [f"{r['quantity']} ({r['dataset']})" for r in records], fontsize=7)
     ax.set_xlabel("ours / paper's\nblue: numerical simulations; orange: experimental section, on the simulated bench")
     ax.grid(True, axis="x", which="both", alpha=0.3)
@@ -734,7 +772,7 @@ def prf_widths_figure(ds, detector, *, title="PRF widths from the fringe contras
         spread = float(np.sqrt(np.nanmean((width - mean) ** 2))) if np.isfinite(width).any() else float("nan")
         err = float(np.sqrt(np.nanmean(error**2))) if np.isfinite(error).any() else float("nan")
         _show_map(axes[0, j], fig, width - mean, detector, scale=1e3, units="width - mean [1e-3 pixel]",
-                  symmetric=True, title=f"width along {axis} minus {mean:.4f} pixel, rms {spread:.2e}")
+                  symmetric=True, title=f"width along {axis} minus {mean:.4f} pixel, rms {spread:.2e} pixel")
         _show_map(axes[1, j], fig, error, detector, scale=1e3, units="1-sigma error [1e-3 pixel]", symmetric=False,
                   title=f"its photon-noise error, rms {err:.2e} pixel")
     chi2 = float(ds["chi2"])

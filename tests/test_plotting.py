@@ -3,6 +3,7 @@
 import re
 
 import matplotlib.colors
+import matplotlib.text
 import numpy as np
 import pytest
 import xarray as xr
@@ -197,7 +198,7 @@ def texts(fig):
 
 UNITS = ("pixel", "adu", "rad/pixel", "mm", "frames", "e-/adu")
 #: numbers that are ratios or exponents: a slope, a scale factor (x5.2e-04), a ratio, powers of ten in units
-DIMENSIONLESS = re.compile(r"(slope|ratio|layout x)\s*[-+]?$")
+DIMENSIONLESS = re.compile(r"(slope|ratio|layout x|PRNU|chi2/dof.*)\s*[-+]?$")  # a PRNU level is relative
 
 
 def numbers_without_unit(text):
@@ -373,3 +374,248 @@ def test_the_tip_tilt_sweep_figure_marks_what_the_pose_identifies():
         extent = artist.get_tightbbox(renderer) if artist in fig.axes else artist.get_window_extent(renderer)
         assert fig.bbox.x0 - 1 <= extent.x0 and extent.x1 <= fig.bbox.x1 + 1
         assert fig.bbox.y0 - 1 <= extent.y0 and extent.y1 <= fig.bbox.y1 + 1
+# What a reader of the printed figure sees: no text cut at the figure's edge, legends off the data, labelled
+# ticks across every axis, points inside the labelled range.
+
+def drawn_texts(fig):
+    """Every visible, non-empty text artist of ``fig``: titles, labels, legends, annotations, figure texts,
+    and the tick labels of the ticks within each axis's view (those outside are not drawn)."""
+    tick_labels, found = set(), []
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            low, high = sorted(axis.get_view_interval())
+            slack = 1e-9 * (high - low)
+            for tick in axis.get_major_ticks() + axis.get_minor_ticks():
+                tick_labels |= {id(tick.label1), id(tick.label2)}
+                if low - slack <= tick.get_loc() <= high + slack:
+                    found += [tick.label1, tick.label2]
+    found += [text for text in fig.findobj(matplotlib.text.Text) if id(text) not in tick_labels]
+    return [text for text in found if text.get_visible() and text.get_text()]
+
+
+def texts_outside(fig):
+    """The texts of ``fig``, drawn, whose box leaves the figure (by more than a pixel): cut in the PNG."""
+    fig.canvas.draw()
+    renderer, box = fig.canvas.get_renderer(), fig.bbox
+    return [text.get_text() for text in drawn_texts(fig)
+            if not box.padded(1).contains(*text.get_window_extent(renderer).p0)
+            or not box.padded(1).contains(*text.get_window_extent(renderer).p1)]
+
+
+def points_under_legends(fig):
+    """(legend texts, number of points) for each legend of ``fig`` whose box holds data points (the vertices of
+    the lines drawn in any axes, markers or not)."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None] + list(fig.legends)
+    covered = []
+    for legend in legends:
+        box = legend.get_window_extent(renderer)
+        inside = 0
+        for ax in fig.axes:
+            for line in ax.get_lines():
+                xy = line.get_xydata()
+                xy = xy[np.all(np.isfinite(xy), axis=1)]
+                if line.get_visible() and xy.size:
+                    shown = ax.transData.transform(xy)
+                    inside += int(np.sum((shown[:, 0] > box.x0) & (shown[:, 0] < box.x1) & (shown[:, 1] > box.y0)
+                                         & (shown[:, 1] < box.y1)))
+        if inside:
+            covered.append(([t.get_text() for t in legend.get_texts()], inside))
+    return covered
+
+
+def labelled_ticks(fig, axis):
+    """The labels of ``axis``'s ticks (major and minor) within its view, as drawn."""
+    fig.canvas.draw()
+    low, high = sorted(axis.get_view_interval())
+    return [tick.label1.get_text() for tick in axis.get_major_ticks() + axis.get_minor_ticks()
+            if low * (1 - 1e-9) <= tick.get_loc() <= high * (1 + 1e-9) and tick.label1.get_visible()
+            and tick.label1.get_text()]
+
+
+def offset_bias_datasets(rng, side=12):
+    """Two points of the offset_bias study: photon-noise errors of 3e-5 pixel, the paper's noiseless bias
+    1e-6 and 3e-5 pixel, ours 1e-9 pixel (as measured: four decades under the others)."""
+    out = []
+    for prnu, paper_bias in ((5e-5, 1e-6), (2e-3, 3e-5)):
+        maps = {}
+        for name, rms in (("error_paper", 3e-5), ("error_ours", 2.9e-5), ("bias_paper", paper_bias),
+                          ("bias_ours", 9e-10)):
+            values = np.full((side, side), np.nan)
+            values[1:-1, 1:-1] = rms * rng.standard_normal((side - 2, side - 2))
+            maps[name] = (("row", "col"), values)
+        out.append(xr.Dataset({**maps, "rms_photon_floor": ((), 2.9e-5), "rms_bias_paper": ((), paper_bias),
+                               "rms_bias_ours": ((), 1e-9)},
+                              attrs={"prnu_rms": prnu, "baseline": "H1H4", "frames": 2000, "noiseless_frames": 400,
+                                     "noiseless_draws": 8}))
+    return out
+
+
+def prf_product(rng, detector, side=12):
+    """A calibration/prf.nc-like dataset: widths of 0.2064 +- 2e-3 pixel with errors of 3e-4 pixel."""
+    maps = {f"{kind}_{axis}": (("row", "col"), scale * rng.standard_normal((side, side)) + offset)
+            for axis in "xy" for kind, scale, offset in (("width", 2e-3, 0.2064), ("error_width", 1e-5, 3e-4))}
+    return xr.Dataset({**maps, "mean_width": ((), 0.2064), "chi2": ((), 0.99)},
+                      coords={"baseline": ["H1H4", "V2V4"]})
+
+
+def test_prf_and_offset_bias_numbers_carry_their_units(rng):
+    _, detector = metrology_product(rng)
+    for fig in (plotting.prf_widths_figure(prf_product(rng, detector), detector),
+                plotting.offset_bias_figure(offset_bias_datasets(rng))):
+        assert {text: numbers_without_unit(text) for text in texts(fig) if numbers_without_unit(text)} == {}
+        plotting.save(fig, None)
+
+
+MODES = ("raw", "flat+metrology+width")  # the longest mode name of the configuration
+
+
+def every_figure(rng):
+    """(name, figure) of each figure function that draws data, from small synthetic products."""
+    datasets = centroid_datasets(rng, modes=MODES)
+    rows, residuals = astrometry.mode_accuracies(datasets, positions=USED, trials=20)
+    product = astrometry.residuals_dataset(datasets, rows, residuals=residuals)
+    args, keywords = allan_inputs(rng)
+    allan_ds = allan.allan_dataset(*args, **keywords, first_frame=rng.uniform(500, 3000, args[3].size))
+    metrology, detector = metrology_product(rng)
+    image = rng.standard_normal((12, 12))
+    yield "procrustes", plotting.procrustes_figure(product)
+    yield "barycentre", plotting.barycentre_figure(product)
+    yield "centroids", plotting.centroids_figure(central_centroids(rng), title="test", positions=USED)
+    yield "metrology", plotting.metrology_figure(metrology, detector, title="test")
+    yield "allan", plotting.allan_figure(allan_ds, title="test")
+    yield "offset_bias", plotting.offset_bias_figure(offset_bias_datasets(rng))
+    yield "map", plotting.map_figure(image, detector, title="PRNU, flat F1", units="PRNU - 1 [1e-3]", scale=1e3,
+                                     note="rms 3.29e-03, photon-noise limit 2.5e-04, relative to the mean "
+                                          "response (80 frames)")  # the PRNU map's note, once cut
+    yield "prf", plotting.prf_widths_figure(prf_product(rng, detector), detector)
+    yield "maps", plotting.maps_figure([image, image], detector, titles=["dx", "dy"], units="1e-3 pixel",
+                                       scale=1e3, suptitle="offsets")
+
+
+def test_no_text_leaves_the_figure(rng):
+    """Titles, labels, tick labels and legends all inside the figure: the PNG cuts what is outside."""
+    for name, fig in every_figure(rng):
+        assert (name, texts_outside(fig)) == (name, [])
+        plotting.save(fig, None)
+
+
+def test_procrustes_title_of_the_longest_mode_fits(rng):
+    """The mode's title (its sigma and accuracy) is the widest text: it must fit the panel's width."""
+    datasets = centroid_datasets(rng, modes=MODES)
+    rows, residuals = astrometry.mode_accuracies(datasets, positions=USED, trials=20)
+    fig = plotting.procrustes_figure(astrometry.residuals_dataset(datasets, rows, residuals=residuals))
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        extent = ax.title.get_window_extent(renderer)
+        assert fig.bbox.x0 <= extent.x0 and extent.x1 <= fig.bbox.x1 and "flat+metrology+width" in \
+            fig.axes[-1].get_title()
+    plotting.save(fig, None)
+
+
+@pytest.mark.parametrize("sizes", [(100, 200, 300, 400), (150, 400, 1200, 3700), (10, 100, 1000, 30000)])
+def test_allan_axis_has_labelled_ticks_across_the_group_sizes(rng, sizes):
+    """At least three labelled ticks within the group sizes (on 150-3700, not 1000 alone), none overlapping."""
+    args, keywords = allan_inputs(rng)
+    ds = allan.allan_dataset(*args, **keywords).assign_coords(n_frames=np.array(sizes, float))
+    fig = plotting.allan_figure(ds, title="test")
+    (ax,) = fig.axes
+    labels = labelled_ticks(fig, ax.xaxis)
+    assert len(labels) >= 3, labels
+    assert not overlapping_labels(fig, ax.xaxis)
+    plotting.save(fig, None)
+
+
+@pytest.mark.parametrize("positions", [USED, (1, 12)])
+def test_centroids_legends_leave_the_points_and_list_only_what_is_drawn(rng, positions):
+    ds = central_centroids(rng)
+    ds["precision_y"] = ds["precision_y"] * np.geomspace(0.12, 1, 12)[:, None]  # as on the ci bench: 1e-4-1e-3
+    fig = plotting.centroids_figure(ds, title="test", positions=positions)
+    assert points_under_legends(fig) == []
+    (bound,) = [ax for ax in fig.axes if lines(ax, "Cramer-Rao x")]
+    assert len(labelled_ticks(fig, bound.yaxis)) >= 3 and not overlapping_labels(fig, bound.yaxis)
+    (path,) = [ax for ax in fig.axes if ax.get_xlabel() == "x [pixel]"]
+    entries = [t.get_text() for t in path.get_legend().get_texts()]
+    assert ("other positions" in entries) == (positions != (1, 12))
+    plotting.save(fig, None)
+
+
+def test_metrology_legends_leave_the_curves_and_the_convergence_points_sit_within_labelled_ticks(rng):
+    ds, detector = metrology_product(rng, passes=4)
+    ds["max_change"] = ds["max_change"] * 3.0  # above the decade: the autoscaled top tick was below the point
+    fig = plotting.metrology_figure(ds, detector, title="test")
+    (kt,) = [ax for ax in fig.axes if ax.get_ylabel().startswith("K(t)")]
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    box = kt.get_legend().get_window_extent(renderer)
+    for line in kt.get_lines():
+        shown = kt.transData.transform(line.get_xydata())
+        assert not np.any((shown[:, 0] > box.x0) & (shown[:, 0] < box.x1) & (shown[:, 1] > box.y0)
+                          & (shown[:, 1] < box.y1))
+    (ax,) = [ax for ax in fig.axes if ax.get_xlabel() == "pass"]
+    low, high = ax.get_ylim()
+    ticks = [t for t in ax.get_yticks() if low * (1 - 1e-9) <= t <= high * (1 + 1e-9)]
+    values = np.concatenate([line.get_ydata() for line in ax.get_lines()])
+    assert min(ticks) <= values.min() and values.max() <= max(ticks)
+    assert len(labelled_ticks(fig, ax.yaxis)) >= 2
+    plotting.save(fig, None)
+
+
+def test_offset_bias_noiseless_maps_have_their_own_colour_scale(rng):
+    """Ours without noise, 1e-9 pixel, on a colour scale of its own (within a factor of a few of its values),
+    in its own unit, said in the title; the noisy maps share one scale."""
+    datasets = offset_bias_datasets(rng)
+    fig = plotting.offset_bias_figure(datasets)
+    panels = [ax for ax in fig.axes if ax.get_images()]
+    assert len(panels) == 4 * len(datasets)
+    for ds, row in zip(datasets, np.reshape(panels, (len(datasets), 4))):
+        noisy = {ax.get_images()[0].get_clim() for ax in row[:2]}
+        assert len(noisy) == 1
+        for ax, name in zip(row[2:], ("bias_paper", "bias_ours")):
+            image = ax.get_images()[0]
+            colour_bar = image.colorbar
+            unit = re.fullmatch(r"1e(-?\d+) pixel", colour_bar.ax.get_ylabel())
+            assert unit, colour_bar.ax.get_ylabel()
+            values = ds[name].values
+            spread = np.nanpercentile(np.abs(values), 99.5) / 10.0 ** int(unit.group(1))  # in the bar's unit
+            low, high = image.get_clim()
+            assert low == -high and spread / 3 <= high <= 3 * spread
+            assert "own colour scale" in ax.get_title()
+    assert texts_outside(fig) == []
+    plotting.save(fig, None)
+
+
+def test_residual_figures_legends_sit_outside_every_panel(residuals_product):
+    """The star legend under the panels: inside one, the residual curves, which fill it, ran under it."""
+    product, _ = residuals_product
+    for figure in (plotting.procrustes_figure, plotting.barycentre_figure):
+        fig = figure(product)
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        assert not [ax for ax in fig.axes if ax.get_legend() is not None]
+        (legend,) = fig.legends
+        assert [t.get_text() for t in legend.get_texts()][0] == "star 0 (central)"
+        box = legend.get_window_extent(renderer)
+        assert not any(box.overlaps(ax.get_window_extent(renderer)) for ax in fig.axes)
+        assert texts_outside(fig) == []
+        plotting.save(fig, None)
+
+
+def test_paper_comparison_points_lie_within_the_labelled_ticks():
+    """Every ratio and error bar between two labelled ticks, whatever the spread (0.14 to 23 on the ci run)."""
+    from dice_core import reproduction
+
+    rows = [reproduction.Row("allan_pixel", 23 * 2e-5, dataset="sim-ci H2H4"),
+            reproduction.Row("bias_paper_2e-3", 0.14e-4, 0.06e-4, dataset="offset_bias study"),
+            reproduction.Row("deflation", 1.44, 0.004, dataset="nominal geometry")]
+    fig = plotting.paper_comparison_figure(rows)
+    (ax,) = fig.axes
+    fig.canvas.draw()
+    low, high = ax.get_xlim()
+    ticks = [t for t in ax.get_xticks() if low <= t <= high]
+    ratios = [23.0, 0.14, 1.44 / 1.4]
+    assert min(ticks) <= 0.14 - 0.06 and max(ratios) <= max(ticks) and len(labelled_ticks(fig, ax.xaxis)) >= 3
+    assert texts_outside(fig) == [] and not overlapping_labels(fig, ax.xaxis)
+    plotting.save(fig, None)
