@@ -20,8 +20,10 @@ import numpy as np  # noqa: E402
 from dice_core import error_budget  # noqa: E402
 from dice_core.manifest import Detector  # noqa: E402
 
-__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure", "barycentre_figure", "offset_bias_figure", "paper_comparison_figure",
-           "error_propagation_figure", "star_accuracy_figure", "tip_tilt_sweep_figure", "reduction_sweep_figure", "reproduction_pdf", "save"]
+__all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure",
+           "barycentre_figure", "offset_bias_figure", "paper_comparison_figure", "error_propagation_figure",
+           "star_accuracy_figure", "tip_tilt_sweep_figure", "reduction_sweep_figure", "parameter_axis",
+           "PARAMETER_AXES", "reproduction_pdf", "save"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -660,12 +662,32 @@ def error_propagation_figure(sweeps, *, title: str | None = None):
     return fig
 
 
+#: How a swept parameter is named on a figure: (its words, its unit, the factor from the config's value to
+#: that unit). A parameter not listed is shown by its dotted key, unscaled.
+PARAMETER_AXES = {
+    "detector.prf_width_spread": ("PRF width spread", "%", 100.0),
+    "simulation.detector.prf_width_spread": ("PRF width spread", "%", 100.0),
+    "stars.frames": ("frames a position", "", 1.0),
+    "simulation.stars.frames": ("frames a position", "", 1.0),
+    "stars.tip_tilt_pv": ("tip-tilt peak to valley", "rad", 1.0),
+    "simulation.stars.tip_tilt_pv": ("tip-tilt peak to valley", "rad", 1.0),
+}
+
+
+def parameter_axis(key):
+    """(words, axis label with its unit, factor) of a swept parameter's dotted key (``PARAMETER_AXES``)."""
+    words, unit, factor = PARAMETER_AXES.get(key, (key, "", 1.0))
+    return words, f"{words} [{unit}]" if unit else words, factor
+
+
 def star_accuracy_figure(datasets, points, *, title="Centroid accuracy with perfect calibrations"):
     """Each calibration mode's error against truth (solid) and Procrustes accuracy (dashed, with its error),
-    pixel, against a star_accuracy sweep's parameter (or the point's number when several vary)."""
+    pixel, against a star_accuracy sweep's parameter (or the point's number when several vary), in the
+    parameter's unit (``PARAMETER_AXES``: the PRF width spread in %)."""
     keys = sorted({k for p in points for k in p})
     numeric = len(keys) == 1 and all(isinstance(p[keys[0]], (int, float)) for p in points)
-    x = [p[keys[0]] for p in points] if numeric else list(range(len(points)))
+    words, label, factor = parameter_axis(keys[0]) if numeric else (", ".join(keys), None, 1.0)
+    x = [p[keys[0]] * factor for p in points] if numeric else list(range(len(points)))
     order = sorted(range(len(points)), key=lambda i: x[i])
     fig, ax = plt.subplots(figsize=(8, 5), constrained_layout=True)
     for k, mode in enumerate(datasets[0]["mode"].values):
@@ -677,49 +699,69 @@ def star_accuracy_figure(datasets, points, *, title="Centroid accuracy with perf
                     yerr=[float(datasets[i]["error_position"].sel(mode=mode)) for i in order], fmt="s--",
                     color=colour, ms=4, capsize=2, alpha=0.7, label=f"{mode}: Procrustes accuracy (p)")
     ax.set_yscale("log")
-    ax.set_xlabel(keys[0] if numeric else "point (" + ", ".join(keys) + ")")
+    ax.set_xlabel(label if numeric else f"point ({words})")
     ax.set_ylabel("centroid error [pixel]")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
-    ax.set_title(f"{title}: {datasets[0].attrs.get('method', '')} centroids, "
-                 f"{datasets[0].attrs.get('positions', '?')} positions, perfect flat and offsets", fontsize=9)
+    ax.set_title(f"{title}: centroid error [pixel] of each calibration mode against the {label or words}\n"
+                 f"{datasets[0].attrs.get('method', '')} centroids, {datasets[0].attrs.get('positions', '?')} "
+                 "positions, perfect flat and offsets; solid: against truth, dashed: Procrustes accuracy (p)",
+                 fontsize=9)
     return fig
 
 
 def reduction_sweep_figure(rows, parameters, *, title="Accuracy against the swept parameter"):
-    """A reduction sweep's accuracies (pixel, with errors) of each mode and grouping against its parameter.
+    """A reduction sweep's accuracies (pixel, with errors) of each mode and grouping against its parameter,
+    one panel per superimposition (Procrustes first).
 
     ``rows``: records of the points' ``tables/accuracy.csv`` with the point's ``parameters`` as keys
-    (strings or numbers); the first method's rows are drawn.
+    (strings or numbers); the first method's rows are drawn. A parameter that every point sets alike is
+    said in the title, not drawn; one numeric parameter left is the x axis, in its unit
+    (``PARAMETER_AXES``), several are the points' labels.
     """
     method = rows[0]["method"]
     rows = [r for r in rows if r["method"] == method]
-    numeric = len(parameters) == 1
+    fixed = [p for p in parameters if len({str(r[p]) for r in rows}) == 1]
+    varying = [p for p in parameters if p not in fixed] or list(parameters)
+    numeric = len(varying) == 1
+    words, label, factor = parameter_axis(varying[0]) if numeric else (", ".join(varying), None, 1.0)
     if numeric:
         try:
-            x_of = {id(r): float(r[parameters[0]]) for r in rows}
+            x_of = {id(r): float(r[varying[0]]) * factor for r in rows}
         except (TypeError, ValueError):
-            numeric = False
-    points = list(dict.fromkeys(tuple(str(r[p]) for p in parameters) for r in rows))
+            numeric, label = False, None
+    points = list(dict.fromkeys(tuple(str(r[p]) for p in varying) for r in rows))
     if not numeric:
-        x_of = {id(r): points.index(tuple(str(r[p]) for p in parameters)) for r in rows}
-    fig, ax = plt.subplots(figsize=(8, 5), constrained_layout=True)
+        x_of = {id(r): points.index(tuple(str(r[p]) for p in varying)) for r in rows}
+    models = list(dict.fromkeys(["procrustes", *(r.get("superimposition", "procrustes") for r in rows)]))
+    models = [m for m in models if any(r.get("superimposition", "procrustes") == m for r in rows)]
+    fig, axes = plt.subplots(1, len(models), figsize=(8 * len(models) ** 0.5 + 1, 5), constrained_layout=True,
+                             squeeze=False, sharey=True)
     modes = list(dict.fromkeys(r["mode"] for r in rows))
-    for k, mode in enumerate(modes):
-        for grouping, style in (("position", "o-"), ("group", "s--")):
-            chosen = sorted((r for r in rows if r["mode"] == mode and r["grouping"] == grouping), key=lambda r: x_of[id(r)])
-            if chosen:
-                ax.errorbar([x_of[id(r)] for r in chosen], [float(r["accuracy"]) for r in chosen],
-                            yerr=[float(r["error"]) for r in chosen], fmt=style, color=f"C{k}", ms=4, capsize=2,
-                            alpha=1.0 if grouping == "position" else 0.6, label=f"{mode} ({grouping[0]})")
-    if not numeric:
-        ax.set_xticks(range(len(points)), [", ".join(p) for p in points], fontsize=7)
-    ax.set_yscale("log")
-    ax.set_xlabel(parameters[0] if numeric else ", ".join(parameters))
-    ax.set_ylabel("corrected Procrustes accuracy [pixel]")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, ncol=2)
-    ax.set_title(f"{title}: {method} centroids, (p) over positions, (g) over groups", fontsize=9)
+    for ax, model in zip(axes[0], models):
+        for k, mode in enumerate(modes):
+            for grouping, style in (("position", "o-"), ("group", "s--")):
+                chosen = sorted((r for r in rows if r["mode"] == mode and r["grouping"] == grouping
+                                 and r.get("superimposition", "procrustes") == model), key=lambda r: x_of[id(r)])
+                if chosen:
+                    ax.errorbar([x_of[id(r)] for r in chosen], [float(r["accuracy"]) for r in chosen],
+                                yerr=[float(r["error"]) for r in chosen], fmt=style, color=f"C{k}", ms=4,
+                                capsize=2, alpha=1.0 if grouping == "position" else 0.6,
+                                label=f"{mode} ({grouping[0]})")
+        if not numeric:
+            ax.set_xticks(range(len(points)), [", ".join(p) for p in points], fontsize=7)
+        elif factor == 1.0 and all(float(r[varying[0]]) > 0 for r in rows) and \
+                max(x_of.values()) / min(x_of.values()) >= 10:
+            ax.set_xscale("log")  # e.g. frames a position over decades
+        ax.set_yscale("log")
+        ax.set_xlabel(label if numeric else words)
+        ax.set_title(model, fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel("corrected accuracy [pixel]")
+    axes[0][0].legend(fontsize=7, ncol=2)
+    constant = "; ".join(f"{p} = {rows[0][p]}" for p in fixed if p not in varying)
+    fig.suptitle(f"{title}: corrected accuracy [pixel] of each mode against the {label or words}, {method} centroids, "
+                 f"(p) over positions, (g) over groups" + (f"\n{constant}" if constant else ""), fontsize=9)
     return fig
 
 

@@ -615,3 +615,38 @@ def test_paper_comparison_points_lie_within_the_labelled_ticks():
     assert min(ticks) <= 0.14 - 0.06 and max(ratios) <= max(ticks) and len(labelled_ticks(fig, ax.xaxis)) >= 3
     assert texts_outside(fig) == [] and not overlapping_labels(fig, ax.xaxis)
     plotting.save(fig, None)
+def star_accuracy_points(spreads):
+    """star_accuracy point products (only what the figure reads) at these PRF width spreads."""
+    modes = ["flat+metrology", "flat+metrology+width"]
+    return [xr.Dataset({name: ("mode", np.array([6e-3, 5e-4]) * w + 1e-6)
+                        for name in ("truth_error", "accuracy_position", "error_position")},
+                       coords={"mode": modes}, attrs={"method": "gaussian", "positions": 12}) for w in spreads]
+
+
+def test_the_star_accuracy_figure_says_what_is_swept_in_its_unit_and_what_is_plotted():
+    """The prf_width_spread sweep: x in % of the configured fraction, and the title names the spread, its
+    unit and the plotted quantity with its unit."""
+    spreads = [0.0, 0.01, 0.03]
+    fig = plotting.star_accuracy_figure(star_accuracy_points(spreads),
+                                        [{"detector.prf_width_spread": w} for w in spreads], title="sweep s")
+    ax = fig.axes[0]
+    assert "PRF width spread [%]" in ax.get_title() and "centroid error [pixel]" in ax.get_title()
+    assert ax.get_xlabel() == "PRF width spread [%]"
+    np.testing.assert_allclose(ax.get_lines()[0].get_xdata(), [0.0, 1.0, 3.0])
+
+
+def test_the_reduction_sweep_figure_draws_each_superimposition_against_the_parameter_that_varies():
+    """A grid whose second parameter is one value: frames a position on a log axis, that value in the title,
+    one panel per superimposition, Procrustes first."""
+    rows = [{"simulation.stars.frames": f, "astrometry.superimposition": "projective", "method": "fourier",
+             "mode": mode, "grouping": grouping, "superimposition": model, "accuracy": str(1e-4 / f ** 0.5),
+             "error": "1e-6"}
+            for f in (16, 400, 1600) for mode in ("flat+metrology", "flat+metrology+width")
+            for grouping in ("position", "group") for model in ("projective", "procrustes")]
+    fig = plotting.reduction_sweep_figure(rows, ["simulation.stars.frames", "astrometry.superimposition"],
+                                          title="sweep f")
+    assert [ax.get_title() for ax in fig.axes] == ["procrustes", "projective"]
+    assert fig.axes[0].get_xlabel() == "frames a position" and fig.axes[0].get_xscale() == "log"
+    assert "astrometry.superimposition = projective" in fig._suptitle.get_text()
+    assert "corrected accuracy [pixel]" in fig._suptitle.get_text()
+    np.testing.assert_allclose(sorted(set(fig.axes[1].get_lines()[0].get_xdata())), [16, 400, 1600])

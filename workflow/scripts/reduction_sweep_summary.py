@@ -15,9 +15,8 @@ def reduction_sweep_summary(tables, points, csv_path, png, pdf, sweep):
         if not records:
             raise ValueError(f"{path}: an empty accuracy table")
         rows += [{**point, **record} for record in records]
-    # the figure draws the Procrustes rows (the paper's); the CSV keeps every superimposition's
-    figure = plotting.reduction_sweep_figure([r for r in rows if r.get("superimposition", "procrustes") == "procrustes"],
-                                             list(points[0]), title=f"sweep {sweep}")
+    # the figure draws each superimposition in its own panel, Procrustes (the paper's) first
+    figure = plotting.reduction_sweep_figure(rows, list(points[0]), title=f"sweep {sweep}")
     units = {"accuracy": "accuracy [pixel]", "error": "error [pixel]", "rms_residual": "rms_residual [pixel]"}
     rows = [{units.get(k, k): v for k, v in row.items()} for row in rows]
     columns = list(points[0]) + [c for c in rows[0] if c not in points[0]]
