@@ -41,12 +41,14 @@ __all__ = [
     "Chunk",
     "CubeFile",
     "FrameStream",
+    "file_groups",
     "open_cube",
     "write_cube",
     "write_product",
     "write_text",
     "atomic_write",
     "provenance",
+    "input_digests",
     "read_product",
     "first_chunk",
     "CHUNK_BYTES",
@@ -223,6 +225,24 @@ def _check_checksums(cube: CubeFile, data_sum: int):
             raise DatasetError(cube.path, "CHECKSUM does not verify (corrupted header or data)")
 
 
+def file_groups(file_frames, parts: int) -> list[tuple[int, int]]:
+    """Up to ``parts`` consecutive groups of files with about equal numbers of frames (:meth:`FrameStream.split`).
+
+    ``file_frames`` are the files' frame counts, in order. Returns (first, end) file indices of each group,
+    end excluded: each group ends after the file whose end is nearest to a multiple of 1/``parts`` of the
+    frames, so there are fewer groups than ``parts`` when there are fewer files, or files of very unequal
+    sizes.
+    """
+    if parts < 1:
+        raise ValueError(f"parts must be >= 1, got {parts}")
+    ends = np.cumsum(file_frames)
+    n_frames, n_files = int(ends[-1]) if len(ends) else 0, len(ends)
+    # cut after the file whose end is nearest to each k/parts of the frames
+    cuts = sorted({int(np.argmin(np.abs(ends - n_frames * k / parts))) + 1 for k in range(1, parts)})
+    bounds = [0, *[c for c in cuts if 0 < c < n_files], n_files]
+    return list(zip(bounds[:-1], bounds[1:]))
+
+
 class FrameStream:
     """Stream an acquisition's frames in chunks, across its files, in time order.
 
@@ -295,14 +315,8 @@ class FrameStream:
         each part verifies the checksums of its own files. For reductions run
         on the parts in parallel (:func:`dice_core.fringes.fit_baseline`).
         """
-        if parts < 1:
-            raise ValueError(f"parts must be >= 1, got {parts}")
-        ends = np.cumsum([c.n_frames for c in self.cubes])
-        # cut after the file whose end is nearest to each k/parts of the frames
-        cuts = sorted({int(np.argmin(np.abs(ends - self.n_frames * k / parts))) + 1 for k in range(1, parts)})
-        bounds = [0, *[c for c in cuts if 0 < c < len(self.cubes)], len(self.cubes)]
         pieces = []
-        for begin, end in zip(bounds[:-1], bounds[1:]):
+        for begin, end in file_groups([c.n_frames for c in self.cubes], parts):
             piece = copy.copy(self)
             piece.cubes = self.cubes[begin:end]
             piece.first_frame = self.first_frame + sum(c.n_frames for c in self.cubes[:begin])
@@ -574,8 +588,9 @@ def _sha256(path: Path) -> str | None:
     return _DIGESTS[key]
 
 
-def _input_record(path, roots) -> dict:
-    """One entry of ``inputs``: the path relative to the first root holding it, and its sha256."""
+def _input_record(path, roots, digests=None) -> dict:
+    """One entry of ``inputs``: the path relative to the first root holding it, and its sha256 (from
+    ``digests``, by resolved path, where it is known)."""
     path = Path(path)
     absolute = path.resolve()
     record = {"path": str(absolute), "relative_to": None}
@@ -584,8 +599,33 @@ def _input_record(path, roots) -> dict:
         if absolute.is_relative_to(root):
             record = {"path": absolute.relative_to(root).as_posix(), "relative_to": name}
             break
-    record["sha256"] = _sha256(absolute)
+    known = (digests or {}).get(str(absolute))
+    record["sha256"] = known if known is not None else _sha256(absolute)
     return record
+
+
+def input_digests(path, roots=None) -> dict:
+    """The SHA-256 of the inputs a product recorded (its ``inputs``), by resolved path.
+
+    For a product made from files another product has read and recorded, so that the files are not read
+    again only to be hashed (:func:`write_product`'s ``digests``): a split fringe fit records its cubes'
+    checksums from the parts that read them. ``roots`` (default: those of the enclosing
+    :func:`provenance` block) resolve the recorded relative paths; inputs under no known root are left out.
+    """
+    roots = roots if roots is not None else (_PROVENANCE.get() or {}).get("roots") or {}
+    with xr.open_dataset(path, engine="netcdf4") as ds:
+        records = json.loads(ds.attrs.get("inputs", "[]"))
+    digests = {}
+    for record in records:
+        if record["relative_to"] is None:
+            where = Path(record["path"])
+        elif record["relative_to"] in roots:
+            where = Path(roots[record["relative_to"]]) / record["path"]
+        else:
+            continue
+        if record["sha256"] is not None:
+            digests[str(where.resolve())] = record["sha256"]
+    return digests
 
 
 def _history_of(path) -> list[str]:
@@ -609,7 +649,8 @@ def _annotate_coordinates(ds: xr.Dataset) -> xr.Dataset:
     return ds
 
 
-def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), code_version=None, roots=None):
+def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), code_version=None, roots=None,
+                  digests=None):
     """Write a netCDF product atomically, with units checked and provenance attached.
 
     Every data variable with a physical meaning must carry a ``units`` attribute
@@ -627,6 +668,8 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
     through :func:`atomic_write`, so an existing product is never left half-written.
 
     ``code_version`` and ``roots`` default to those of the enclosing :func:`provenance` block.
+    ``digests`` maps inputs (resolved paths, str) to their SHA-256 when already known
+    (:func:`input_digests`): those are not read again.
     """
     path = Path(path)
     missing = [name for name, var in ds.data_vars.items() if "units" not in var.attrs]
@@ -650,7 +693,7 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
         "source": f"dice_core {dice_core.__version__}{code}",
         "dice_core_version": dice_core.__version__,
         "configuration": _jsonable(config if config is not None else {}),
-        "inputs": json.dumps([_input_record(p, roots) for p in inputs]),
+        "inputs": json.dumps([_input_record(p, roots, digests) for p in inputs]),
         "history": "\n".join(history),
     })
     if code_version:

@@ -90,6 +90,18 @@ STEPS: dict[str, StepCost] = {
     "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
     "fit_fringes": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
                             s_per_gsample=3.0),
+    # A split fit's jobs (docs/metrology.md). A part holds the projector, F'X and a chunk per pixel and its
+    # own frames' products (frames: its files' frames): 260 MB per Mpixel measured (a 320x352 detector, 135
+    # and 164 MB max_rss at 1760 and 112,640 pixels, shared cores), 600 asked; the start forms pass 1's
+    # 7-column design and projector, 1610 MB per Mpixel measured the same way. The sum of a pass and the
+    # product hold all frames' factors (frames: the baseline's) and the gauge fits: fit_fringes' costs.
+    "fit_start": StepCost(base_mb=400.0, mb_per_mpixel=2500.0, start_s=3.0, s_per_mpixel=60.0),
+    "fit_part": StepCost(base_mb=400.0, mb_per_mpixel=600.0, mb_per_mframe=170.0, start_s=3.0,
+                         s_per_gsample=3.0),
+    "fit_reduce": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
+                           s_per_mpixel=30.0),
+    "fit_finish": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
+                           s_per_mpixel=30.0, s_per_gsample=3.0),
     "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=5000.0, mb_per_gsample=110.0, start_s=3.0,
                                 s_per_gsample=3.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),

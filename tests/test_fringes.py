@@ -418,3 +418,77 @@ def test_the_gauge_difference_has_its_noise_floor_measured_from_two_halves(tmp_p
     product = fringes.solution_dataset(solution, manifest.detector)
     assert float(product["gauge_difference_rms"]) > 5 * pooled_floor
     assert product["gauge_difference_floor"].attrs["units"] == "pixel"
+
+
+def split_fit(manifest, truth, baseline, folder, *, parts, flat=True, bad_pixels=None, **options):
+    """The fit as a split workflow runs it: a start, then each pass's parts and its reduction as separate
+    steps, every state and part written to netCDF in ``folder`` and read back, and the finish."""
+    import xarray as xr
+
+    from dice_core.io import write_product
+
+    stream = FrameStream(manifest.baselines[baseline], manifest.detector)
+    state = fringes.start_fit(stream, truth["bias"].values, detector=manifest.detector,
+                              flat=truth["sensitivity"].values if flat else None, bad_pixels=bad_pixels,
+                              label=baseline, **options)
+    path = folder / "state_0.nc"
+    write_product(fringes.state_dataset(state), path, title="state")
+    for n_pass in range(1, state.options["max_passes"] + 1):
+        paths = []
+        for part in range(parts):
+            with xr.open_dataset(path, engine="netcdf4") as ds:
+                # a part reads its projector and reference only: nothing else of the state is needed
+                needed = ds[["projector", "offset", "pixels", "centre"]] if "projector" in ds else ds
+                paths.append(folder / f"part_{n_pass}_{part}.nc")
+                write_product(fringes.part_dataset(stream, needed, part=part, parts=parts), paths[-1], title="part")
+        path = folder / f"state_{n_pass}.nc"
+        write_product(fringes.reduce_dataset(read_product(folder / f"state_{n_pass - 1}.nc"), paths), path,
+                      title="state")
+    return fringes.finish_fit(fringes.state_from_dataset(read_product(path)), detector=manifest.detector,
+                              read_noise=truth["read_noise"].values)
+
+
+def assert_same_solution(one, two):
+    for name in ("rows", "cols", "offsets", "photon_floor", "iota", "alpha", "k", "k_frame", "level", "amplitude",
+                 "phase", "masked", "pixel_phase", "offsets_prnu_free"):
+        np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
+    assert one.history == two.history and one.masked_by_reason == two.masked_by_reason
+    assert one.gauge_difference_floor == two.gauge_difference_floor
+
+
+def test_a_fit_split_across_jobs_is_the_single_fit_bit_for_bit(tmp_path, caplog):
+    """Four files, in 2 parts (the default), 3 (halves of unequal parts for the gauge floor) and 5 (a part
+    without files): each pass's parts reduced separately into netCDF products, summed in part order by
+    another step, the state written between passes: the single process's solution, bit for bit. Dead
+    pixels (not in a mask) leave the fit at pass 1 for no contrast, and a tolerance the fit cannot meet masks pixels
+    at the end: both as in the single fit."""
+    manifest, truth = simulate(tmp_path, metrology={"frames": 1200}, frames_per_file=300,
+                               detector={"dead_pixels": 3})
+    assert len(manifest.baselines["H1H4"].files) == 4
+    for parts in (2, 3, 5):
+        with caplog.at_level("INFO", logger="dice_core.fringes"):
+            caplog.clear()
+            single = fit(manifest, truth, "H1H4", parts=parts)
+            single_log = caplog.text
+            caplog.clear()
+            (tmp_path / f"split{parts}").mkdir()
+            split = split_fit(manifest, truth, "H1H4", tmp_path / f"split{parts}", parts=parts)
+        assert_same_solution(single, split)
+        assert single.masked_by_reason["no_contrast"] > 0  # pixels that left during the passes
+        n_pass = single.history[-1]["pass"]
+        assert f"converged to 1.0e-07 pixel at pass {n_pass}" in single_log and n_pass < 10
+        assert f"converged to 1.0e-07 pixel at pass {n_pass}" in caplog.text
+        assert f"done after pass {n_pass} (converged): state carried over" in caplog.text
+    assert "the frames make 4 part(s): part 5 has no file" in caplog.text
+    xr_single = fringes.solution_dataset(single, manifest.detector)
+    xr_split = fringes.solution_dataset(split, manifest.detector)
+    xr_single.attrs, xr_split.attrs = {}, {}
+    assert xr_single.identical(xr_split)
+    # not converged after max_passes: the same pixels masked, from the state the last reduction wrote
+    tolerance = 0.9 * fit(manifest, truth, "H1H4", max_passes=2).history[-1]["max_change"]
+    single = fit(manifest, truth, "H1H4", max_passes=2, tolerance=tolerance)
+    (tmp_path / "unconverged").mkdir()
+    split = split_fit(manifest, truth, "H1H4", tmp_path / "unconverged", parts=2, max_passes=2,
+                      tolerance=tolerance)
+    assert split.masked_by_reason["unconverged"] > 0
+    assert_same_solution(single, split)

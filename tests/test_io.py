@@ -442,3 +442,27 @@ def test_provenance_appends_history_and_records_relative_inputs_with_checksums_a
     for name in ("row", "col"):
         assert prnu[name].attrs["units"] == COORDINATE_ATTRS[name]["units"] == "pixel" and prnu[name].attrs["long_name"]
     assert prnu["row"].values.tolist() == [10, 11] and prnu["col"].values.tolist() == [0, 1, 2]
+
+
+def test_checksums_recorded_by_one_product_are_taken_by_another_without_reading_the_file(tmp_path):
+    """A split fringe fit's product records the cubes as pass 1's parts recorded them (input_digests): the
+    checksum given is recorded, not the file read again; a file no product recorded is read and hashed."""
+    import hashlib
+    import json
+
+    from dice_core.io import input_digests, provenance
+
+    dataset, results = tmp_path / "bench", tmp_path / "results"
+    raw, other = dataset / "raw" / "cube.fits", dataset / "raw" / "other.fits"
+    for path in (raw, other):
+        write_cube(path, [np.ones((2, 6, 7))], shape=(6, 7), n_frames=2)
+    part = results / "part.nc"
+    with provenance(dataset=dataset, results=results):
+        write_product(product(), part, title="part", inputs=[raw])
+        digests = input_digests(part)
+        assert digests == {str(raw.resolve()): hashlib.sha256(raw.read_bytes()).hexdigest()}
+        # what the part recorded is what the product records, even had the file changed since (it is not read)
+        recorded = {str(raw.resolve()): "0" * 64}
+        write_product(product(), results / "whole.nc", title="whole", inputs=[raw, other], digests=recorded)
+    records = json.loads(read_product(results / "whole.nc").attrs["inputs"])
+    assert [r["sha256"] for r in records] == ["0" * 64, hashlib.sha256(other.read_bytes()).hexdigest()]

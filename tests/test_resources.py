@@ -50,7 +50,8 @@ def test_a_retry_asks_for_twice_as_much():
 
 def test_every_benchmarked_rule_has_a_measured_cost():
     for step in ("simulate_file", "measure_dark", "measure_prnu", "fit_fringes", "allan_deviation",
-                 "stack_position", "measure_centroids", "sweep_point"):
+                 "stack_position", "measure_centroids", "sweep_point", "fit_start", "fit_part", "fit_reduce",
+                 "fit_finish"):
         assert step in resources.STEPS, step
 
 
@@ -59,3 +60,15 @@ def test_every_benchmarked_rule_has_a_measured_cost():
 def test_bad_sizes_are_refused(kwargs):
     with pytest.raises(ValueError, match="job_resources"):
         job_resources("fit_fringes", **kwargs)
+
+
+def test_a_split_fits_part_asks_for_its_own_files_only():
+    """A 4k x 4k detector's 200,000-frame baseline (6.7 TB of 16-bit samples) in 64 parts: a part job asks for
+    the time of its 1/64 of the samples, and for less memory than the single fit (the frame factors of its
+    own frames only)."""
+    pixels, frames = 4096 * 4096, 200_000
+    single = job_resources("fit_fringes", pixels=pixels, frames=frames)
+    part = job_resources("fit_part", pixels=pixels, frames=frames // 64)
+    assert part["mem_mb"] < single["mem_mb"]
+    assert part["runtime"] < single["runtime"] / 30
+    assert job_resources("fit_part", pixels=pixels, frames=2 * frames // 64)["mem_mb"] > part["mem_mb"]

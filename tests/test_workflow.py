@@ -894,3 +894,50 @@ def test_a_plot_edit_reruns_the_papers_plots_and_no_monte_carlo(paper_run, workd
                                         "--configfile=paper_ci.yaml")
     assert {"plot_error_propagation", "plot_offset_bias", "paper_comparison", "paper_pdf"} <= rules
     assert not rules & {"error_propagation_table", "procrustes_deflation", "sweep_point", "accuracy_table"}
+
+
+def test_a_fit_split_across_jobs_writes_the_single_jobs_product_bit_for_bit(workdir, out):
+    """metrology.split on the ci preset: one baseline's fit as jobs (the state before pass 1, per pass a job
+    per part of the files and one that sums them, the product), from the raw files and calibration of the ci
+    run. The product is the single job's, every variable bit for bit, and records the same inputs with the
+    same checksums (the cubes' from pass 1's parts: no later job reads the cubes to hash them). Four passes
+    at most instead of ten, to keep the test short: the fit converges before (checked), so the single job
+    with either stops at the same pass. Each job asks for what its benchmark measured."""
+    import json
+
+    from dice_core import resources
+
+    (workdir / "split.yaml").write_text("metrology:\n  split: true\n  max_passes: 4\n")
+    # the ci run's calibration products, bytes and times kept: up to date, not made again
+    shutil.copytree(out / "calibration", workdir / "split-results" / "sim-ci" / "calibration")
+    target = "split-results/sim-ci/metrology/H1H4.nc"
+    run = snakemake(workdir, target, "--config", f"dataset={out / 'raw' / 'dataset.yaml'}",
+                    "results=split-results", "--configfile", "split.yaml")
+    said = run.stdout + run.stderr
+    counts = dict(re.findall(r"^(\w+)\s+(\d+)$", said, re.M))
+    assert counts == {"fit_start": "1", "fit_part": "8", "fit_reduce": "4", "fit_finish": "1", "total": "14"}
+    single, split = read_product(out / "metrology/H1H4.nc"), read_product(workdir / target)
+    assert set(single.data_vars) == set(split.data_vars)
+    for name in single.data_vars:
+        assert single[name].identical(split[name]), name
+    assert json.loads(split.attrs["inputs"]) == json.loads(single.attrs["inputs"])
+    logs = workdir / "split-results" / "sim-ci" / "logs"
+    n_pass = int(single["iteration"].values[-1])
+    assert 2 <= n_pass < 4
+    converged = f"converged to 1.0e-07 pixel at pass {n_pass}"
+    assert converged in (out / "logs" / "fit_fringes_H1H4.log").read_text()
+    assert converged in (logs / "fit_finish_H1H4.log").read_text()
+    assert "state carried over" in (logs / f"fit_reduce_H1H4_{n_pass + 1}.log").read_text()
+    assert "nothing to read" in (logs / f"fit_part_H1H4_{n_pass + 1}_0.log").read_text()
+    part = (logs / "fit_part_H1H4_1_1.log").read_text()
+    assert "pass 1, part 2 of 2: 150 frames of 1 file(s)" in part and "BLAS threads: 1" in part
+    jobs = re.findall(r"^(?:local)?rule (fit_\w+):\n(.*?)(?=^\S|\Z)", said, re.M | re.S)
+    assert len(jobs) == 14
+    for rule, block in jobs:
+        asked = dict(re.findall(r"\b(mem_mb|runtime)=(\d+)", block))
+        benchmark = re.search(r"^\s+benchmark: (\S+)", block, re.M)
+        if benchmark:
+            with open(workdir / benchmark.group(1)) as handle:
+                measured = next(csv.DictReader(handle, delimiter="\t"))
+            assert float(measured["max_rss"]) <= int(asked["mem_mb"]) - resources.EXECUTOR_MB, (rule, measured)
+            assert float(measured["s"]) <= 60 * int(asked["runtime"]), (rule, measured)

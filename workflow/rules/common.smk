@@ -18,7 +18,7 @@ from snakemake.utils import Paramspace, validate
 
 from dice_core import DatasetError, astrometry, simulation
 from dice_core.centroids import MODE_NEEDS
-from dice_core.io import write_text
+from dice_core.io import file_groups, write_text
 from dice_core.manifest import load_manifest, parse_manifest
 from dice_core.overrides import apply_dotted
 
@@ -590,8 +590,15 @@ def job_data(step, wildcards):
         return {"frames": acquisition_frames(MANIFEST.dark) if MANIFEST.dark else 0}
     if step == "measure_prnu":
         return {"frames": acquisition_frames(MANIFEST.flats[wildcards.flat])}
-    if step in ("fit_fringes", "allan_deviation"):
+    if step in ("fit_fringes", "allan_deviation", "fit_reduce", "fit_finish"):
         return {"frames": acquisition_frames(MANIFEST.baselines[wildcards.baseline])}
+    if step == "fit_part":  # its own files' frames only (none for a part beyond the groups of files)
+        counts = [file_frames(f) for f in MANIFEST.baselines[wildcards.baseline].files]
+        groups = file_groups(counts, config["metrology"]["parts"])
+        part = int(wildcards.part)
+        return {"frames": sum(counts[groups[part][0] : groups[part][1]]) if part < len(groups) else 0}
+    if step == "fit_start":  # the first chunk only
+        return {"frames": 0}
     if step == "stack_position":
         return {"frames": acquisition_frames(manifest_position(wildcards).acquisition)}
     return {"positions": positions}

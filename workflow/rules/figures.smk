@@ -64,7 +64,7 @@ rule plot_prnu_difference:
 
 rule plot_metrology:
     input:
-        metrology=rules.fit_fringes.output.metrology,
+        metrology=f"{OUT}/metrology/{{baseline}}.nc",
         manifest=MANIFEST_FILE,
     output:
         png=report(f"{OUT}/figures/metrology_{{baseline}}.png", category="Metrology", caption="../report/metrology.rst"),

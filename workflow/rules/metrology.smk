@@ -2,31 +2,149 @@
 # and each other pair's difference from the reference pair.
 
 
-# threads: worker processes reading parts of the frames, one BLAS thread each (dice_core.parallel).
-rule fit_fringes:
-    input:
-        manifest=MANIFEST_FILE,
-        dark=rules.measure_dark.output.dark,
-        prnu=prnu_for_metrology,
-        bad_pixels=bad_pixel_mask,
-        cubes=baseline_files,
-    output:
-        metrology=f"{OUT}/metrology/{{baseline}}.nc",
-    log:
-        f"{OUT}/logs/fit_fringes_{{baseline}}.log",
-    benchmark:
-        f"{OUT}/benchmarks/fit_fringes_{{baseline}}.tsv"
-    conda:
-        "../envs/dice.yaml"
-    threads: 2
-    resources:
-        **step_resources("fit_fringes"),
-    params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
-        options=config["metrology"],  # a changed option (tip_sigma, tolerance...) reruns the fits
-    script:
-        "../scripts/fit_fringes.py"
+SPLIT = f"{OUT}/metrology/split/{{baseline}}"
+PASSES = config["metrology"]["max_passes"]
+
+
+if config["metrology"]["split"]:
+
+    # One baseline's fit as jobs (docs/metrology.md, "Splitting a fit across jobs"): the state before
+    # pass 1, then per pass one job per part of the files and one that sums them in part order, and the
+    # product. A fixed number of passes (max_passes): those after convergence carry the state over.
+    rule fit_start:
+        input:
+            manifest=MANIFEST_FILE,
+            dark=rules.measure_dark.output.dark,
+            prnu=prnu_for_metrology,
+            bad_pixels=bad_pixel_mask,
+            cubes=baseline_files,
+        output:
+            state=f"{SPLIT}/state_0.nc",
+        log:
+            f"{OUT}/logs/fit_start_{{baseline}}.log",
+        benchmark:
+            f"{OUT}/benchmarks/fit_start_{{baseline}}.tsv"
+        conda:
+            "../envs/dice.yaml"
+        resources:
+            **step_resources("fit_start"),
+        params:
+            roots=ROOTS,  # inputs are recorded relative to these
+            code=code_version("io", "manifest", "calibration", "fringes"),
+            options=config["metrology"],  # the fit's options are the state's
+        script:
+            "../scripts/fit_start.py"
+
+    rule fit_part:
+        input:
+            manifest=MANIFEST_FILE,
+            state=lambda w: f"{OUT}/metrology/split/{w.baseline}/state_{int(w.npass) - 1}.nc",
+            cubes=baseline_files,
+            # pass 1's part, which recorded its files' checksums: later passes do not read them again for it
+            first=lambda w: [f"{OUT}/metrology/split/{w.baseline}/pass_1/part_{w.part}.nc"] if int(w.npass) > 1 else [],
+        output:
+            part=f"{SPLIT}/pass_{{npass}}/part_{{part}}.nc",
+        log:
+            f"{OUT}/logs/fit_part_{{baseline}}_{{npass}}_{{part}}.log",
+        benchmark:
+            f"{OUT}/benchmarks/fit_part_{{baseline}}_{{npass}}_{{part}}.tsv"
+        wildcard_constraints:
+            npass="[1-9][0-9]*",
+            part="[0-9]+",
+        conda:
+            "../envs/dice.yaml"
+        resources:
+            **step_resources("fit_part"),
+        params:
+            roots=ROOTS,  # inputs are recorded relative to these
+            code=code_version("io", "manifest", "fringes"),
+            parts=config["metrology"]["parts"],
+            chunk_frames=config["chunk_frames"],
+        script:
+            "../scripts/fit_part.py"
+
+    rule fit_reduce:
+        input:
+            state=lambda w: f"{OUT}/metrology/split/{w.baseline}/state_{int(w.npass) - 1}.nc",
+            parts=lambda w: [
+                f"{OUT}/metrology/split/{w.baseline}/pass_{w.npass}/part_{part}.nc"
+                for part in range(config["metrology"]["parts"])
+            ],
+        output:
+            state=f"{SPLIT}/state_{{npass}}.nc",
+        log:
+            f"{OUT}/logs/fit_reduce_{{baseline}}_{{npass}}.log",
+        benchmark:
+            f"{OUT}/benchmarks/fit_reduce_{{baseline}}_{{npass}}.tsv"
+        wildcard_constraints:
+            npass="[1-9][0-9]*",
+        conda:
+            "../envs/dice.yaml"
+        resources:
+            **step_resources("fit_reduce"),
+        params:
+            roots=ROOTS,  # inputs are recorded relative to these
+            code=code_version("io", "fringes"),
+        script:
+            "../scripts/fit_reduce.py"
+
+    rule fit_finish:
+        input:
+            manifest=MANIFEST_FILE,
+            dark=rules.measure_dark.output.dark,
+            prnu=prnu_for_metrology,
+            bad_pixels=bad_pixel_mask,
+            state=f"{SPLIT}/state_{PASSES}.nc",
+            cubes=baseline_files,  # recorded with their checksums, as the single job records them,
+            # from pass 1's parts, which read them: this job does not
+            first=lambda w: [
+                f"{OUT}/metrology/split/{w.baseline}/pass_1/part_{part}.nc"
+                for part in range(config["metrology"]["parts"])
+            ],
+        output:
+            metrology=f"{OUT}/metrology/{{baseline}}.nc",
+        log:
+            f"{OUT}/logs/fit_finish_{{baseline}}.log",
+        benchmark:
+            f"{OUT}/benchmarks/fit_finish_{{baseline}}.tsv"
+        conda:
+            "../envs/dice.yaml"
+        resources:
+            **step_resources("fit_finish"),
+        params:
+            roots=ROOTS,  # inputs are recorded relative to these
+            code=code_version("io", "manifest", "fringes", "geometry"),
+            options=config["metrology"],
+        script:
+            "../scripts/fit_finish.py"
+
+else:
+
+    # threads: worker processes reading parts of the frames, one BLAS thread each (dice_core.parallel).
+    rule fit_fringes:
+        input:
+            manifest=MANIFEST_FILE,
+            dark=rules.measure_dark.output.dark,
+            prnu=prnu_for_metrology,
+            bad_pixels=bad_pixel_mask,
+            cubes=baseline_files,
+        output:
+            metrology=f"{OUT}/metrology/{{baseline}}.nc",
+        log:
+            f"{OUT}/logs/fit_fringes_{{baseline}}.log",
+        benchmark:
+            f"{OUT}/benchmarks/fit_fringes_{{baseline}}.tsv"
+        conda:
+            "../envs/dice.yaml"
+        threads: 2
+        resources:
+            **step_resources("fit_fringes"),
+        params:
+            roots=ROOTS,  # inputs are recorded relative to these
+            code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
+            options=config["metrology"],  # a changed option (tip_sigma, tolerance...) reruns the fits
+        script:
+            "../scripts/fit_fringes.py"
 
 
 rule prf_widths:
@@ -95,7 +213,7 @@ rule compare_pairs:
 rule allan_deviation:
     input:
         manifest=MANIFEST_FILE,
-        metrology=rules.fit_fringes.output.metrology,
+        metrology=f"{OUT}/metrology/{{baseline}}.nc",
         dark=rules.measure_dark.output.dark,
         cubes=baseline_files,
     output:

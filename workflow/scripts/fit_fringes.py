@@ -32,8 +32,8 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
         solution = fringes.fit_baseline(stream, dark["dark"].values, detector=manifest.detector, flat=flat,
                                         read_noise=dark["noise"].values, tolerance=options["tolerance"],
                                         max_passes=options["max_passes"], smooth_degree=options["smooth_degree"],
-                                        workers=workers, geometry=geometry, bad_pixels=bad_pixels,
-                                        label=f"baseline {baseline}")
+                                        workers=workers, parts=options["parts"], geometry=geometry,
+                                        bad_pixels=bad_pixels, label=f"baseline {baseline}")
     except GeometryError as exc:  # the bench the manifest describes does not fit the fringes: name it
         raise DatasetError(manifest.path, f"metrology.geometry: {exc}") from exc
     product = fringes.solution_dataset(solution, manifest.detector,

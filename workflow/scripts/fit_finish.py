@@ -1,0 +1,42 @@
+"""Snakemake step of a split fringe fit: the metrology product from the state after the last pass."""
+
+import logging
+
+import dice_core
+from dice_core import DatasetError, fringes, io
+from dice_core.geometry import BaselineGeometry, GeometryError
+from dice_core.manifest import load_manifest
+
+
+def fit_finish(manifest_path, dark_path, prnu_paths, bad_pixel_paths, state_path, first_paths, baseline, output,
+               config):
+    log = logging.getLogger("dice")
+    manifest = load_manifest(manifest_path)
+    dark = io.read_product(dark_path)
+    options = config["metrology"]
+    geometry = None if manifest.geometry is None else BaselineGeometry.of_baseline(
+        manifest.geometry, baseline, tip_sigma=options["tip_sigma"])
+    state = fringes.state_from_dataset(io.read_product(state_path))
+    try:
+        solution = fringes.finish_fit(state, detector=manifest.detector, read_noise=dark["noise"].values,
+                                      geometry=geometry)
+    except GeometryError as exc:  # the bench the manifest describes does not fit the fringes: name it
+        raise DatasetError(manifest.path, f"metrology.geometry: {exc}") from exc
+    product = fringes.solution_dataset(solution, manifest.detector,
+                                       fibers=None if geometry is None else geometry.fibers)
+    log.info("baseline %s: K = (%.6f, %.6f) rad/pixel, offsets rms %.3e pixel, photon floor %.3e pixel, "
+             "%d pixel(s) masked", baseline, *solution.k, float(product["projected_offset"].std()),
+             float(product["photon_noise_floor_rms"]), int(product["n_masked"]))
+    product.attrs["baseline"] = baseline
+    # the single fit's inputs, so that the product is the same whichever way it was made; the cubes' checksums
+    # as pass 1's parts recorded them while this job reads none of the cubes
+    digests = {key: value for path in first_paths for key, value in io.input_digests(path).items()}
+    io.write_product(product, output, title=f"fringe solution of baseline {baseline} of {manifest.name}",
+                     config=config, digests=digests, inputs=[manifest.path, dark_path, *prnu_paths,
+                                                             *bad_pixel_paths, *manifest.baselines[baseline].files])
+
+
+dice_core.run_logged(snakemake.log[0], fit_finish, snakemake.input.manifest, snakemake.input.dark,
+                     list(snakemake.input.prnu), list(snakemake.input.bad_pixels), snakemake.input.state,
+                     list(snakemake.input.first), snakemake.wildcards.baseline, snakemake.output.metrology,
+                     snakemake.config, provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

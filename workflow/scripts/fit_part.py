@@ -1,0 +1,28 @@
+"""Snakemake step of a split fringe fit: one part's (group of files') share of one pass."""
+
+import xarray as xr
+
+import dice_core
+from dice_core import fringes, io
+from dice_core.manifest import load_manifest
+
+
+def fit_part(manifest_path, state_path, first_paths, baseline, part, output, config):
+    manifest = load_manifest(manifest_path)
+    stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
+                            min_frames=16, purpose="a fringe solution", dtype="float32")
+    parts = config["metrology"]["parts"]
+    with xr.open_dataset(state_path, engine="netcdf4") as state:  # read lazily: the projector only
+        product = fringes.part_dataset(stream, state, part=part, parts=parts)
+    files = [] if product.attrs["fit_empty"] else [cube.path for cube in stream.split(parts)[part].cubes]
+    # the files' checksums as pass 1's part recorded them: only pass 1 reads the files to hash them
+    digests = {key: value for path in first_paths for key, value in io.input_digests(path).items()}
+    io.write_product(product, output, title=f"split fringe fit of baseline {baseline} of {manifest.name}: pass "
+                                            f"{product.attrs['fit_pass']}, part {part}",
+                     config=config, inputs=[state_path, *files], digests=digests)
+
+
+dice_core.run_logged(snakemake.log[0], fit_part, snakemake.input.manifest, snakemake.input.state,
+                     list(snakemake.input.first), snakemake.wildcards.baseline, int(snakemake.wildcards.part),
+                     snakemake.output.part, snakemake.config,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -1,0 +1,16 @@
+"""Snakemake step of a split fringe fit: one pass's parts summed in part order, the state after the pass."""
+
+import dice_core
+from dice_core import fringes, io
+
+
+def fit_reduce(state_path, part_paths, baseline, output, config):
+    product = fringes.reduce_dataset(io.read_product(state_path), list(part_paths))
+    io.write_product(product, output, title=f"split fringe fit of baseline {baseline}: state after pass "
+                                            f"{product.attrs['fit_n_pass']}",
+                     config=config, inputs=[state_path, *part_paths])
+
+
+dice_core.run_logged(snakemake.log[0], fit_reduce, snakemake.input.state, list(snakemake.input.parts),
+                     snakemake.wildcards.baseline, snakemake.output.state, snakemake.config,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})
