@@ -292,6 +292,43 @@ def test_accuracy_table_follows_the_contract(out):
     assert "\\begin{tabular}" in (out / "tables" / "accuracy.tex").read_text()
 
 
+# 1-2 min on 2 cores, most of it Procrustes's dense fallback on ci's 3-4 alike configurations, run once per
+# model; the library's accuracy_tables with every model is in the CI set (tests/test_astrometry.py)
+@pytest.mark.slow
+def test_every_configured_superimposition_has_its_rows_factors_and_figure(workdir, tmp_path):
+    """astrometry.superimposition as a list: the table gains each model's rows with its own Monte Carlo
+    deflation factors and error bars, each model its residual product and figure, and the pose its
+    identifiability report in the log. Run in a copy, so that the module's table keeps Procrustes alone."""
+    copy = tmp_path / "models"
+    shutil.copytree(workdir, copy, symlinks=True)
+    models = {"astrometry": {"superimposition": ["projective", "pose"], "trials": 100},
+              "centroids": {"methods": ["fourier"]}}
+    (copy / "models.yaml").write_text(yaml.safe_dump(models))
+    out = copy / "results" / "sim-ci"
+    run = snakemake(copy, "--config", "dataset=ci", "--configfile", "models.yaml", "--",
+                    *(str(out.relative_to(copy) / "figures" / f"{model}_residuals.png")
+                      for model in ("procrustes", "projective", "pose")))
+    ran = run.stdout + run.stderr
+    assert "rule measure_centroids" not in ran and "rule fit_fringes" not in ran  # the table's inputs stand
+    rows = read_accuracy_table(out / "tables" / "accuracy.csv")
+    by_model = {model: {(r["method"], r["mode"], r["grouping"]): r for r in rows if r["superimposition"] == model}
+                for model in ("procrustes", "projective", "pose")}
+    assert set(by_model["projective"]) == set(by_model["pose"]) == set(by_model["procrustes"]) != set()
+    for key, procrustes in by_model["procrustes"].items():
+        for model in ("projective", "pose"):
+            row = by_model[model][key]
+            assert float(row["accuracy"]) > 0 and float(row["error"]) > 0
+            # each model's own deflation factor: more parameters per position, a larger factor
+            assert float(row["factor"]) != float(procrustes["factor"])
+    for model in ("projective", "pose"):
+        residuals = read_product(out / "tables" / f"{model}_residuals.nc")
+        assert residuals.attrs["superimposition"] == model
+        assert (out / "figures" / f"{model}_residuals.png").stat().st_size > 10_000
+    log = (out / "logs" / "accuracy_table.log").read_text()
+    # ci's 4 positions and small tip-tilt cannot identify the pose: said, and no pose accuracy claimed
+    assert "no pose accuracy reported" in log
+
+
 def test_a_mode_added_to_the_sweep_runs_only_its_own_jobs(workdir, out):
     """Snakemake's own up-to-date logic: the other modes' centroids are not redone."""
     (workdir / "fewer.yaml").write_text("centroids:\n  modes: [raw, flat, metrology]\n  methods: [fourier]\n")
