@@ -460,6 +460,8 @@ def _combine(results, *, inputs: PassInputs, level, n_lanes):
         start += n
         parts.append((F_half, half_FtX + np.outer(F_half.sum(axis=0), level[idx])))
     return coef, FtI, FtF, third, saturated[idx], threads, parts
+
+
 def frame_moments(F):
     """F'F (3, 3) and the third moments sum_t F_tk F_t F_t' (3, 3, 3) of frame factors F (frame, 3)."""
     third = ((F[:, :, None] * F[:, None, :]).reshape(-1, 9).T @ F).reshape(3, 3, 3).transpose(2, 0, 1)

@@ -604,7 +604,7 @@ def _input_record(path, roots, digests=None) -> dict:
     return record
 
 
-def input_digests(path, roots=None) -> dict:
+def input_digests(path, *, roots=None) -> dict:
     """The SHA-256 of the inputs a product recorded (its ``inputs``), by resolved path.
 
     For a product made from files another product has read and recorded, so that the files are not read

@@ -841,7 +841,8 @@ def tip_tilt_sweep_figure(datasets, *, title="Tip-tilt: what each superimpositio
     fig, axes = plt.subplots(1, 3, figsize=(14, 4.6), constrained_layout=True)
     models = list(datasets[0]["model"].values)
     for n in positions:
-        chosen = sorted((p["stars.tip_tilt_pv"], ds) for p, ds in points if int(ds.attrs["positions"]) == n)
+        chosen = sorted(((p["stars.tip_tilt_pv"], ds) for p, ds in points if int(ds.attrs["positions"]) == n),
+                        key=lambda point: point[0])
         pv = np.array([value for value, _ in chosen])
         for k, model in enumerate(models):
             axes[0].errorbar(pv, [float(ds["accuracy"].sel(model=model)) for _, ds in chosen],

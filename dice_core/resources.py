@@ -101,7 +101,7 @@ STEPS: dict[str, StepCost] = {
     "fit_reduce": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
                            s_per_mpixel=30.0),
     "fit_finish": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
-                           s_per_mpixel=30.0, s_per_gsample=3.0),
+                           s_per_mpixel=30.0),  # reads the state and the parts' digests, no cube
     "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=5000.0, mb_per_gsample=110.0, start_s=3.0,
                                 s_per_gsample=3.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),

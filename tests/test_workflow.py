@@ -329,6 +329,7 @@ def test_every_configured_superimposition_has_its_rows_factors_and_figure(workdi
     assert "no pose accuracy reported" in log
 
 
+@pytest.mark.slow  # 71 s: a rerun of one centroid mode and its table (2 idle cores, 2026-12-02): pytest -m slow
 def test_a_mode_added_to_the_sweep_runs_only_its_own_jobs(workdir, out):
     """Snakemake's own up-to-date logic: the other modes' centroids are not redone."""
     (workdir / "fewer.yaml").write_text("centroids:\n  modes: [raw, flat, metrology]\n  methods: [fourier]\n")
@@ -359,6 +360,7 @@ def rules_planned_after_editing(workdir, module_name, *target):
     return {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
 
 
+@pytest.mark.slow  # 37 s; the indirect-import case below stays in the CI set (2 idle cores, 2026-12-02): pytest -m slow
 def test_up_to_date_then_dice_core_change_reruns_what_it_affects(workdir):
     rules = rules_planned_after_editing(workdir, "calibration")
     assert {"measure_dark", "measure_prnu", "compare_prnu"} <= rules
@@ -449,6 +451,8 @@ def test_a_killed_run_is_finished_by_running_the_same_command_again(out, tmp_pat
             assert (ours / product).read_bytes() == (theirs / product).read_bytes(), product
 
 
+# 25 s; the lock's removal logic runs in every workflow run of the CI set
+@pytest.mark.slow  # (2 idle cores, 2026-12-02): pytest -m slow
 def test_a_stale_lock_is_removed_only_when_its_run_was_on_this_machine(tmp_path):
     """A run elsewhere on a shared folder may be alive without this machine seeing its flock: its lock stays
     (Snakemake then asks for --unlock). A lock left by a run of this machine goes."""
@@ -536,6 +540,7 @@ def test_external_dataset_with_a_bad_cube_fails_naming_it(workdir, out, tmp_path
     assert not list((workdir / "results" / "bench-broken").rglob("*.part"))
 
 
+@pytest.mark.slow  # 53 s: three dry runs of other datasets (2 idle cores, 2026-12-02): pytest -m slow
 def test_modes_without_their_calibration_are_skipped_or_refused(workdir, out, tmp_path):
     """A dataset without flats: the flat modes are skipped, saying why (the dataset format lets any
     section be absent); a metrology pair that the dataset does not have: a clear error."""
@@ -703,6 +708,8 @@ def test_with_bright_stars_the_width_mode_beats_flat_and_metrology_in_the_accura
         assert value["flat+metrology+width", grouping] < value["flat+metrology", grouping], (grouping, value)
 
 
+# 79 s; the spherical fit at its floor is in tests/test_geometry.py
+@pytest.mark.slow  # (2 idle cores, 2026-12-02): pytest -m slow
 def test_spherical_wave_fringes_are_reduced_at_the_floor_through_the_workflow(workdir):
     """The ci preset with the paper's bench (fibers 600 mm away, midpoints 9-18 mm off the normal, nominal
     tips 0.5-1 mm off): metrology, deprojection and Allan run, the offsets product declares its unobservable
@@ -761,6 +768,7 @@ def test_spherical_wave_fringes_are_reduced_at_the_floor_through_the_workflow(wo
     assert not (workdir / "results" / "bench-wrong-tips" / "metrology" / "H1H4.nc").exists()
 
 
+@pytest.mark.slow  # 53 s: study points run, then planned (2 idle cores, 2026-12-02): pytest -m slow
 def test_a_sweep_point_added_runs_only_its_job_and_one_removed_touches_no_other(workdir):
     """Sweeps are Paramspace points: each its own job and folder, the summary gathering whichever are listed."""
     target = "results/sweeps/tiny/summary.csv"
@@ -846,6 +854,7 @@ def planned_rules(plan):
     return {line.split()[1].rstrip(":") for line in plan.splitlines() if line.startswith(("rule ", "localrule "))}
 
 
+@pytest.mark.slow  # 25 s of dry runs (2 idle cores, 2026-12-02): pytest -m slow
 def test_a_reduction_sweep_over_lists_of_modes_gives_each_point_its_folder(workdir, out):
     """A list value (centroids.modes) is one point: its folder named by the joined values; the run's own accuracy
     table is not the sweep's."""
@@ -859,6 +868,7 @@ def test_a_reduction_sweep_over_lists_of_modes_gives_each_point_its_folder(workd
     assert "results/sim-ci/tables/accuracy.csv" not in plan and "rule simulate_" not in plan
 
 
+@pytest.mark.slow  # 24 s of dry runs (2 idle cores, 2026-12-02): pytest -m slow
 def test_the_centroid_method_of_the_products_does_not_follow_the_list_order(workdir):
     """centroids/<mode>.nc holds centroids.method's centroids, whatever the order of centroids.methods."""
     (workdir / "order.yaml").write_text("centroids:\n  methods: [gaussian, fourier]\n")
@@ -899,6 +909,7 @@ def paper_run(workdir):
     return run.stdout + run.stderr
 
 
+@pytest.mark.slow  # the paper target on ci: 63 s beyond the ci run (2 idle cores, 2026-12-02): pytest -m slow
 def test_the_paper_target_runs_and_its_tables_follow_the_contract(paper_run, out):
     assert "rule paper_comparison:" in paper_run and "rule fit_fringes:" not in paper_run
     with open(out / "tables" / "paper_comparison.csv", newline="") as handle:
@@ -926,6 +937,7 @@ def test_the_paper_target_runs_and_its_tables_follow_the_contract(paper_run, out
     assert (out / "report" / "paper_reproduction.pdf").read_bytes()[:5] == b"%PDF-"
 
 
+@pytest.mark.slow  # 39 s beyond the paper target's run (2 idle cores, 2026-12-02): pytest -m slow
 def test_a_plot_edit_reruns_the_papers_plots_and_no_monte_carlo(paper_run, workdir):
     rules = rules_planned_after_editing(workdir, "plotting", "paper", "--config", "dataset=ci",
                                         "--configfile=paper_ci.yaml")
