@@ -1034,6 +1034,11 @@ def state_from_dataset(ds: xr.Dataset) -> FitState:
         return ds[name].values if name in ds.data_vars else None
 
     attrs = ds.attrs
+    missing = [key for key in ("fit_n_cols", "fit_n_pass", "fit_done", "fit_parts", *(f"fit_{k}" for k in _OPTIONS))
+               if key not in attrs]
+    if missing:
+        raise FringeError(f"{ds.encoding.get('source', 'dataset')}: not a split fringe-fit state "
+                          f"(no attribute {missing[0]})")
     options = {key: attrs[f"fit_{key}"] for key in _OPTIONS}
     options = {**options, "tolerance": float(options["tolerance"]), "max_passes": int(options["max_passes"]),
                "min_contrast": float(options["min_contrast"]),
@@ -1125,19 +1130,30 @@ def reduce_dataset(state: xr.Dataset, parts) -> xr.Dataset:
     n_pass = fit.n_pass + 1
     headers = [_part_attrs(part) for part in parts]
     lanes = {h["fit_lanes"] for h in headers if not h["fit_empty"]}
-    wrong = [h["fit_part"] for h in headers if h["fit_pass"] != n_pass]
+    wrong = [_name(part) for part, h in zip(parts, headers) if h["fit_pass"] != n_pass]
     if wrong or len(lanes) != 1:
-        raise ValueError(f"{label}: the part products of pass {n_pass} do not match the state after pass "
-                         f"{fit.n_pass} (parts of another pass: {wrong}; part counts {sorted(lanes)})")
+        raise FringeError(f"{label}: the part products of pass {n_pass} do not match the state after pass "
+                          f"{fit.n_pass} (of another pass: {', '.join(wrong) or 'none'}; part counts "
+                          f"{sorted(lanes)})")
+    # the parts are summed in their order: the order given must be theirs, or the bits would change
+    misplaced = [_name(part) for i, (part, h) in enumerate(zip(parts, headers)) if int(h["fit_part"]) != i]
+    if misplaced:
+        raise FringeError(f"{label}: part products of pass {n_pass} out of part order: {', '.join(misplaced)}")
     n_lanes = lanes.pop()
     full = [part for part, h in zip(parts, headers) if not h["fit_empty"]]
     if len(full) != n_lanes:
-        raise ValueError(f"{label}: pass {n_pass} has {len(full)} part product(s) for {n_lanes} part(s)")
+        raise FringeError(f"{label}: pass {n_pass} has {len(full)} part product(s) for {n_lanes} part(s): "
+                          f"{', '.join(_name(part) for part in full)}")
     fit = reduce_pass(fit, (_part_result(part) for part in full), n_lanes=n_lanes)
     if fit.done:
         log.info("%s: %s after pass %d", label, "converged" if fit.converged else "not converged (max_passes)",
                  fit.n_pass)
     return state_dataset(fit)
+
+
+def _name(part) -> str:
+    """A part product's file (its source for a dataset opened from one)."""
+    return str(part.encoding.get("source", "a part dataset")) if isinstance(part, xr.Dataset) else str(part)
 
 
 def _open_part(part):

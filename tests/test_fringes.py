@@ -492,3 +492,12 @@ def test_a_fit_split_across_jobs_is_the_single_fit_bit_for_bit(tmp_path, caplog)
                       tolerance=tolerance)
     assert split.masked_by_reason["unconverged"] > 0
     assert_same_solution(single, split)
+    # parts summed out of their order, or of another pass, or a file that is not a state: errors naming files
+    folder = tmp_path / "split2"
+    state_0 = read_product(folder / "state_0.nc")
+    with pytest.raises(fringes.FringeError, match="out of part order: .*part_1_1.nc"):
+        fringes.reduce_dataset(state_0, [folder / "part_1_1.nc", folder / "part_1_0.nc"])
+    with pytest.raises(fringes.FringeError, match="do not match the state after pass 0 .*part_2_0.nc"):
+        fringes.reduce_dataset(state_0, [folder / "part_2_0.nc", folder / "part_2_1.nc"])
+    with pytest.raises(fringes.FringeError, match="part_1_0.nc: not a split fringe-fit state"):
+        fringes.state_from_dataset(read_product(folder / "part_1_0.nc"))
