@@ -67,6 +67,7 @@ __all__ = [
     "frame_moments",
     "solution_dataset",
     "FitState",
+    "check_state_options",
     "PassInputs",
     "start_fit",
     "fit_stream",
@@ -1058,6 +1059,22 @@ def state_from_dataset(ds: xr.Dataset) -> FitState:
         state.history = [{"pass": int(p), "max_change": float(m), "rms_change": float(r)} for p, m, r in
                          zip(get("history_pass"), get("history_max_change"), get("history_rms_change"))]
     return state
+
+
+def check_state_options(ds: xr.Dataset, *, tolerance: float, max_passes: int, smooth_degree: int) -> None:
+    """Refuse a split fit's state (or part) product made with other options than the run's.
+
+    A rerun that follows file times only (``--rerun-triggers mtime``) would otherwise carry a state made
+    with, say, 4 passes into a run configured for 10, and the product would record options it was not
+    fitted with. Raises :class:`FringeError` naming the file and the first option that differs.
+    """
+    source = ds.encoding.get("source", "state")
+    wanted = {"fit_tolerance": float(tolerance), "fit_max_passes": int(max_passes),
+              "fit_smooth_degree": int(smooth_degree)}
+    for key, value in wanted.items():
+        if key in ds.attrs and type(value)(ds.attrs[key]) != value:
+            raise FringeError(f"{source}: made with metrology.{key[4:]} = {ds.attrs[key]}, the run has {value}: "
+                              "remove metrology/split/ of this baseline and run again")
 
 
 def _pass_inputs_of(ds, centre) -> PassInputs:

@@ -501,3 +501,8 @@ def test_a_fit_split_across_jobs_is_the_single_fit_bit_for_bit(tmp_path, caplog)
         fringes.reduce_dataset(state_0, [folder / "part_2_0.nc", folder / "part_2_1.nc"])
     with pytest.raises(fringes.FringeError, match="part_1_0.nc: not a split fringe-fit state"):
         fringes.state_from_dataset(read_product(folder / "part_1_0.nc"))
+    # a state made with other options than the run's (a rerun by file times only) is refused, naming it
+    made = {key: state_0.attrs[f"fit_{key}"] for key in ("tolerance", "max_passes", "smooth_degree")}
+    fringes.check_state_options(state_0, **made)
+    with pytest.raises(fringes.FringeError, match=r"state_0.nc: made with metrology.max_passes = \d+, the run has 99"):
+        fringes.check_state_options(state_0, **{**made, "max_passes": 99})

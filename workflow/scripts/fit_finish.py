@@ -16,7 +16,10 @@ def fit_finish(manifest_path, dark_path, prnu_paths, bad_pixel_paths, state_path
     options = config["metrology"]
     geometry = None if manifest.geometry is None else BaselineGeometry.of_baseline(
         manifest.geometry, baseline, tip_sigma=options["tip_sigma"])
-    state = fringes.state_from_dataset(io.read_product(state_path))
+    state_product = io.read_product(state_path)
+    fringes.check_state_options(state_product, tolerance=options["tolerance"],
+                                max_passes=options["max_passes"], smooth_degree=options["smooth_degree"])
+    state = fringes.state_from_dataset(state_product)
     try:
         solution = fringes.finish_fit(state, detector=manifest.detector, read_noise=dark["noise"].values,
                                       geometry=geometry)

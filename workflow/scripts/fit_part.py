@@ -13,6 +13,9 @@ def fit_part(manifest_path, state_path, first_paths, baseline, part, output, con
                             min_frames=16, purpose="a fringe solution", dtype="float32")
     parts = config["metrology"]["parts"]
     with xr.open_dataset(state_path, engine="netcdf4") as state:  # read lazily: the projector only
+        fringes.check_state_options(state, tolerance=config["metrology"]["tolerance"],
+                                    max_passes=config["metrology"]["max_passes"],
+                                    smooth_degree=config["metrology"]["smooth_degree"])
         product = fringes.part_dataset(stream, state, part=part, parts=parts)
     files = [] if product.attrs["fit_empty"] else [cube.path for cube in stream.split(parts)[part].cubes]
     # the files' checksums as pass 1's part recorded them: only pass 1 reads the files to hash them

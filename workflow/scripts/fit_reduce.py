@@ -5,7 +5,11 @@ from dice_core import fringes, io
 
 
 def fit_reduce(state_path, part_paths, baseline, output, config):
-    product = fringes.reduce_dataset(io.read_product(state_path), list(part_paths))
+    state = io.read_product(state_path)
+    options = config["metrology"]
+    fringes.check_state_options(state, tolerance=options["tolerance"], max_passes=options["max_passes"],
+                                smooth_degree=options["smooth_degree"])
+    product = fringes.reduce_dataset(state, list(part_paths))
     io.write_product(product, output, title=f"split fringe fit of baseline {baseline}: state after pass "
                                             f"{product.attrs['fit_n_pass']}",
                      config=config, inputs=[state_path, *part_paths])
