@@ -50,7 +50,7 @@ import scipy.linalg
 import xarray as xr
 
 from dice_core.geometry import BaselineGeometry, TwoSourceFit, fit_two_source, wrapped_about_mean
-from dice_core.io import Chunk, first_chunk
+from dice_core.io import Chunk, FrameStream, first_chunk
 from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
                                 threads_report)
 from dice_core.polynomials import polynomial_design
@@ -68,6 +68,7 @@ __all__ = [
     "solution_dataset",
     "FitState",
     "check_state_options",
+    "metrology_stream",
     "PassInputs",
     "start_fit",
     "fit_stream",
@@ -1059,6 +1060,14 @@ def state_from_dataset(ds: xr.Dataset) -> FitState:
         state.history = [{"pass": int(p), "max_change": float(m), "rms_change": float(r)} for p, m, r in
                          zip(get("history_pass"), get("history_max_change"), get("history_rms_change"))]
     return state
+
+
+def metrology_stream(acquisition, detector, *, chunk_frames="auto"):
+    """The frames of a metrology acquisition as every fringe fit reads them (the single job and each job of a
+    split fit alike, whose bits depend on it): float32 chunks of ``chunk_frames`` frames (config
+    ``chunk_frames``), at least 16 frames."""
+    return FrameStream(acquisition, detector, chunk_frames=chunk_frames, min_frames=16, purpose="a fringe solution",
+                       dtype="float32")
 
 
 def check_state_options(ds: xr.Dataset, *, tolerance: float, max_passes: int, smooth_degree: int) -> None:

@@ -32,6 +32,7 @@ if config["metrology"]["split"]:
             roots=ROOTS,  # inputs are recorded relative to these
             code=code_version("io", "manifest", "calibration", "fringes"),
             options=config["metrology"],  # the fit's options are the state's
+            chunk_frames=config["chunk_frames"],  # the reference frame is the first chunk's mean
         script:
             "../scripts/fit_start.py"
 

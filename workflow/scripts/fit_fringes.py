@@ -18,8 +18,8 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
         bad_pixels = io.read_product(bad_pixel_paths[0])["bad_pixel"].values
         log.info("baseline %s: %d unusable pixel(s) of the bad-pixel mask left out", baseline,
                  calibration.unusable_pixels(bad_pixels).sum())
-    stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
-                            min_frames=16, purpose="a fringe solution", dtype="float32")
+    stream = fringes.metrology_stream(manifest.baselines[baseline], manifest.detector,
+                                      chunk_frames=config["chunk_frames"])
     options = config["metrology"]
     geometry = None if manifest.geometry is None else BaselineGeometry.of_baseline(
         manifest.geometry, baseline, tip_sigma=options["tip_sigma"])

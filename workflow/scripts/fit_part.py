@@ -9,8 +9,8 @@ from dice_core.manifest import load_manifest
 
 def fit_part(manifest_path, state_path, first_paths, baseline, part, output, config):
     manifest = load_manifest(manifest_path)
-    stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
-                            min_frames=16, purpose="a fringe solution", dtype="float32")
+    stream = fringes.metrology_stream(manifest.baselines[baseline], manifest.detector,
+                                      chunk_frames=config["chunk_frames"])
     parts = config["metrology"]["parts"]
     with xr.open_dataset(state_path, engine="netcdf4") as state:  # read lazily: the projector only
         fringes.check_state_options(state, tolerance=config["metrology"]["tolerance"],

@@ -17,8 +17,8 @@ def fit_start(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline, o
         bad_pixels = io.read_product(bad_pixel_paths[0])["bad_pixel"].values
         log.info("baseline %s: %d unusable pixel(s) of the bad-pixel mask left out", baseline,
                  calibration.unusable_pixels(bad_pixels).sum())
-    stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
-                            min_frames=16, purpose="a fringe solution", dtype="float32")
+    stream = fringes.metrology_stream(manifest.baselines[baseline], manifest.detector,
+                                      chunk_frames=config["chunk_frames"])
     options = config["metrology"]
     log.info("baseline %s: %d frames in %d file(s), fitted in %d part(s) of whole files, at most %d passes; "
              "flat %s", baseline, stream.n_frames, len(stream.cubes), len(stream.split(options["parts"])),
