@@ -517,6 +517,7 @@ def test_unknown_preset_is_a_clear_error(workdir):
     assert "neither a manifest path" in result.stdout + result.stderr
 
 
+@pytest.mark.slow  # 19 s; bad cubes' errors are in tests/test_io.py (2 idle cores, 2026-12-02): pytest -m slow
 def test_external_dataset_with_a_bad_cube_fails_naming_it(workdir, out, tmp_path):
     """A dataset outside the working directory, in the raw format, whose dark cube has the wrong shape."""
     data = tmp_path / "bench"
@@ -574,6 +575,7 @@ def test_modes_without_their_calibration_are_skipped_or_refused(workdir, out, tm
     assert "centroids.pair 'P99' is not a pair of" in result.stdout + result.stderr
 
 
+@pytest.mark.slow  # 13 s dry run (2 idle cores, 2026-12-02): pytest -m slow
 def test_a_bench_geometry_plans_the_metrology_and_every_mode(workdir, out, tmp_path):
     """A format-1.1 manifest (metrology.geometry) plans the whole metrology and every centroid mode; the
     spherical-wave reduction itself runs in the default preset's job (slow test) and tests/test_geometry.py."""
@@ -799,6 +801,7 @@ def test_a_sweep_point_added_runs_only_its_job_and_one_removed_touches_no_other(
     assert bad.returncode != 0 and "every point must set the same parameters" in bad.stdout + bad.stderr
 
 
+@pytest.mark.slow  # 12 s dry run (2 idle cores, 2026-12-02): pytest -m slow
 def test_the_paper_target_plans_the_studies_and_the_comparison(workdir):
     plan = snakemake(workdir, "paper", "-n", "--config", "dataset=ci").stdout
     for rule in ("sweep_point", "sweep_summary", "plot_offset_bias", "error_propagation_table", "paper_comparison"):
@@ -879,6 +882,7 @@ def test_the_centroid_method_of_the_products_does_not_follow_the_list_order(work
     assert "results/sim-ci/centroids/fourier/raw.nc" in plan and "rule measure_centroids_by_method:" in plan
 
 
+@pytest.mark.slow  # 12 s dry run (2 idle cores, 2026-12-02): pytest -m slow
 def test_simulation_overrides_are_another_dataset_with_its_own_results(workdir):
     """A top-level simulation: key changes the simulated data, so it changes the results' name too: the preset's
     own products are never overwritten by another dataset's."""
