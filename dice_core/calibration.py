@@ -23,6 +23,7 @@ from dice_core.polynomials import polynomial_design
 from dice_core.manifest import Detector
 
 __all__ = [
+    "fringe_fit_calibrations",
     "TemporalStatistics",
     "dark_maps",
     "prnu_map",
@@ -464,3 +465,17 @@ def bad_pixel_mask(dark: xr.Dataset, prnu: np.ndarray, *, detector: Detector, de
         },
         coords=_coords(detector),
     )
+
+
+def fringe_fit_calibrations(prnu_paths, bad_pixel_paths, *, label: str):
+    """(flat, bad pixel flags) a fringe fit uses, from the products the workflow gives it (each list empty
+    or one path): the PRNU map (row, col; None without) and the bad-pixel flags (row, col; None without),
+    of which the fit leaves the unusable ones out (logged with ``label``)."""
+    from dice_core.io import read_product
+
+    flat = read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
+    bad_pixels = None
+    if bad_pixel_paths:  # dead, hot and column defects out; dust pixels kept (the flat measures them)
+        bad_pixels = read_product(bad_pixel_paths[0])["bad_pixel"].values
+        log.info("%s: %d unusable pixel(s) of the bad-pixel mask left out", label, unusable_pixels(bad_pixels).sum())
+    return flat, bad_pixels

@@ -66,6 +66,7 @@ __all__ = [
     "photon_floor",
     "frame_moments",
     "solution_dataset",
+    "metrology_product",
     "FitState",
     "check_state_options",
     "metrology_stream",
@@ -1060,6 +1061,17 @@ def state_from_dataset(ds: xr.Dataset) -> FitState:
         state.history = [{"pass": int(p), "max_change": float(m), "rms_change": float(r)} for p, m, r in
                          zip(get("history_pass"), get("history_max_change"), get("history_rms_change"))]
     return state
+
+
+def metrology_product(solution: FringeSolution, detector, *, baseline: str, geometry=None) -> xr.Dataset:
+    """A baseline's metrology product (:func:`solution_dataset`, with the fibers of a spherical-wave
+    ``geometry`` and the ``baseline`` attribute), its summary logged: the single fit's and the split fit's."""
+    product = solution_dataset(solution, detector, fibers=None if geometry is None else geometry.fibers)
+    log.info("baseline %s: K = (%.6f, %.6f) rad/pixel, offsets rms %.3e pixel, photon floor %.3e pixel, "
+             "%d pixel(s) masked", baseline, *solution.k, float(product["projected_offset"].std()),
+             float(product["photon_noise_floor_rms"]), int(product["n_masked"]))
+    product.attrs["baseline"] = baseline
+    return product
 
 
 def metrology_stream(acquisition, detector, *, chunk_frames="auto"):

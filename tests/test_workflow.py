@@ -469,12 +469,25 @@ def test_a_stale_lock_is_removed_only_when_its_run_was_on_this_machine(tmp_path)
     assert not lock.exists() and "removed the lock of a run" in said
 
 
+def within_what_it_asked(workdir, rule, block, asked):
+    """Whether a planned job (its rule and block of Snakemake's output) has a benchmark; if so, assert that
+    its measured memory and time are within the ``asked`` mem_mb (less the executor's) and runtime."""
+    from dice_core import resources
+
+    benchmark = re.search(r"^\s+benchmark: (\S+)", block, re.M)
+    if not benchmark:
+        return False
+    with open(workdir / benchmark.group(1)) as handle:
+        measured = next(csv.DictReader(handle, delimiter="\t"))
+    assert float(measured["max_rss"]) <= int(asked["mem_mb"]) - resources.EXECUTOR_MB, (rule, measured)
+    assert float(measured["s"]) <= 60 * int(asked["runtime"]), (rule, measured)
+    return True
+
+
 def test_every_job_asks_for_memory_and_time_that_cover_what_its_benchmark_measured(workdir):
     """Each job's mem_mb and runtime (dice_core.resources, from the dataset's size) are in the plan, and cover
     the peak memory and the wall time its benchmark file measured in this run (the request less the
     Snakemake process that runs the job on a cluster node)."""
-    from dice_core import resources
-
     plan = snakemake(workdir, "-n", "--forceall", "--config", "dataset=ci").stdout
     jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?=^\S|\Z)", plan, re.M | re.S)
     checked = 0
@@ -483,13 +496,7 @@ def test_every_job_asks_for_memory_and_time_that_cover_what_its_benchmark_measur
             continue
         asked = dict(re.findall(r"\b(mem_mb|runtime)=(\d+)", block))
         assert set(asked) == {"mem_mb", "runtime"}, (rule, block)
-        benchmark = re.search(r"^\s+benchmark: (\S+)", block, re.M)
-        if benchmark:
-            with open(workdir / benchmark.group(1)) as handle:
-                measured = next(csv.DictReader(handle, delimiter="\t"))
-            assert float(measured["max_rss"]) <= int(asked["mem_mb"]) - resources.EXECUTOR_MB, (rule, measured)
-            assert float(measured["s"]) <= 60 * int(asked["runtime"]), (rule, measured)
-            checked += 1
+        checked += within_what_it_asked(workdir, rule, block, asked)
     assert checked >= 20  # the simulation's files, dark, flats, fits, Allan, stacks, centroids
 
 
@@ -958,8 +965,6 @@ def test_a_fit_split_across_jobs_writes_the_single_jobs_product_bit_for_bit(work
     with either stops at the same pass. Each job asks for what its benchmark measured."""
     import json
 
-    from dice_core import resources
-
     (workdir / "split.yaml").write_text("metrology:\n  split: true\n  max_passes: 4\n")
     # the ci run's calibration products, bytes and times kept: up to date, not made again
     shutil.copytree(out / "calibration", workdir / "split-results" / "sim-ci" / "calibration")
@@ -988,9 +993,4 @@ def test_a_fit_split_across_jobs_writes_the_single_jobs_product_bit_for_bit(work
     assert len(jobs) == 14
     for rule, block in jobs:
         asked = dict(re.findall(r"\b(mem_mb|runtime)=(\d+)", block))
-        benchmark = re.search(r"^\s+benchmark: (\S+)", block, re.M)
-        if benchmark:
-            with open(workdir / benchmark.group(1)) as handle:
-                measured = next(csv.DictReader(handle, delimiter="\t"))
-            assert float(measured["max_rss"]) <= int(asked["mem_mb"]) - resources.EXECUTOR_MB, (rule, measured)
-            assert float(measured["s"]) <= 60 * int(asked["runtime"]), (rule, measured)
+        within_what_it_asked(workdir, rule, block, asked)

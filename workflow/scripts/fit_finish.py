@@ -1,7 +1,5 @@
 """Snakemake step of a split fringe fit: the metrology product from the state after the last pass."""
 
-import logging
-
 import dice_core
 from dice_core import DatasetError, fringes, io
 from dice_core.geometry import BaselineGeometry, GeometryError
@@ -10,7 +8,6 @@ from dice_core.manifest import load_manifest
 
 def fit_finish(manifest_path, dark_path, prnu_paths, bad_pixel_paths, state_path, first_paths, baseline, output,
                config):
-    log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     dark = io.read_product(dark_path)
     options = config["metrology"]
@@ -25,12 +22,7 @@ def fit_finish(manifest_path, dark_path, prnu_paths, bad_pixel_paths, state_path
                                       geometry=geometry)
     except GeometryError as exc:  # the bench the manifest describes does not fit the fringes: name it
         raise DatasetError(manifest.path, f"metrology.geometry: {exc}") from exc
-    product = fringes.solution_dataset(solution, manifest.detector,
-                                       fibers=None if geometry is None else geometry.fibers)
-    log.info("baseline %s: K = (%.6f, %.6f) rad/pixel, offsets rms %.3e pixel, photon floor %.3e pixel, "
-             "%d pixel(s) masked", baseline, *solution.k, float(product["projected_offset"].std()),
-             float(product["photon_noise_floor_rms"]), int(product["n_masked"]))
-    product.attrs["baseline"] = baseline
+    product = fringes.metrology_product(solution, manifest.detector, baseline=baseline, geometry=geometry)
     # the single fit's inputs, so that the product is the same whichever way it was made; the cubes' checksums
     # as pass 1's parts recorded them while this job reads none of the cubes
     digests = {key: value for path in first_paths for key, value in io.input_digests(path).items()}

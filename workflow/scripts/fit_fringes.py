@@ -12,12 +12,7 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     dark = io.read_product(dark_path)
-    flat = io.read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
-    bad_pixels = None
-    if bad_pixel_paths:  # dead, hot and column defects out; dust pixels kept (the flat measures them)
-        bad_pixels = io.read_product(bad_pixel_paths[0])["bad_pixel"].values
-        log.info("baseline %s: %d unusable pixel(s) of the bad-pixel mask left out", baseline,
-                 calibration.unusable_pixels(bad_pixels).sum())
+    flat, bad_pixels = calibration.fringe_fit_calibrations(prnu_paths, bad_pixel_paths, label=f"baseline {baseline}")
     stream = fringes.metrology_stream(manifest.baselines[baseline], manifest.detector,
                                       chunk_frames=config["chunk_frames"])
     options = config["metrology"]
@@ -36,12 +31,7 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
                                         bad_pixels=bad_pixels, label=f"baseline {baseline}")
     except GeometryError as exc:  # the bench the manifest describes does not fit the fringes: name it
         raise DatasetError(manifest.path, f"metrology.geometry: {exc}") from exc
-    product = fringes.solution_dataset(solution, manifest.detector,
-                                       fibers=None if geometry is None else geometry.fibers)
-    log.info("baseline %s: K = (%.6f, %.6f) rad/pixel, offsets rms %.3e pixel, photon floor %.3e pixel, "
-             "%d pixel(s) masked", baseline, *solution.k, float(product["projected_offset"].std()),
-             float(product["photon_noise_floor_rms"]), int(product["n_masked"]))
-    product.attrs["baseline"] = baseline
+    product = fringes.metrology_product(solution, manifest.detector, baseline=baseline, geometry=geometry)
     io.write_product(product, output, title=f"fringe solution of baseline {baseline} of {manifest.name}",
                      config=config, inputs=[manifest.path, dark_path, *prnu_paths, *bad_pixel_paths,
                                             *manifest.baselines[baseline].files])

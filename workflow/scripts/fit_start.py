@@ -11,12 +11,7 @@ def fit_start(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline, o
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     dark = io.read_product(dark_path)
-    flat = io.read_product(prnu_paths[0])["prnu"].values if prnu_paths else None
-    bad_pixels = None
-    if bad_pixel_paths:  # dead, hot and column defects out; dust pixels kept (the flat measures them)
-        bad_pixels = io.read_product(bad_pixel_paths[0])["bad_pixel"].values
-        log.info("baseline %s: %d unusable pixel(s) of the bad-pixel mask left out", baseline,
-                 calibration.unusable_pixels(bad_pixels).sum())
+    flat, bad_pixels = calibration.fringe_fit_calibrations(prnu_paths, bad_pixel_paths, label=f"baseline {baseline}")
     stream = fringes.metrology_stream(manifest.baselines[baseline], manifest.detector,
                                       chunk_frames=config["chunk_frames"])
     options = config["metrology"]
