@@ -89,19 +89,28 @@ class FringeError(ValueError):
     """Metrology data that cannot give pixel offsets (no contrast, phase sweep too short...)."""
 
 
+#: Padded length (per axis) beyond which :func:`initial_wavevector` pads no further: a frame of
+#: 1024 pixels a side is padded twice (64 MiB of complex spectrum), one of 4096 not at all
+#: (256 MiB), where eightfold would take 1 and 17 GB.
+WAVEVECTOR_PADDED_MAX = 2048
+
+
 def initial_wavevector(frame: np.ndarray, mask: np.ndarray, *, pad: int = 8) -> np.ndarray:
     """Fringe wavevector (kx, ky) in rad/pixel from the Fourier transform of one frame.
 
     The frame's mean is removed over ``mask``, the masked area is zero-padded
-    ``pad`` times, and the peak of the power spectrum (one half-plane) is
-    refined by a parabola through its neighbours. Precise to about 1e-4
-    rad/pixel on an 80x84 frame, enough for the linearised fits that follow.
+    ``pad`` times, but to no more than :data:`WAVEVECTOR_PADDED_MAX` samples
+    per axis (never fewer than the area's own), and the peak of the power
+    spectrum (one half-plane) is refined by a parabola through its
+    neighbours. Precise to about 1e-4 rad/pixel on an 80x84 frame (a larger
+    frame has finer frequency bins without padding), enough for the
+    linearised fits that follow.
     """
     rows, cols = np.nonzero(mask)
     r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
     sub = np.where(mask[r0:r1, c0:c1], frame[r0:r1, c0:c1], np.nan)
     sub = np.nan_to_num(sub - np.nanmean(sub))
-    ny, nx = pad * sub.shape[0], pad * sub.shape[1]
+    ny, nx = (max(n, min(pad * n, WAVEVECTOR_PADDED_MAX)) for n in sub.shape)
     power = np.abs(np.fft.fft2(sub, s=(ny, nx))) ** 2
     fy, fx = np.fft.fftfreq(ny), np.fft.fftfreq(nx)
     # half-plane fx > 0 (or fx == 0, fy > 0), away from the zero frequency

@@ -259,7 +259,7 @@ class SimulationConfig:
     name: str = "sim-default"
     seed: int = 20150926
     frames_per_file: int = 5000
-    chunk_frames: int = 256
+    chunk_frames: int = 256            # at most; fewer on a large detector (simulation_chunk_frames)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     dark: DarkConfig = field(default_factory=DarkConfig)
     flats: FlatConfig = field(default_factory=FlatConfig)
@@ -811,8 +811,25 @@ def _read_out(signal: np.ndarray, truth: xr.Dataset, cfg: SimulationConfig, phot
     return samples
 
 
+#: Samples of one chunk of simulated frames: each float64 temporary of the signal and noise is 16 MiB.
+SIMULATION_CHUNK_SAMPLES = 2**21
+
+
+def simulation_chunk_frames(cfg: SimulationConfig) -> int:
+    """Frames simulated at once: ``cfg.chunk_frames``, fewer where they would exceed
+    :data:`SIMULATION_CHUNK_SAMPLES` samples (at least one frame).
+
+    A simulation job's memory is a few float64 temporaries of one chunk: 256
+    frames of 80x84 pixels are 14 MB each, of 1024x1024 pixels 2.1 GB. The
+    frames do not depend on the chunk (every generator is drawn in frame
+    order), so this changes memory only.
+    """
+    pixels = cfg.detector.shape[0] * cfg.detector.shape[1]
+    return max(1, min(cfg.chunk_frames, SIMULATION_CHUNK_SAMPLES // pixels))
+
+
 def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, name, start: int, stop: int):
-    """Yield raw frames [start, stop) of one acquisition, in chunks of ``cfg.chunk_frames``.
+    """Yield raw frames [start, stop) of one acquisition, in chunks of :func:`simulation_chunk_frames`.
 
     Parameters
     ----------
@@ -865,8 +882,9 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, n
     elif kind != "dark":
         raise ValueError(f"unknown acquisition kind {kind!r}")
 
-    for first in range(start, stop, cfg.chunk_frames):
-        last = min(stop, first + cfg.chunk_frames)
+    step = simulation_chunk_frames(cfg)
+    for first in range(start, stop, step):
+        last = min(stop, first + step)
         n = last - first
         if kind == "dark":
             signal = np.zeros((n, *shape))

@@ -72,6 +72,22 @@ def test_frames_do_not_depend_on_chunk_size(dataset):
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_large_detector_is_simulated_in_chunks_of_few_frames(dataset, monkeypatch):
+    import dataclasses
+
+    cfg, _, truth = dataset
+    pixels = cfg.detector.shape[0] * cfg.detector.shape[1]
+    large = dataclasses.replace(cfg, detector=dataclasses.replace(cfg.detector, shape=(1024, 1024)))
+    assert simulation.simulation_chunk_frames(cfg) == cfg.chunk_frames == 256  # the presets' detectors: unchanged
+    assert simulation.simulation_chunk_frames(large) == 2  # 2 x 1024 x 1024 float64 = 16 MiB a temporary
+    whole = np.concatenate(list(simulation.acquisition_chunks(cfg, truth, kind="baseline", name="H1H4", start=0,
+                                                              stop=20)))
+    monkeypatch.setattr(simulation, "SIMULATION_CHUNK_SAMPLES", 3 * pixels + 1)
+    chunks = list(simulation.acquisition_chunks(cfg, truth, kind="baseline", name="H1H4", start=0, stop=20))
+    assert [len(c) for c in chunks] == [3, 3, 3, 3, 3, 3, 2]
+    np.testing.assert_array_equal(np.concatenate(chunks), whole)
+
+
 @pytest.mark.parametrize("threshold", [1000.0, None])
 @pytest.mark.parametrize("level", [3.0, 40.0, 8000.0])  # adu: 30 and 400 e- are Poisson, 8e4 e- normal
 def test_photon_and_read_noise_have_the_poisson_mean_and_variance(level, threshold):

@@ -994,3 +994,8 @@ def test_a_fit_split_across_jobs_writes_the_single_jobs_product_bit_for_bit(work
     for rule, block in jobs:
         asked = dict(re.findall(r"\b(mem_mb|runtime)=(\d+)", block))
         within_what_it_asked(workdir, rule, block, asked)
+        if rule == "fit_part":  # a part declares its own file (ci: one of 150 frames a part), no other
+            part = int(re.search(r"part_(\d+)\.nc", block).group(1))
+            assert re.findall(r"H1H4_\d+\.fits", block) == [f"H1H4_{part:03d}.fits"], block
+    # the states and parts are temporary: removed once the product is written
+    assert not list((workdir / "split-results" / "sim-ci" / "metrology" / "split").rglob("*.nc"))

@@ -579,6 +579,15 @@ def acquisition_frames(acquisition):
     return sum(file_frames(f) for f in acquisition.files)
 
 
+def part_files(wildcards):
+    """The files of part ``wildcards.part`` of a split fit of ``wildcards.baseline``: the group of whole files
+    dice_core.io.FrameStream.split gives the part (none for a part beyond the groups)."""
+    files = acquisition_files(MANIFEST.baselines[wildcards.baseline])
+    groups = file_groups([file_frames(f) for f in files], config["metrology"]["parts"])
+    part = int(wildcards.part)
+    return files[slice(*groups[part])] if part < len(groups) else []
+
+
 def job_data(step, wildcards):
     """{frames, positions} a job of a step reads (or writes, for the simulation)."""
     positions = len(MANIFEST.positions)
@@ -593,10 +602,7 @@ def job_data(step, wildcards):
     if step in ("fit_fringes", "allan_deviation", "fit_reduce", "fit_finish"):
         return {"frames": acquisition_frames(MANIFEST.baselines[wildcards.baseline])}
     if step == "fit_part":  # its own files' frames only (none for a part beyond the groups of files)
-        counts = [file_frames(f) for f in MANIFEST.baselines[wildcards.baseline].files]
-        groups = file_groups(counts, config["metrology"]["parts"])
-        part = int(wildcards.part)
-        return {"frames": sum(counts[groups[part][0] : groups[part][1]]) if part < len(groups) else 0}
+        return {"frames": sum(file_frames(f) for f in part_files(wildcards))}
     if step == "fit_start":  # the first chunk only
         return {"frames": 0}
     if step == "stack_position":

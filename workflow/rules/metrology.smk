@@ -19,7 +19,7 @@ if config["metrology"]["split"]:
             bad_pixels=bad_pixel_mask,
             cubes=baseline_files,
         output:
-            state=f"{SPLIT}/state_0.nc",
+            state=temp(f"{SPLIT}/state_0.nc"),
         log:
             f"{OUT}/logs/fit_start_{{baseline}}.log",
         benchmark:
@@ -40,11 +40,14 @@ if config["metrology"]["split"]:
         input:
             manifest=MANIFEST_FILE,
             state=lambda w: f"{OUT}/metrology/split/{w.baseline}/state_{int(w.npass) - 1}.nc",
-            cubes=baseline_files,
+            # its own group of files only: it reads no other samples (the others' headers, which every job of
+            # the fit reads, exist once fit_start has run)
+            cubes=part_files,
             # pass 1's part, which recorded its files' checksums: later passes do not read them again for it
             first=lambda w: [f"{OUT}/metrology/split/{w.baseline}/pass_1/part_{w.part}.nc"] if int(w.npass) > 1 else [],
         output:
-            part=f"{SPLIT}/pass_{{npass}}/part_{{part}}.nc",
+            # small (25 bytes a pixel), but one per part and pass: removed once the passes that need it have run
+            part=temp(f"{SPLIT}/pass_{{npass}}/part_{{part}}.nc"),
         log:
             f"{OUT}/logs/fit_part_{{baseline}}_{{npass}}_{{part}}.log",
         benchmark:
@@ -72,7 +75,7 @@ if config["metrology"]["split"]:
                 for part in range(config["metrology"]["parts"])
             ],
         output:
-            state=f"{SPLIT}/state_{{npass}}.nc",
+            state=temp(f"{SPLIT}/state_{{npass}}.nc"),
         log:
             f"{OUT}/logs/fit_reduce_{{baseline}}_{{npass}}.log",
         benchmark:
@@ -96,8 +99,8 @@ if config["metrology"]["split"]:
             prnu=prnu_for_metrology,
             bad_pixels=bad_pixel_mask,
             state=f"{SPLIT}/state_{PASSES}.nc",
-            cubes=baseline_files,  # recorded with their checksums, as the single job records them,
-            # from pass 1's parts, which read them: this job does not
+            # the cubes are recorded with their checksums, as the single job records them, from pass 1's parts,
+            # which read them: this job reads none
             first=lambda w: [
                 f"{OUT}/metrology/split/{w.baseline}/pass_1/part_{part}.nc"
                 for part in range(config["metrology"]["parts"])
