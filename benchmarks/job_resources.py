@@ -2,7 +2,9 @@
 
     python benchmarks/job_resources.py results/sim-ci /tmp/big/results/sim-ci ...
 
-Each argument is a results folder of one run (results/<name>/, with raw/dataset.yaml and benchmarks/). Every
+Each argument is a results folder of one run (results/<name>/, with raw/dataset.yaml and benchmarks/), or the
+<name>.json record of a run of benchmarks/large_detector.py (the same rows, taken before it removed the raw
+files). Every
 ``benchmark:`` file of the runs (max_rss in MB, wall time s) is matched with its job's data: the detector's
 pixels, the frames it read (its files' NAXIS3) and the positions. For each step the script prints
 
@@ -17,6 +19,7 @@ with more frames), or the fit cannot tell the per-pixel cost from the per-sample
 
 import argparse
 import csv
+import json
 import re
 import sys
 from collections import defaultdict
@@ -27,11 +30,26 @@ from astropy.io import fits
 from scipy.optimize import nnls
 
 from dice_core import resources
+from dice_core.io import file_groups
 from dice_core.manifest import load_manifest
 
 
+def file_frames(acquisition):
+    return [int(fits.getheader(f)["NAXIS3"]) for f in acquisition.files]
+
+
 def frames(acquisition):
-    return sum(int(fits.getheader(f)["NAXIS3"]) for f in acquisition.files)
+    return sum(file_frames(acquisition))
+
+
+def part_frames(results, manifest, baseline, npass, part):
+    """Frames a split fit's part job read: its group of files' (the workflow's grouping), none once converged."""
+    if "nothing to read" in (results / "logs" / f"fit_part_{baseline}_{npass}_{part}.log").read_text():
+        return 0
+    counts = file_frames(manifest.baselines[baseline])
+    parts = len(list((results / "benchmarks").glob(f"fit_part_{baseline}_1_*.tsv")))
+    groups = file_groups(counts, parts)
+    return sum(counts[slice(*groups[part])]) if part < len(groups) else 0
 
 
 def jobs(results):
@@ -50,7 +68,13 @@ def jobs(results):
             step, n, k = name, frames(manifest.dark), 0
         elif name.startswith("measure_prnu_"):
             step, n, k = "measure_prnu", frames(manifest.flats[name[len("measure_prnu_"):]]), 0
-        elif m := re.fullmatch(r"(fit_fringes|allan_deviation)_(.+)", name):
+        elif m := re.fullmatch(r"fit_part_(.+)_(\d+)_(\d+)", name):
+            step, n, k = "fit_part", part_frames(results, manifest, m.group(1), m.group(2), int(m.group(3))), 0
+        elif m := re.fullmatch(r"fit_reduce_(.+)_\d+", name):
+            step, n, k = "fit_reduce", frames(manifest.baselines[m.group(1)]), 0
+        elif m := re.fullmatch(r"fit_start_(.+)", name):  # reads the first chunk only (the workflow's job_data)
+            step, n, k = "fit_start", 0, 0
+        elif m := re.fullmatch(r"(fit_fringes|allan_deviation|fit_finish)_(.+)", name):
             step, n, k = m.group(1), frames(manifest.baselines[m.group(2)]), 0
         elif m := re.fullmatch(r"stack_position_(\d+)", name):
             step, n, k = "stack_position", frames(by_index[m.group(1)].acquisition), 0
@@ -66,11 +90,17 @@ def jobs(results):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("results", nargs="+", help="results/<name>/ folders of workflow runs")
+    parser.add_argument("results", nargs="+", help="results/<name>/ folders of workflow runs, or the <name>.json "
+                                                   "records of benchmarks/large_detector.py")
     args = parser.parse_args(argv)
     by_step = defaultdict(list)
     for folder in args.results:
-        for job in jobs(folder):
+        if folder.endswith(".json"):  # benchmarks/large_detector.py's record of a run whose raw files are gone
+            recorded = json.loads(Path(folder).read_text())["resources"]
+            rows = [(*row[:6], Path(row[6])) for row in recorded]
+        else:
+            rows = jobs(folder)
+        for job in rows:
             by_step[job[0]].append(job[1:])
     worst = 0.0
     for step, rows in sorted(by_step.items()):

@@ -45,7 +45,8 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
-from workflow_metrology import PLAIN_PASS, machine  # noqa: E402  (a script beside this one)
+import job_resources  # noqa: E402  (scripts beside this one)
+from workflow_metrology import PLAIN_PASS, machine  # noqa: E402
 
 BASELINE = "H1H4"
 PRESET = REPO / "config" / "presets" / "large.yaml"
@@ -173,6 +174,9 @@ def run_size(size: str, args) -> dict:
     reduce_s = snakemake(configfile, *targets)
     plain_s = plain_pass(manifest)
     jobs = benchmark_rows(out, args.parts)
+    # each job's data as the workflow's resources see it, for job_resources.py once the raw files are gone
+    requested = [[step, int(p), int(n), int(k), float(rss), float(wall), str(tsv)]
+                 for step, p, n, k, rss, wall, tsv in job_resources.jobs(out)]
     converged = converged_at(out)
     tag_after_convergence(jobs, converged)
     single = None
@@ -192,7 +196,8 @@ def run_size(size: str, args) -> dict:
                "gsamples": rows * cols * frames / 1e9, "raw_gb": raw_bytes / 1e9, "cube_gb": cube_bytes / 1e9,
                "simulate_s": simulate_s, "reduce_s": reduce_s, "plain_pass_s": plain_s,
                "converged_at": converged, "largest_process_mb_so_far": largest_mb, "single_fit": single,
-               "parts": args.parts, "max_passes": args.max_passes, "target": args.target, "jobs": jobs}
+               "parts": args.parts, "max_passes": args.max_passes, "target": args.target, "jobs": jobs,
+               "resources": requested}
     (args.workdir / f"{name}.json").write_text(json.dumps(summary, indent=1))
     print_size(summary)
     if args.drop_raw:
