@@ -466,21 +466,26 @@ def test_a_fit_split_across_jobs_is_the_single_fit_bit_for_bit(tmp_path, caplog)
     """Four files, in 2 parts (the default), 3 (halves of unequal parts for the gauge floor) and 5 (a part
     without files): each pass's parts reduced separately into netCDF products, summed in part order by
     another step, the state written between passes: the single process's solution, bit for bit. Dead
-    pixels (not in a mask) leave the fit at pass 1 for no contrast, and a tolerance the fit cannot meet masks pixels
-    at the end: both as in the single fit."""
+    pixels (not in a mask) leave the fit at pass 1 for no contrast, hot pixels (not in a mask either) are
+    saturated in some frames of some parts, two pixels are flagged in a bad-pixel mask, and a tolerance the fit
+    cannot meet masks pixels at the end: all as in the single fit."""
     manifest, truth = simulate(tmp_path, metrology={"frames": 1200}, frames_per_file=300,
-                               detector={"dead_pixels": 3})
+                               detector={"dead_pixels": 3, "hot_pixels": 2, "hot_level": 55000.0})
     assert len(manifest.baselines["H1H4"].files) == 4
+    mask = np.zeros_like(truth["bad_pixel"].values)
+    assert not truth["bad_pixel"].values[[40, 41], [50, 20]].any()
+    mask[40, 50] = mask[41, 20] = 1  # flagged dead in the mask (working in fact): left out all the same
     for parts in (2, 3, 5):
         with caplog.at_level("INFO", logger="dice_core.fringes"):
             caplog.clear()
-            single = fit(manifest, truth, "H1H4", parts=parts)
+            single = fit(manifest, truth, "H1H4", parts=parts, bad_pixels=mask)
             single_log = caplog.text
             caplog.clear()
             (tmp_path / f"split{parts}").mkdir()
-            split = split_fit(manifest, truth, "H1H4", tmp_path / f"split{parts}", parts=parts)
+            split = split_fit(manifest, truth, "H1H4", tmp_path / f"split{parts}", parts=parts, bad_pixels=mask)
         assert_same_solution(single, split)
         assert single.masked_by_reason["no_contrast"] > 0  # pixels that left during the passes
+        assert single.masked_by_reason["saturated"] == 2 and single.masked_by_reason["bad_pixel"] == 2
         n_pass = single.history[-1]["pass"]
         assert f"converged to 1.0e-07 pixel at pass {n_pass}" in single_log and n_pass < 10
         assert f"converged to 1.0e-07 pixel at pass {n_pass}" in caplog.text
