@@ -42,24 +42,29 @@ def frames(acquisition):
     return sum(file_frames(acquisition))
 
 
-def part_frames(results, manifest, baseline, npass, part):
+def part_frames(results, manifest, baseline, npass, part, parts):
     """Frames a split fit's part job read: its group of files' (the workflow's grouping), none once converged."""
     if "nothing to read" in (results / "logs" / f"fit_part_{baseline}_{npass}_{part}.log").read_text():
         return 0
     counts = file_frames(manifest.baselines[baseline])
-    parts = len(list((results / "benchmarks").glob(f"fit_part_{baseline}_1_*.tsv")))
     groups = file_groups(counts, parts)
     return sum(counts[slice(*groups[part])]) if part < len(groups) else 0
 
 
-def jobs(results):
-    """(step, pixels, frames, positions, max_rss MB, wall s, benchmark file) of each benchmark of a run."""
+def jobs(results, *, parts=None, since=0.0):
+    """(step, pixels, frames, positions, max_rss MB, wall s, benchmark file) of each benchmark of a run.
+
+    ``parts``: the split fit's metrology.parts (default: the pass-1 part jobs' benchmark files); ``since``: a
+    time.time() before which a benchmark file is an earlier run's and left out.
+    """
     results = Path(results)
     manifest = load_manifest(results / "raw" / "dataset.yaml")
     pixels = manifest.detector.shape[0] * manifest.detector.shape[1]
     positions = len(manifest.positions)
     by_index = {str(p.index): p for p in manifest.positions}
     for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
+        if tsv.stat().st_mtime < since:
+            continue
         rel = tsv.relative_to(results / "benchmarks").with_suffix("").as_posix()
         name = rel.split("/")[-1]
         if rel.startswith("simulate/"):
@@ -69,7 +74,9 @@ def jobs(results):
         elif name.startswith("measure_prnu_"):
             step, n, k = "measure_prnu", frames(manifest.flats[name[len("measure_prnu_"):]]), 0
         elif m := re.fullmatch(r"fit_part_(.+)_(\d+)_(\d+)", name):
-            step, n, k = "fit_part", part_frames(results, manifest, m.group(1), m.group(2), int(m.group(3))), 0
+            baseline = m.group(1)
+            n_parts = parts or len(list((results / "benchmarks").glob(f"fit_part_{baseline}_1_*.tsv")))
+            step, n, k = "fit_part", part_frames(results, manifest, baseline, m.group(2), int(m.group(3)), n_parts), 0
         elif m := re.fullmatch(r"fit_reduce_(.+)_\d+", name):
             step, n, k = "fit_reduce", frames(manifest.baselines[m.group(1)]), 0
         elif m := re.fullmatch(r"fit_start_(.+)", name):  # reads the first chunk only (the workflow's job_data)

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import xarray as xr
+from scipy import sparse
 
 from dice_core.fringes import frame_moments, photon_floor
 from dice_core.io import first_chunk
@@ -412,21 +413,25 @@ def _allan_of_means(means):
     return np.sqrt(np.mean(np.diff(means, axis=0) ** 2, axis=0) / 2)
 
 
-def block_weights(rows, cols, *, good, block: int = 10) -> np.ndarray:
-    """Averaging matrix (pixel, block) over block x block squares of the ``good`` pixels.
+def block_weights(rows, cols, *, good, block: int = 10) -> sparse.csr_array:
+    """Averaging matrix (pixel, block) over block x block squares of the ``good`` pixels, sparse.
 
     Blocks tile the bounding box of the pixels from its first row and column;
     only whole blocks are kept, and a block's weights are 1 / (its good
-    pixels). ``maps @ weights`` gives block means.
+    pixels). ``maps @ weights`` gives block means (an ndarray), and
+    ``weights**2`` squares each weight. Sparse, one weight a pixel: dense,
+    the matrix would hold pixels^2 / block^2 numbers (85 GB on a 1024x1024
+    detector).
     """
     r0, c0 = rows.min(), cols.min()
     n_r, n_c = (rows.max() - r0 + 1) // block, (cols.max() - c0 + 1) // block
     br, bc = (rows - r0) // block, (cols - c0) // block
-    members = np.zeros((rows.size, n_r * n_c))
-    inside = good & (br < n_r) & (bc < n_c)
-    members[np.flatnonzero(inside), (br * n_c + bc)[inside]] = 1.0
-    members = members[:, members.sum(axis=0) > 0]
-    return members / members.sum(axis=0)
+    inside = np.flatnonzero(good & (br < n_r) & (bc < n_c))
+    members = (br * n_c + bc)[inside]
+    counts = np.bincount(members, minlength=n_r * n_c)
+    column = np.cumsum(counts > 0) - 1  # the blocks holding a good pixel, in block order
+    return sparse.csr_array((1.0 / counts[members], (inside, column[members])),
+                            shape=(rows.size, int(np.count_nonzero(counts))))
 
 
 def photon_limit(n_frames, level, *, amplitude, iota, alpha, gain, read_noise, k_norm):

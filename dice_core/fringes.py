@@ -102,9 +102,10 @@ def initial_wavevector(frame: np.ndarray, mask: np.ndarray, *, pad: int = 8) -> 
     ``pad`` times, but to no more than :data:`WAVEVECTOR_PADDED_MAX` samples
     per axis (never fewer than the area's own), and the peak of the power
     spectrum (one half-plane) is refined by a parabola through its
-    neighbours. Precise to about 1e-4 rad/pixel on an 80x84 frame (a larger
-    frame has finer frequency bins without padding), enough for the
-    linearised fits that follow.
+    neighbours. Precise to about 1e-4 rad/pixel on an 80x84 frame (0.01
+    rad across it) and 2e-4 on a 1024x1024 one (0.2 rad across it), which
+    pass 1's K(t) terms take up: the fits that follow are linearised about
+    it.
     """
     rows, cols = np.nonzero(mask)
     r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1

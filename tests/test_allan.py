@@ -52,8 +52,13 @@ def test_block_weights_average_whole_blocks_of_good_pixels():
     good[0] = False
     weights = allan.block_weights(rows, cols, good=good, block=10)
     assert weights.shape == (rows.size, 4)  # 2 x 2 whole blocks; the partial ones are left out
-    np.testing.assert_allclose(weights.sum(axis=0), 1)
-    assert weights[0].sum() == 0 and np.count_nonzero(weights[:, 0]) == 99
+    assert weights.nnz == 99 + 3 * 100  # sparse: one weight a good pixel of a whole block, nothing else stored
+    dense = weights.toarray()
+    np.testing.assert_allclose(dense.sum(axis=0), 1)
+    assert dense[0].sum() == 0 and np.count_nonzero(dense[:, 0]) == 99
+    maps = np.random.default_rng(1).standard_normal((3, rows.size))
+    np.testing.assert_allclose(maps @ weights, maps @ dense, rtol=1e-14)  # block means, an ndarray
+    np.testing.assert_array_equal((weights**2).toarray(), dense**2)  # elementwise: the block variances' weights
 
 
 def simulate_and_fit(tmp_path, **metrology):

@@ -1,5 +1,7 @@
 """The simulated testbed: format, determinism, statistics of each acquisition, and the star geometry."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -78,7 +80,10 @@ def test_a_large_detector_is_simulated_in_chunks_of_few_frames(dataset, monkeypa
     cfg, _, truth = dataset
     pixels = cfg.detector.shape[0] * cfg.detector.shape[1]
     large = dataclasses.replace(cfg, detector=dataclasses.replace(cfg.detector, shape=(1024, 1024)))
-    assert simulation.simulation_chunk_frames(cfg) == cfg.chunk_frames == 256  # the presets' detectors: unchanged
+    assert simulation.simulation_chunk_frames(cfg) == cfg.chunk_frames == 256
+    for preset in ("ci", "default", "paper"):  # their data as before: chunks of 256 frames
+        path = Path(__file__).parents[1] / "config" / "presets" / f"{preset}.yaml"
+        assert simulation.simulation_chunk_frames(simulation.load_preset(path)) == 256
     assert simulation.simulation_chunk_frames(large) == 2  # 2 x 1024 x 1024 float64 = 16 MiB a temporary
     whole = np.concatenate(list(simulation.acquisition_chunks(cfg, truth, kind="baseline", name="H1H4", start=0,
                                                               stop=20)))
@@ -209,10 +214,8 @@ def test_unknown_config_keys_are_refused():
         simulation.SimulationConfig.from_dict({"detector": {"science_rows": [0, 200]}})
 
 
-@pytest.mark.parametrize("preset", ["default", "ci", "paper"])
+@pytest.mark.parametrize("preset", ["default", "ci", "paper", "large"])
 def test_presets_load_and_lay_out_a_valid_manifest(preset, tmp_path):
-    from pathlib import Path
-
     from dice_core.manifest import parse_manifest
 
     cfg = simulation.load_preset(Path(__file__).parents[1] / "config" / "presets" / f"{preset}.yaml")

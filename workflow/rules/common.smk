@@ -119,6 +119,15 @@ wildcard_constraints:
 _SKIPPED = vars(workflow).setdefault("_dice_skipped", set())
 
 
+def script_version(*names):
+    """Hash of workflow/scripts/<name>.py for each name, passed as a param where a rule stands for steps whose
+    scripts are not its own (Snakemake's code trigger sees a rule's own script only)."""
+    digest = hashlib.sha256()
+    for name in names:
+        digest.update((Path(workflow.basedir) / "workflow" / "scripts" / f"{name}.py").read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def skipped(what, why):
     """Say once what this dataset does not allow (the target functions are called more than once)."""
     message = f"dice: skipping {what}: {why}"

@@ -99,8 +99,9 @@ if config["metrology"]["split"]:
             prnu=prnu_for_metrology,
             bad_pixels=bad_pixel_mask,
             state=f"{SPLIT}/state_{PASSES}.nc",
-            # the cubes are recorded with their checksums, as the single job records them, from pass 1's parts,
-            # which read them: this job reads none
+            # not read (their checksums come from pass 1's parts), but declared: the states and parts are
+            # temporary, so this job is what a changed cube makes rerun, and with it the passes
+            cubes=baseline_files,
             first=lambda w: [
                 f"{OUT}/metrology/split/{w.baseline}/pass_1/part_{part}.nc"
                 for part in range(config["metrology"]["parts"])
@@ -117,8 +118,12 @@ if config["metrology"]["split"]:
             **step_resources("fit_finish"),
         params:
             roots=ROOTS,  # inputs are recorded relative to these
-            code=code_version("io", "manifest", "fringes", "geometry"),
+            # the code, scripts and settings of every step of the split fit: its states and parts are temporary,
+            # so a change to any of them must rerun this job (and through its missing inputs, the passes)
+            code=code_version("io", "manifest", "calibration", "fringes", "geometry"),
+            scripts=script_version("fit_start", "fit_part", "fit_reduce"),
             options=config["metrology"],
+            chunk_frames=config["chunk_frames"],
         script:
             "../scripts/fit_finish.py"
 
