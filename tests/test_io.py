@@ -276,7 +276,10 @@ def test_split_into_consecutive_groups_of_whole_files(tmp_path, rng):
 def test_chunk_size_is_chosen_for_the_cache_unless_given(tmp_path, rng):
     write_cube(tmp_path / "a.fits", [cube(3, rng)], shape=(6, 7), n_frames=3)
     assert stream([tmp_path / "a.fits"]).chunk_frames == auto_chunk_frames((6, 7)) == CHUNK_BYTES // (4 * 42)
-    assert auto_chunk_frames((80, 84)) == 39 and auto_chunk_frames((2048, 2048)) == 1
+    assert auto_chunk_frames((80, 84)) == 39 and auto_chunk_frames((40, 44)) == 148  # the presets': in the cache
+    # a large detector: at least 16 frames (the projector's traffic), at most 256 MiB of float32
+    assert auto_chunk_frames((512, 512)) == auto_chunk_frames((2048, 2048)) == 16
+    assert auto_chunk_frames((4096, 4096)) == 4 and auto_chunk_frames((10000, 10000)) == 1
     assert stream([tmp_path / "a.fits"], chunk_frames=2).chunk_frames == 2
     for bad in (0, "fast"):
         with pytest.raises(ValueError, match="chunk_frames"):
