@@ -12,8 +12,9 @@ Each step's cost is a linear model of those,
 
 whose coefficients come from the workflow's own ``benchmark:`` files (max_rss
 and wall time of each job) on the ``ci`` preset, on the ``ci`` preset with a
-detector 8 times larger on a side, and on the default and paper presets
-(BENCHMARKS.md, "Job resources"). Memory does not grow with frames for the
+detector 8 times larger on a side, on the default and paper presets, and on
+the ``large`` preset's detector from 256x256 to 1024x1024 pixels
+(BENCHMARKS.md, "Job resources" and "A large detector"). Memory does not grow with frames for the
 streaming steps (the cubes are read in chunks) but for per-frame series (the
 fit's frame factors: tens of bytes a frame); it grows with pixels (the
 per-pixel maps and accumulators) and, for the Allan deviations, with the
@@ -85,25 +86,32 @@ class StepCost:
 
 #: Cost of each step, by rule name (BENCHMARKS.md, "Job resources"). Rules not listed here cost :data:`LIGHT`.
 STEPS: dict[str, StepCost] = {
-    "simulate_file": StepCost(base_mb=230.0, mb_per_mpixel=2000.0, start_s=3.0, s_per_gsample=25.0),
+    # 2.3-2.4 GB for a metrology file of 1024x1024 pixels (its truth maps and the spherical fringes'
+    # per-pixel response); 48-66 s per 1e9 samples at every size (BENCHMARKS.md, "A large detector")
+    "simulate_file": StepCost(base_mb=230.0, mb_per_mpixel=2200.0, start_s=3.0, s_per_gsample=60.0),
     "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
     "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
+    # 1961 MB and 180 s for 1024x1024 x 5000 frames: three passes and the cubes' checksums
     "fit_fringes": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
-                            s_per_gsample=3.0),
-    # A split fit's jobs (docs/metrology.md). A part holds the projector, F'X and a chunk per pixel and its
-    # own frames' products (frames: its files' frames): 260 MB per Mpixel measured (a 320x352 detector, 135
-    # and 164 MB max_rss at 1760 and 112,640 pixels, shared cores), 600 asked; the start forms pass 1's
-    # 7-column design and projector, 1610 MB per Mpixel measured the same way. The sum of a pass and the
-    # product hold all frames' factors (frames: the baseline's) and the gauge fits: fit_fringes' costs.
+                            s_per_gsample=35.0, s_per_mpixel=80.0),
+    # A split fit's jobs (docs/metrology.md), measured on 256x256 to 1024x1024 detectors (BENCHMARKS.md, "A
+    # large detector"). A part holds the projector, F'X and a chunk per pixel and its own frames' products
+    # (frames: its files' frames): 438 MB at 1024x1024 whether its files hold 2000 or 10,000 frames; pass 1
+    # reads its files twice (their checksums, then the pass): 14.5 s per 1e9 samples from the disk, 8 for
+    # a later pass. The start forms pass 1's 7-column design and projector: 536 MB at 1024x1024. The sum of
+    # a pass (1.5-1.6 GB, 11 s) and the product (1.85 GB, 74-78 s: the pixel solution and the tips'
+    # refinement) hold all frames' factors (frames: the baseline's) and per-pixel arrays.
     "fit_start": StepCost(base_mb=400.0, mb_per_mpixel=2500.0, start_s=3.0, s_per_mpixel=60.0),
     "fit_part": StepCost(base_mb=400.0, mb_per_mpixel=600.0, mb_per_mframe=170.0, start_s=3.0,
-                         s_per_gsample=3.0),
+                         s_per_gsample=15.0),
     "fit_reduce": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
                            s_per_mpixel=30.0),
     "fit_finish": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
-                           s_per_mpixel=30.0),  # reads the state and the parts' digests, no cube
-    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=5000.0, mb_per_gsample=110.0, start_s=3.0,
-                                s_per_gsample=3.0),
+                           s_per_mpixel=80.0),  # reads the state and the parts' digests, no cube
+    # each batch's offset map in memory: batches (one a fringe period) x pixels; 7.2 GB and 353 s for
+    # 1024x1024 x 20,000 frames (160 batches)
+    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=1000.0, mb_per_gsample=300.0, start_s=3.0,
+                                s_per_gsample=17.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),
     "measure_centroids": StepCost(base_mb=170.0, start_s=5.0, s_per_position=0.1),
     # the studies' own benches, whatever the dataset: the largest point measured (offset bias, 22 s)
