@@ -11,6 +11,7 @@ naming the manifest (or the missing file) and the problem.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -19,7 +20,7 @@ import jsonschema
 import numpy as np
 import yaml
 
-from dice_core import DatasetError
+from dice_core import DatasetError, yamlfile
 
 __all__ = [
     "Acquisition",
@@ -30,6 +31,8 @@ __all__ = [
     "load_manifest",
     "parse_manifest",
     "FORMAT",
+    "NAME_PATTERN",
+    "name_problem",
 ]
 
 FORMAT = "dice-dataset/1"
@@ -172,12 +175,15 @@ class Manifest:
         """Name of the reference metrology pair (the first one listed), or None."""
         return next(iter(self.pairs), None)
 
-    def all_files(self) -> list[Path]:
-        """Every FITS file the manifest names, in manifest order."""
+    def acquisitions(self) -> list[Acquisition]:
+        """Every acquisition (dark, flats, baselines, star positions), in manifest order."""
         acquisitions = [self.dark] if self.dark else []
         acquisitions += list(self.flats.values()) + list(self.baselines.values())
-        acquisitions += [p.acquisition for p in self.positions]
-        return [f for acq in acquisitions for f in acq.files]
+        return acquisitions + [p.acquisition for p in self.positions]
+
+    def all_files(self) -> list[Path]:
+        """Every FITS file the manifest names, in manifest order."""
+        return [f for acq in self.acquisitions() for f in acq.files]
 
 
 def _schema() -> dict:
@@ -185,8 +191,35 @@ def _schema() -> dict:
     return yaml.safe_load(text)
 
 
+#: What a name that becomes part of a file path may be (the schema's ``$defs.name``): the dataset's name
+#: (its results folder) and the keys of flats, baselines and pairs (products such as
+#: ``metrology/<baseline>.nc``). Letters, digits, ``_``, ``-`` and ``.``, not starting with ``.`` (so no
+#: ``.``, ``..`` nor hidden file), at most 64 characters: the products add their own prefixes, and the
+#: temporary files 20 more characters, to a file name that most filesystems cap at 255 bytes.
+NAME_PATTERN = _schema()["$defs"]["name"]["pattern"]
+
+
+def name_problem(value) -> str | None:
+    """Why ``value`` cannot be a name that becomes part of a path, or None if it can."""
+    if isinstance(value, str) and re.fullmatch(NAME_PATTERN, value):
+        return None
+    return (f"{value!r} is not a valid name: names become parts of file paths, so they hold only letters, "
+            "digits, '_', '-' and '.', do not start with '.', and have at most 64 characters")
+
+
 def _fail(path, problem):
     raise DatasetError(path, problem)
+
+
+def _shown(value, limit: int = 60) -> str:
+    text = " ".join(repr(value).split())
+    return text if len(text) <= limit else f"{text[:limit]}..."
+
+
+def _is_name_error(error) -> bool:
+    """Whether a schema error is a name that fails :data:`NAME_PATTERN` (the dataset's, or a key's)."""
+    return error.validator == "pattern" and error.validator_value == NAME_PATTERN and (
+        "propertyNames" in error.schema_path or list(error.absolute_path) == ["name"])
 
 
 def load_manifest(path, *, check_files: bool = True) -> Manifest:
@@ -217,9 +250,9 @@ def load_manifest(path, *, check_files: bool = True) -> Manifest:
     except (OSError, UnicodeDecodeError) as exc:
         _fail(path, f"manifest unreadable ({exc})")
     try:
-        document = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        _fail(path, f"manifest is not valid YAML ({exc})")
+        document = yamlfile.load(text, path)
+    except DatasetError as exc:
+        _fail(path, f"manifest {exc.problem}")
     manifest = parse_manifest(document, path)
     if check_files:
         for file in manifest.all_files():
@@ -233,12 +266,21 @@ def load_manifest(path, *, check_files: bool = True) -> Manifest:
 def parse_manifest(document, path) -> Manifest:
     """Validate a manifest already parsed from YAML; ``path`` locates its files and names it in errors."""
     path = Path(path).resolve()
+    if document is None:
+        _fail(path, f"manifest is empty (a {FORMAT} manifest is a mapping with format, name and detector)")
+    if not isinstance(document, dict):
+        _fail(path, f"manifest is a {type(document).__name__}, not a mapping of keys (format, name, "
+                    f"detector, ...): {_shown(document)}")
     validator = jsonschema.Draft202012Validator(_schema())
-    errors = sorted(validator.iter_errors(document), key=lambda e: list(e.absolute_path))
+    # names that would become paths first: they are what a hostile manifest is refused for
+    errors = sorted(validator.iter_errors(document), key=lambda e: (not _is_name_error(e), list(e.absolute_path)))
     if errors:
         first = errors[0]
         where = ".".join(str(p) for p in first.absolute_path) or "(top level)"
         more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
+        if _is_name_error(first):
+            key = "name" if where == "name" else f"{where} key"
+            _fail(path, f"manifest {key} {name_problem(first.instance)}{more}")
         _fail(path, f"manifest violates {FORMAT} at {where}: {first.message}{more}")
 
     root = path.parent

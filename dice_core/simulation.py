@@ -43,6 +43,7 @@ import xarray as xr
 import yaml
 from scipy.ndimage import gaussian_filter
 
+from dice_core import DatasetError, yamlfile
 from dice_core.detector import PixelResponse
 from dice_core.geometry import two_source_phase
 from dice_core.io import write_cube, write_product, write_text
@@ -301,9 +302,9 @@ def load_preset(path, overrides: dict | None = None) -> SimulationConfig:
     """
     path = Path(path)
     try:
-        values = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise ValueError(f"{path}: cannot read simulation preset ({exc})") from None
+        values = yamlfile.read(path) or {}
+    except DatasetError as exc:
+        raise ValueError(f"{path}: cannot read simulation preset ({exc.problem})") from None
     if overrides:
         try:
             changed = apply_dotted(values, overrides, what="simulation preset")

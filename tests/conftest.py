@@ -1,4 +1,11 @@
-"""Shared fixtures: small simulated datasets with known truth."""
+"""Shared fixtures: small simulated datasets with known truth; the workflow run in a copy of the repository."""
+
+import copy
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,6 +16,31 @@ from dice_core.manifest import load_manifest
 
 # tests/cluster/slurm.sh is opt-in (it installs and starts a SLURM cluster): never collected
 collect_ignore = ["cluster"]
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def snakemake(workdir, *args, check=True, timeout=600):
+    """The README's command (``python -m snakemake --cores 2``) with ``args``, run in ``workdir``, its own
+    dice_core first on the path; a failure is an AssertionError showing the end of what it said."""
+    env = {**os.environ, "PYTHONPATH": str(workdir)}
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", *args]
+    result = subprocess.run(cmd, cwd=workdir, env=env, capture_output=True, text=True, timeout=timeout)
+    if check and result.returncode != 0:
+        raise AssertionError(f"{' '.join(cmd)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
+    return result
+
+
+def copy_repository(root):
+    """A copy of the workflow and its dice_core in the folder ``root``, for a test to run (and edit)."""
+    root.mkdir(parents=True, exist_ok=True)
+    for item in ("Snakefile", "workflow", "config", "profiles", "dice_core"):
+        source = REPO / item
+        if source.is_dir():
+            shutil.copytree(source, root / item, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(source, root / item)
+    return root
 
 
 def small_config(**sections):
@@ -29,6 +61,22 @@ def small_config(**sections):
         else:
             values[key] = value
     return simulation.SimulationConfig.from_dict(values)
+
+
+def renamed(document, key, name):
+    """A manifest (small_config's layout, the ci preset's) with the dataset, or its second flat, baseline or
+    pair, given ``name``."""
+    document = copy.deepcopy(document)
+    if key == "name":
+        document["name"] = name
+    elif key == "flat":
+        document["flats"][name] = document["flats"].pop("fiber_b")
+    elif key == "baseline":
+        document["metrology"]["baselines"][name] = document["metrology"]["baselines"].pop("H2H4")
+        document["metrology"]["pairs"]["P24"][0] = name
+    else:
+        document["metrology"]["pairs"][name] = document["metrology"]["pairs"].pop("P24")
+    return document
 
 
 @pytest.fixture(scope="session")

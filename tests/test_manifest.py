@@ -9,7 +9,7 @@ from dice_core import DatasetError
 from dice_core.manifest import load_manifest, parse_manifest
 from dice_core.simulation import dataset_layout
 
-from conftest import small_config
+from conftest import renamed, small_config
 
 
 @pytest.fixture
@@ -49,7 +49,7 @@ def test_only_required_sections(tmp_path, layout):
     [
         (lambda d: d.update(format="dice-dataset/2"), "at format"),
         (lambda d: d.pop("detector"), "'detector' is a required property"),
-        (lambda d: d.update(name="has space"), "at name"),
+        (lambda d: d.update(name="has space"), "manifest name .has space. is not a valid name"),
         (lambda d: d["detector"].update(gain=-1), "at detector.gain"),
         (lambda d: d["detector"].update(shape=[40]), "at detector.shape"),
         (lambda d: d["detector"]["science_area"].update(rows=[2, 41]), "science_area.rows"),
@@ -130,3 +130,65 @@ def test_a_bad_bench_geometry_names_the_problem(layout, tmp_path, edit, expected
     edit(document["metrology"]["geometry"])
     with pytest.raises(DatasetError, match=expected):
         parse_manifest(document, tmp_path / "dataset.yaml")
+
+
+# Names that would leave the results folder, or write somewhere it should not, if they became part of a path.
+HOSTILE_NAMES = ["..", ".", "../x", "/tmp/x", "a/b", "{x}", ".hidden", "", "x" * 65, "a b"]
+
+
+@pytest.mark.parametrize("key, where", [("name", "manifest name"), ("flat", "manifest flats key"),
+                                        ("baseline", "manifest metrology.baselines key"),
+                                        ("pair", "manifest metrology.pairs key")])
+@pytest.mark.parametrize("name", HOSTILE_NAMES)
+def test_a_name_that_could_leave_its_folder_is_refused_naming_the_key_and_the_value(layout, tmp_path, key, where,
+                                                                                      name):
+    with pytest.raises(DatasetError) as info:
+        parse_manifest(renamed(layout, key, name), tmp_path / "dataset.yaml")
+    assert str(info.value).startswith(f"{tmp_path / 'dataset.yaml'}: {where} {name!r} is not a valid name")
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("name", ["sim-2024.v2", "H1H4_633", "-x", "A" * 64])
+def test_names_that_stay_in_their_folder_are_accepted(layout, tmp_path, name):
+    for key in ("name", "flat", "baseline", "pair"):
+        parse_manifest(renamed(layout, key, name), tmp_path / "dataset.yaml")
+
+
+def test_a_name_problem_comes_before_the_manifest_s_other_problems(layout, tmp_path):
+    document = renamed(layout, "baseline", "../../victim")
+    document["detector"]["gain"] = -1  # sorts before metrology.baselines
+    with pytest.raises(DatasetError, match=r"metrology.baselines key '../../victim' is not a valid name:"
+                                           r".* \(and 1 more problems\)"):
+        parse_manifest(document, tmp_path / "dataset.yaml")
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("", "manifest is empty"),
+    ("# only a comment\n", "manifest is empty"),
+    ("- format\n- name\n", "manifest is a list, not a mapping of keys"),
+    ("dice-dataset/1\n", "manifest is a str, not a mapping of keys"),
+])
+def test_a_manifest_that_is_not_a_mapping_says_what_it_is(tmp_path, text, expected):
+    path = tmp_path / "dataset.yaml"
+    path.write_text(text)
+    with pytest.raises(DatasetError, match=expected):
+        load_manifest(path)
+
+
+def test_a_key_given_twice_is_refused_at_any_level_naming_it_and_its_lines(layout, tmp_path):
+    """A second H1H4 holding H2H4's files used to replace the first silently, and the run reduced the wrong
+    cubes with exit status 0."""
+    text = yaml.safe_dump(layout, sort_keys=False)
+    second = text.replace("    H2H4:\n", "    H1H4:\n", 1)
+    assert second != text
+    path = tmp_path / "dataset.yaml"
+    path.write_text(second)
+    with pytest.raises(DatasetError) as info:
+        load_manifest(path, check_files=False)
+    first_line = text.splitlines().index("    H1H4:") + 1
+    second_line = text.splitlines().index("    H2H4:") + 1
+    assert str(info.value) == (f"{path}: manifest key metrology.baselines.H1H4 is given twice (lines {first_line} "
+                               f"and {second_line}); YAML would keep the second silently")
+    path.write_text(text + "name: other\n")
+    with pytest.raises(DatasetError, match="manifest key name is given twice"):
+        load_manifest(path, check_files=False)
