@@ -20,7 +20,9 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.error_budget` -- error-propagation coefficients of the centroids, Monte Carlo and analytic;
 - :mod:`dice_core.studies` -- the simulation studies that sweep points run;
 - :mod:`dice_core.reproduction` -- the paper's numbers beside ours;
-- :mod:`dice_core.overrides` -- dotted-key overrides of nested configurations (sweeps, benches, presets).
+- :mod:`dice_core.overrides` -- dotted-key overrides of nested configurations (sweeps, benches, presets);
+- :mod:`dice_core.yamlfile` -- YAML files read strictly (a key given twice is an error);
+- :mod:`dice_core.preflight` -- what a workflow run checks before any job (paths, folders, disk).
 """
 
 from importlib.metadata import PackageNotFoundError, version
@@ -82,14 +84,40 @@ def run_logged(log_path, step, /, *args, provenance=None, **kwargs):
     import os
     import sys
 
-    handler = logging.FileHandler(log_path, mode="w")
+    step_name = getattr(step, "__name__", step)
+
+    class StepLog(logging.FileHandler):
+        """The step's log file. A record it cannot write (a full disk) is remembered, not printed as a
+        traceback on the terminal (logging's default), so that the step's error stays one line."""
+
+        failure = None
+
+        def handleError(self, record):
+            self.failure = self.failure or sys.exc_info()[1]
+
+        def flush(self):
+            try:
+                super().flush()
+            except OSError as exc:
+                self.failure = self.failure or exc
+
+        def close(self):
+            try:
+                super().close()
+            except OSError as exc:
+                self.failure = self.failure or exc
+
+    try:
+        handler = StepLog(log_path, mode="w")
+    except OSError as exc:  # the log's folder cannot be written: the first file the step writes
+        print(f"dice: {step_name} failed: {error_line(exc)}", file=sys.stderr)
+        raise SystemExit(1) from None
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(logging.INFO)
     logging.captureWarnings(True)
     log = logging.getLogger("dice")
-    step_name = getattr(step, "__name__", step)
     log.info("dice_core %s: %s", __version__, step_name)
     # What the environment asks of thread pools; the reductions set their own (dice_core.parallel).
     threads = [f"{name}={os.environ[name]}" for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
@@ -106,7 +134,9 @@ def run_logged(log_path, step, /, *args, provenance=None, **kwargs):
         log.exception("step failed")
         if known_error(exc):
             handler.flush()
-            print(f"dice: {step_name} failed: {error_line(exc)} (traceback in {log_path})", file=sys.stderr)
+            where = (f"traceback in {log_path}" if handler.failure is None else
+                     f"its log {log_path} could not be written: {error_line(handler.failure)}")
+            print(f"dice: {step_name} failed: {error_line(exc)} ({where})", file=sys.stderr)
             raise SystemExit(1) from None
         raise
     log.info("done")

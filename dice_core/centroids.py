@@ -34,6 +34,7 @@ __all__ = [
     "WindowError",
     "Window",
     "star_window",
+    "science_area_problem",
     "GaussianFit",
     "gaussian_fit",
     "cramer_rao",
@@ -74,14 +75,18 @@ class Window:
         return x.astype(float), y.astype(float)
 
 
-def star_window(approx_row: float, approx_col: float, *, half_size: int, shape, label: str = "star") -> Window:
+def star_window(approx_row: float, approx_col: float, *, half_size: int, shape, label: str = "star",
+                area=None) -> Window:
     """The (2 half_size + 1)-pixel window centred on the pixel nearest (approx_row, approx_col).
+
+    ``area``, the science area's (rows, cols) half-open ranges (the dark is measured there only), bounds
+    the window further when given.
 
     Raises
     ------
     WindowError
-        The window would leave the detector (``shape`` rows, cols); the message
-        starts with ``label`` (e.g. "star 3 at position 12").
+        The window would leave the detector (``shape`` rows, cols) or the
+        area; the message starts with ``label`` (e.g. "star 3 at position 12").
     """
     row, col = int(round(approx_row)), int(round(approx_col))
     size = 2 * half_size + 1
@@ -89,7 +94,25 @@ def star_window(approx_row: float, approx_col: float, *, half_size: int, shape, 
     if r0 < 0 or c0 < 0 or r0 + size > shape[0] or c0 + size > shape[1]:
         raise WindowError(f"{label}: its {size}x{size} window around row {approx_row:.1f}, col {approx_col:.1f} "
                           f"leaves the {shape[0]}x{shape[1]} detector")
+    if area is not None:
+        (top, bottom), (left, right) = area
+        if r0 < top or c0 < left or r0 + size > bottom or c0 + size > right:
+            raise WindowError(f"{label}: its {size}x{size} window around row {approx_row:.1f}, col "
+                              f"{approx_col:.1f} (rows {r0}-{r0 + size - 1}, cols {c0}-{c0 + size - 1}) leaves "
+                              f"the science area, rows {top}-{bottom - 1} and cols {left}-{right - 1}, where the "
+                              "dark is measured")
     return Window(r0, c0, size)
+
+
+def science_area_problem(detector, half_size: int) -> str | None:
+    """Why the detector's science area cannot hold a star window of ``half_size`` (a configuration key,
+    ``centroids.half_size``), or None: one line naming the manifest's key."""
+    size = 2 * half_size + 1
+    rows, cols = (hi - lo for lo, hi in (detector.science_rows, detector.science_cols))
+    if rows >= size and cols >= size:
+        return None
+    return (f"detector.science_area holds {rows} row(s) x {cols} col(s), too few for the {size}x{size} star "
+            f"windows of centroids.half_size {half_size}")
 
 
 @dataclass(frozen=True)
@@ -124,7 +147,7 @@ def _gaussian_model(p, xs, ys):
     return b + ae, jacobian
 
 
-def gaussian_fit(image: np.ndarray, window: Window, *, weights=None) -> GaussianFit:
+def gaussian_fit(image: np.ndarray, window: Window, *, weights=None, label: str = "star") -> GaussianFit:
     """Fit background + intensity x elliptical Gaussian to a window, sampled at pixel centres.
 
     Parameters
@@ -135,10 +158,17 @@ def gaussian_fit(image: np.ndarray, window: Window, *, weights=None) -> Gaussian
         Where the window lies, for detector coordinates.
     weights : ndarray (size, size), optional
         1 / sigma of each pixel (e.g. from photon noise); uniform if omitted.
+    label : str
+        Names the star in errors ("star 3 at position 12").
 
     Returns
     -------
     GaussianFit
+
+    Raises
+    ------
+    WindowError
+        No signal above the background in the window.
     """
     xg, yg = window.grid()
     xs, ys, data = xg.ravel(), yg.ravel(), np.asarray(image, dtype=float).ravel()
@@ -149,7 +179,8 @@ def gaussian_fit(image: np.ndarray, window: Window, *, weights=None) -> Gaussian
     signal = np.clip(data - b0, 0, None) * (w > 0)  # pixels of weight 0 (left out) do not start it either
     total = signal.sum()
     if not total > 0:
-        raise ValueError("no signal above the background in the window")
+        raise WindowError(f"{label}: no signal above the background in its window (rows {window.row0}-"
+                          f"{window.row0 + window.size - 1}, cols {window.col0}-{window.col0 + window.size - 1})")
     x0, y0 = (signal * xs).sum() / total, (signal * ys).sum() / total
     cxx = (signal * (xs - x0) ** 2).sum() / total
     cyy = (signal * (ys - y0) ** 2).sum() / total
@@ -451,11 +482,15 @@ def _position_stack(stacks, position, i, n_pos, label):
     return stack
 
 
-def _isolated_windows_half_size(mean, dark, centres, flags, half_size, shape, *, where, label, log):
+def _isolated_windows_half_size(mean, dark, centres, flags, half_size, detector, *, where, label, log):
     """The half-size whose windows hold one star's light, from the widest Gaussian fit at the first position."""
-    width = max(max(f.width_x, f.width_y) for f in (
-        gaussian_fit(mean[w.slices] - dark[w.slices], w, weights=(flags[w.slices] == 0).astype(float)) for w in
-        (star_window(r, c, half_size=half_size, shape=shape, label=f"star {s} at {where}") for s, (r, c) in enumerate(centres))))
+    fits = []
+    for s, (r, c) in enumerate(centres):
+        w = star_window(r, c, half_size=half_size, shape=detector.shape, label=f"star {s} at {where}",
+                        area=(detector.science_rows, detector.science_cols))
+        fits.append(gaussian_fit(mean[w.slices] - dark[w.slices], w, weights=(flags[w.slices] == 0).astype(float),
+                                 label=f"star {s} at {where}"))
+    width = max(max(f.width_x, f.width_y) for f in fits)
     isolated = isolated_half_size(centres, half_size, width=width)
     size = 2 * half_size + 1
     if isolated < 2:
@@ -524,7 +559,8 @@ class _Locator:
     def __init__(self, method, windows, images, noise, central, no_reference):
         self.method = method
         self.references = list(zip(windows, images))
-        self.anchor = gaussian_fit(images[central], windows[central], weights=noise[central])
+        self.anchor = gaussian_fit(images[central], windows[central], weights=noise[central],
+                                   label=f"star {central} (central) at the first position")
         # each star's reference tied to the central one's, by the method itself, with the weights
         # its reference is measured with later: that window's noise then cancels between tie and shift
         self.ties = [np.zeros(2) if s == central or method == "gaussian" or s in no_reference else
@@ -534,7 +570,7 @@ class _Locator:
 
     def __call__(self, image, window, star, weights):
         if self.method == "gaussian":
-            fit = gaussian_fit(image, window, weights=weights)
+            fit = gaussian_fit(image, window, weights=weights, label=f"star {star}")
             return np.array([fit.x, fit.y])
         ref_window, ref_image = self.references[star]
         shift = fourier_displacement(ref_image, image, weights=weights)
@@ -606,8 +642,9 @@ def measure_positions(stacks, positions, *, approx, detector, dark, read_noise, 
     Raises
     ------
     WindowError
-        A star's window leaves the detector or the calibrated area; stars
-        too close for 5x5 windows holding one star's light.
+        A science area smaller than a window; a star's window leaves the
+        science area or the calibrated area, or holds no signal; stars too
+        close for 5x5 windows holding one star's light.
     ValueError
         Unknown method; fewer stacks than positions, a stack of another
         position, or a stack of one batch;
@@ -618,6 +655,8 @@ def measure_positions(stacks, positions, *, approx, detector, dark, read_noise, 
         raise ValueError(f"unknown centroid method {method!r}; methods are {', '.join(METHODS)}")
     if (variance_x is None) != (variance_y is None) or (variance_x is not None and dx is None):
         raise ValueError("the PRF width correction needs both variance maps and the pixel offsets")
+    if (problem := science_area_problem(detector, half_size)) is not None:
+        raise WindowError(problem)
     n_pos, n_star = len(positions), len(approx)
     out = {name: np.full((n_pos, n_star), np.nan) for name in ("x", "y", "px", "py", "lx", "ly")}
     n_saturated = np.zeros((n_pos, n_star), dtype=np.int64)
@@ -643,9 +682,10 @@ def measure_positions(stacks, positions, *, approx, detector, dark, read_noise, 
         mean, batch_means, saturated = stack.mean, stack.batch_means, stack.n_saturated
         n_frames[i] = n
         if locate is None:
-            half_size = _isolated_windows_half_size(mean, dark, centres, flags, half_size, detector.shape,
+            half_size = _isolated_windows_half_size(mean, dark, centres, flags, half_size, detector,
                                                     where=where, label=label, log=log)
-        windows = [star_window(r, c, half_size=half_size, shape=detector.shape, label=f"star {s} at {where}")
+        windows = [star_window(r, c, half_size=half_size, shape=detector.shape, label=f"star {s} at {where}",
+                               area=(detector.science_rows, detector.science_cols))
                    for s, (r, c) in enumerate(centres)]
         images = [calibrations.corrected(mean, w, star=s, where=where) for s, w in enumerate(windows)]
         batch_images = [[calibrations.corrected(frame, w, star=s, where=where) for s, w in enumerate(windows)]
@@ -688,7 +728,8 @@ def measure_positions(stacks, positions, *, approx, detector, dark, read_noise, 
                     log.warning("%s: star %d at %s has %d saturated sample(s) in its window: not measured",
                                 label, s, where, n_saturated[i, s])
                 continue
-            fit = gaussian_fit(images[s], window, weights=noise[s])  # the shape and flux of the bound
+            # the shape and flux of the bound
+            fit = gaussian_fit(images[s], window, weights=noise[s], label=f"star {s} at {where}")
             xy = np.array([fit.x, fit.y]) if method == "gaussian" else locate(images[s], window, s, noise[s])
             batch_xy = np.array([locate(b[s], window, s, noise[s] / np.sqrt(n_batches)) for b in batch_images])
             limit = cramer_rao(fit, window, gain=detector.gain * n, read_noise=read_noise[window.slices] / np.sqrt(n),

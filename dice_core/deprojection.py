@@ -31,11 +31,16 @@ import xarray as xr
 
 from dice_core.geometry import affine_basis, orthonormal_modes, remove_modes
 
-__all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "difference_dataset", "MIN_SINE"]
+__all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "difference_dataset", "MIN_SINE",
+           "DeprojectionError"]
 
 #: Smallest |sin| of the angle between the two wavevectors accepted; below it the
 #: intersection is ill-conditioned (errors grow as 1 / sin).
 MIN_SINE = 0.2
+
+
+class DeprojectionError(ValueError):
+    """Two baselines whose fringes are too close to parallel to give x and y offsets."""
 
 
 def deproject(p1, k1, p2, k2, *, min_sine: float = MIN_SINE, label: str = "pair"):
@@ -60,7 +65,7 @@ def deproject(p1, k1, p2, k2, *, min_sine: float = MIN_SINE, label: str = "pair"
 
     Raises
     ------
-    ValueError
+    DeprojectionError
         Colinear (or nearly colinear) wavevectors.
     """
     n1 = np.asarray(k1, float) / np.hypot(*k1)
@@ -70,9 +75,10 @@ def deproject(p1, k1, p2, k2, *, min_sine: float = MIN_SINE, label: str = "pair"
         cosine = np.nanmax(np.abs(n1[0] * n2[0] + n1[1] * n2[1]))
         angle = np.degrees(np.arccos(np.clip(cosine, 0, 1)))
         where = "" if np.ndim(sine) == 0 else " at some pixels"
-        shown = "" if np.ndim(sine) else f" {tuple(k1)} and {tuple(k2)}"
-        raise ValueError(f"{label}: wavevectors{shown} are {angle:.1f} degrees from colinear{where}; "
-                         f"a pair needs at least {np.degrees(np.arcsin(min_sine)):.0f} degrees")
+        shown = "" if np.ndim(sine) else " ({:.4g}, {:.4g}) and ({:.4g}, {:.4g}) rad/pixel".format(*k1, *k2)
+        raise DeprojectionError(f"{label}: wavevectors{shown} are {angle:.1f} degrees from colinear{where}; "
+                                f"a pair needs at least {np.degrees(np.arcsin(min_sine)):.0f} degrees to "
+                                "separate x from y")
     p1, p2 = np.asarray(p1, float), np.asarray(p2, float)
     # inverse of [[n1x, n1y], [n2x, n2y]]
     dx = (n2[1] * p1 - n1[1] * p2) / sine

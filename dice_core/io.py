@@ -22,6 +22,7 @@ import errno
 import hashlib
 import json
 import os
+import re
 import secrets
 import warnings
 from dataclasses import dataclass
@@ -47,6 +48,8 @@ __all__ = [
     "write_product",
     "write_text",
     "atomic_write",
+    "temporary_files",
+    "TEMPORARY_NAME",
     "provenance",
     "input_digests",
     "read_product",
@@ -373,6 +376,7 @@ class FrameStream:
                     any_saturated = bool(frames.max() >= threshold)
                     if any_saturated:
                         saturated = stored >= threshold
+                        _check_not_all_saturated(cube, first, frames, saturated, self.detector)
                     else:
                         if unsaturated is None or unsaturated.shape != stored.shape:
                             unsaturated = np.broadcast_to(np.False_, stored.shape)
@@ -385,6 +389,21 @@ class FrameStream:
                     start += n
             if checksum is not None:
                 _check_checksums(cube, checksum.value())
+
+
+def _check_not_all_saturated(cube: CubeFile, first: int, frames, saturated, detector: Detector):
+    """Refuse a chunk with a frame saturated over the whole science area: no detector does that; a
+    saturation level set below the data does (every sample would be masked, and each step would then fail
+    on an empty frame, far from the cause). ``frames`` are the stored values converted, not shifted."""
+    rows, cols = detector.science_slices
+    whole = saturated[:, rows, cols].reshape(saturated.shape[0], -1).all(axis=1)
+    if whole.any():
+        k = int(np.argmax(whole))
+        median = float(np.median(frames[k, rows, cols])) + cube.bzero
+        raise DatasetError(cube.path, f"every science-area sample of frame {first + k} (counted from 0 in this "
+                                      f"file) is at or above detector.saturation, {detector.saturation:g} ADU "
+                                      f"(the frame's median is {median:.6g} ADU): is the manifest's "
+                                      "saturation level right?")
 
 
 def _non_finite_report(cube: CubeFile) -> str:
@@ -413,8 +432,25 @@ def _non_finite_report(cube: CubeFile) -> str:
             f"the first in frame {t}, row {r}, col {c} (counted from 0)")
 
 
+#: The name of :func:`atomic_write`'s temporary files: ``.<name>.<12 hex digits>.part`` beside the file.
+TEMPORARY_NAME = re.compile(r"\..+\.[0-9a-f]{12}\.part")
+
+
+def temporary_files(root, *, recursive: bool = True) -> list[Path]:
+    """The temporary files of :func:`atomic_write` in the folder ``root`` (and its subfolders if
+    ``recursive``), sorted; none if ``root`` does not exist. A process killed while writing leaves
+    them: no ``finally`` runs after ``kill -9``."""
+    found = []
+    for folder, _, names in os.walk(root):
+        found += [Path(folder) / name for name in names if TEMPORARY_NAME.fullmatch(name)]
+        if not recursive:
+            break
+    return sorted(found)
+
+
 def _atomic_target(path: Path):
-    """A fresh temporary file beside ``path``, with the mode a plain ``open`` would give ``path``.
+    """A fresh temporary file beside ``path`` (named as :data:`TEMPORARY_NAME` says), with the mode a plain
+    ``open`` would give ``path``.
 
     Created with mode 0666 and O_EXCL, so that the kernel applies the umask (and any default ACL), as
     for the figures; mkstemp's 0600 would survive the rename and keep the products from other users.
@@ -447,7 +483,9 @@ def atomic_write(path):
     new file never appears half-written, an existing one is never truncated. The error raised is the
     writer's own: a failed clean-up is added to it as a note, never raised in its place, and a
     writer that hides an ENOSPC behind a library error (the netCDF library's "HDF error") is
-    reported as the :class:`OSError` "No space left on device" when the filesystem is full.
+    reported as the :class:`OSError` "No space left on device" when the filesystem is full. An
+    :class:`OSError` that names no file, or the temporary one (a failed ``write`` of matplotlib's
+    ``savefig``), is raised naming ``path``, the file the user asked for.
 
     Examples
     --------
@@ -468,6 +506,11 @@ def atomic_write(path):
         if full:
             raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} (the writer said: {exc})",
                           str(path)) from exc
+        if isinstance(exc, OSError) and exc.errno and exc.filename in (None, str(tmp), tmp):
+            renamed = OSError(exc.errno, exc.strerror or os.strerror(exc.errno), str(path))
+            for note in getattr(exc, "__notes__", []):  # a failed clean-up, added above
+                renamed.add_note(note)
+            raise renamed from exc
         raise
 
 

@@ -44,6 +44,27 @@ def test_window_is_centred_and_refused_at_the_edge():
         centroids.star_window(5.0, 20.0, half_size=7, shape=SHAPE, label="star 3 at position 12")
 
 
+def test_a_window_outside_the_science_area_and_an_area_too_small_are_said_with_the_star_and_the_key():
+    """The dark is measured in the science area only: a window reaching past it held NaN, and the fit said
+    "no signal above the background in the window", naming neither the star nor the cause."""
+    area = ((10, 30), (5, 40))
+    assert centroids.star_window(15.0, 20.0, half_size=4, shape=SHAPE, area=area).row0 == 11
+    with pytest.raises(centroids.WindowError, match=r"^star 2 at position 7: its 9x9 window around row 12.0, col "
+                                                    r"20.0 \(rows 8-16, cols 16-24\) leaves the science area, rows "
+                                                    r"10-29 and cols 5-39"):
+        centroids.star_window(12.0, 20.0, half_size=4, shape=SHAPE, area=area, label="star 2 at position 7")
+    from dice_core.manifest import Detector
+
+    narrow = Detector(shape=SHAPE, science_rows=(10, 12), science_cols=(4, 43), gain=GAIN, saturation=65535.0)
+    assert centroids.science_area_problem(narrow, 4) == ("detector.science_area holds 2 row(s) x 39 col(s), too few "
+                                                         "for the 9x9 star windows of centroids.half_size 4")
+    assert centroids.science_area_problem(narrow, 0) is None
+    window = centroids.Window(3, 4, 5)
+    with pytest.raises(centroids.WindowError, match=r"^star 1 at position 2: no signal above the background in its "
+                                                    r"window \(rows 3-7, cols 4-8\)"):
+        centroids.gaussian_fit(np.zeros((5, 5)), window, label="star 1 at position 2")
+
+
 def test_noiseless_perfect_pixels_both_methods_better_than_1e_6_pixel(rng):
     response = detector()
     reference_xy = (20.3, 19.6)

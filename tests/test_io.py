@@ -469,3 +469,60 @@ def test_checksums_recorded_by_one_product_are_taken_by_another_without_reading_
         write_product(product(), results / "whole.nc", title="whole", inputs=[raw, other], digests=recorded)
     records = json.loads(read_product(results / "whole.nc").attrs["inputs"])
     assert [r["sha256"] for r in records] == ["0" * 64, hashlib.sha256(other.read_bytes()).hexdigest()]
+
+
+@pytest.mark.parametrize("dtype", ["uint16", "float32"])
+def test_a_frame_saturated_over_the_whole_science_area_names_the_file_and_the_saturation_level(tmp_path, rng, dtype):
+    """A saturation level set below the data masks every sample; each step then failed on an empty frame
+    ("no positive signal"), far from the cause. The stream says it at the first such frame."""
+    detector = Detector(shape=(6, 7), science_rows=(1, 5), science_cols=(1, 6), gain=2.0, saturation=1.0)
+    data = cube(10, rng, 500, 600)
+    path = tmp_path / "f.fits"
+    write_cube(path, [data], shape=(6, 7), n_frames=10, dtype=dtype)
+    frames = FrameStream(Acquisition("flat a", (path,)), detector, chunk_frames=4)
+    with pytest.raises(DatasetError) as info:
+        collect(frames)
+    median = np.median(data[0, 1:5, 1:6])
+    assert str(info.value) == (f"{path}: every science-area sample of frame 0 (counted from 0 in this file) is at "
+                               f"or above detector.saturation, 1 ADU (the frame's median is {median:.6g} ADU): is "
+                               "the manifest's saturation level right?")
+    # saturated samples in some pixels only, or outside the science area, are masked as before
+    data[:, 0, :] = data[2, 2:4, 2:4] = 65535
+    write_cube(path, [data], shape=(6, 7), n_frames=10, dtype=dtype)
+    detector = Detector(shape=(6, 7), science_rows=(1, 5), science_cols=(1, 6), gain=2.0, saturation=60000.0)
+    _, chunks = collect(FrameStream(Acquisition("flat a", (path,)), detector, chunk_frames=4))
+    assert sum(int(c.saturated.sum()) for c in chunks) == 10 * 7 + 4
+
+
+def test_a_write_error_that_names_no_file_names_the_file_being_written(tmp_path):
+    """matplotlib's savefig on a full disk raises ENOSPC naming no file: the target is named, not the temporary."""
+    import errno
+
+    from dice_core.io import atomic_write
+
+    target = tmp_path / "figures" / "metrology_H1H4.png"
+    for filename in (None, "temporary"):
+        with pytest.raises(OSError) as info:
+            with atomic_write(target) as tmp:
+                raise OSError(errno.ENOSPC, "No space left on device", *([str(tmp)] if filename else []))
+        assert info.value.errno == errno.ENOSPC and info.value.filename == str(target)
+        assert list((tmp_path / "figures").iterdir()) == []
+    with pytest.raises(FileNotFoundError) as info:  # an error about another file keeps its name
+        with atomic_write(target):
+            open(tmp_path / "missing.txt")
+    assert info.value.filename == str(tmp_path / "missing.txt")
+
+
+def test_temporary_files_of_a_killed_writer_are_found_by_their_name_only(tmp_path):
+    from dice_core.io import TEMPORARY_NAME, temporary_files
+
+    (tmp_path / "figures").mkdir()
+    left = [tmp_path / ".a.nc.0123456789ab.part", tmp_path / "figures" / ".m.png.abcdef012345.part"]
+    for path in left:
+        path.write_bytes(b"")
+    for other in ("a.nc.0123456789ab.part", ".a.nc.part", ".a.nc.0123456789ab.partial", ".a.nc.XYZ456789abc.part"):
+        (tmp_path / other).write_bytes(b"")
+    assert temporary_files(tmp_path) == sorted(left)
+    assert temporary_files(tmp_path, recursive=False) == left[:1]
+    assert temporary_files(tmp_path / "nowhere") == []
+    assert TEMPORARY_NAME.fullmatch(".x.fits.0123456789ab.part")

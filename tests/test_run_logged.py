@@ -67,3 +67,20 @@ def test_known_errors_are_dice_core_s_own_and_os_errors():
     assert known_error(WindowError("star 1 at position 3: ...")) and known_error(FileNotFoundError(2, "gone", "a"))
     assert not known_error(ValueError("a bug")) and not known_error(ZeroDivisionError())
     assert error_line(DatasetError("a.fits", "two\nlines")) == "a.fits: two lines"
+
+
+@pytest.mark.skipif(not __import__("os").path.exists("/dev/full"), reason="needs /dev/full")
+def test_a_log_on_a_full_disk_leaves_the_error_one_line_and_says_so(capsys):
+    """Writing to /dev/full fails with ENOSPC, as a log on a full disk does: logging's own traceback for
+    each record it cannot write would bury the one line."""
+    with pytest.raises(SystemExit):
+        run_logged("/dev/full", full_disk)
+    assert capsys.readouterr().err == ("dice: full_disk failed: results/sim-ci/calibration/dark.nc: No space left "
+                                       "on device (its log /dev/full could not be written: No space left on device)\n")
+
+
+def test_a_log_folder_that_cannot_be_written_is_one_line(tmp_path, capsys):
+    (tmp_path / "logs").write_text("a file where the folder should be")
+    with pytest.raises(SystemExit):
+        run_logged(tmp_path / "logs" / "step.log", bad_file)
+    assert capsys.readouterr().err == f"dice: bad_file failed: {tmp_path / 'logs' / 'step.log'}: Not a directory\n"

@@ -183,6 +183,7 @@ rule deproject_offsets:
     input:
         first=lambda w: f"{OUT}/metrology/{pair_baselines(w)[0]}.nc",
         second=lambda w: f"{OUT}/metrology/{pair_baselines(w)[1]}.nc",
+        manifest=MANIFEST_FILE,  # names the pair in errors
     output:
         offsets=f"{OUT}/calibration/offsets_{{pair}}.nc",
     log:

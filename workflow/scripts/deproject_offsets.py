@@ -3,12 +3,16 @@
 import logging
 
 import dice_core
-from dice_core import deprojection, io
+from dice_core import DatasetError, deprojection, io
 
 
-def deproject_offsets(first_path, second_path, pair, baselines, output, config):
+def deproject_offsets(manifest_path, first_path, second_path, pair, baselines, output, config):
     first, second = io.read_product(first_path), io.read_product(second_path)
-    offsets = deprojection.offsets_dataset(first, second, label=f"pair {pair} ({' and '.join(baselines)})")
+    try:
+        offsets = deprojection.offsets_dataset(first, second,
+                                               label=f"metrology.pairs.{pair} ({' and '.join(baselines)})")
+    except deprojection.DeprojectionError as exc:  # the manifest's pair is the cause: name it
+        raise DatasetError(manifest_path, str(exc)) from None
     offsets.attrs.update({"pair": pair, "baselines": " ".join(baselines)})
     logging.getLogger("dice").info("pair %s (%s): dx rms %.3e, dy rms %.3e pixel", pair, " ".join(baselines),
                                    float(offsets["dx_rms"]), float(offsets["dy_rms"]))
@@ -16,6 +20,7 @@ def deproject_offsets(first_path, second_path, pair, baselines, output, config):
                      inputs=[first_path, second_path])
 
 
-dice_core.run_logged(snakemake.log[0], deproject_offsets, snakemake.input.first, snakemake.input.second,
+dice_core.run_logged(snakemake.log[0], deproject_offsets, snakemake.input.manifest, snakemake.input.first,
+                     snakemake.input.second,
                      snakemake.wildcards.pair, snakemake.params.baselines, snakemake.output.offsets, snakemake.config,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})
