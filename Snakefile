@@ -26,6 +26,7 @@ include: "workflow/rules/centroids.smk"
 include: "workflow/rules/astrometry.smk"
 include: "workflow/rules/figures.smk"
 include: "workflow/rules/paper.smk"
+include: "workflow/rules/preflight.smk"
 
 
 rule all:

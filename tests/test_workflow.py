@@ -14,7 +14,6 @@ import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,29 +22,10 @@ import yaml
 
 from dice_core.calibration import remove_gradient
 from dice_core.geometry import two_source_phase
-from dice_core.io import read_product, write_cube
+from dice_core.io import read_product, temporary_files, write_cube
 from dice_core.manifest import load_manifest
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def snakemake(workdir, *args, check=True, timeout=600):
-    env = {**os.environ, "PYTHONPATH": str(workdir)}
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", *args]
-    result = subprocess.run(cmd, cwd=workdir, env=env, capture_output=True, text=True, timeout=timeout)
-    if check and result.returncode != 0:
-        raise AssertionError(f"{' '.join(cmd)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")
-    return result
-
-
-def copy_repository(root):
-    for item in ("Snakefile", "workflow", "config", "profiles", "dice_core"):
-        source = REPO / item
-        if source.is_dir():
-            shutil.copytree(source, root / item, ignore=shutil.ignore_patterns("__pycache__"))
-        else:
-            shutil.copy(source, root / item)
-    return root
+from conftest import REPO, copy_repository, snakemake
 
 
 def pair_errors_over_floors(offsets, truth):
@@ -417,7 +397,9 @@ def test_a_killed_run_is_finished_by_running_the_same_command_again(out, tmp_pat
             assert run.poll() is None and time.monotonic() < deadline, "the run took no lock"
             time.sleep(0.05)
         second = snakemake(root, *args, check=False)
-        assert second.returncode != 0 and "cannot be locked" in second.stdout + second.stderr
+        said = second.stdout + second.stderr
+        assert second.returncode != 0 and f"another run of this workflow is alive in this folder (pid {run.pid}, " \
+            in said and "do not use --unlock" in said and "--unlock argument" not in said, said
         assert run.poll() is None and snakemake_locks(root)  # refused while the first was alive; lock kept
         # kill in the window between a job's output appearing and Snakemake recording the job as done,
         # the run frozen (SIGSTOP) to make sure it is still in that window
@@ -434,10 +416,20 @@ def test_a_killed_run_is_finished_by_running_the_same_command_again(out, tmp_pat
         run.wait()
     killed_during = incomplete_outputs(root)
     assert killed_during and snakemake_locks(root)
+    # what a writer killed between creating its temporary file and renaming it leaves (the kill above may
+    # not have caught one), beside an output of the run and beside a file that is not one
+    figures = root / "results" / "sim-ci" / "figures"
+    figures.mkdir(parents=True, exist_ok=True)
+    left = [figures / ".metrology_H1H4.png.0123456789ab.part", *temporary_files(root / "results")]
+    foreign = figures / ".notes.txt.0123456789ab.part"
+    for path in (left[0], foreign):
+        path.write_bytes(b"")
 
     again = snakemake(root, *args)  # the README's command, as it was
     said = again.stdout + again.stderr
     assert "removed the lock of a run" in said
+    assert f"removed {len(set(left))} temporary file(s) left by a run that was cut short" in said
+    assert temporary_files(root / "results") == [foreign]  # not a temporary file of this run's: left alone
     assert "IncompleteFilesException" not in said and "cannot be locked" not in said
     assert all(path in said for path in killed_during)  # the jobs cut short ran again ("Forced execution")
     assert not incomplete_outputs(root) and not snakemake_locks(root)

@@ -13,14 +13,30 @@ from importlib import util
 from pathlib import Path
 
 from pandas import DataFrame
-from snakemake.exceptions import WorkflowError
 from snakemake.utils import Paramspace, validate
 
-from dice_core import DatasetError, astrometry, simulation
-from dice_core.centroids import MODE_NEEDS
+from dice_core import DatasetError, astrometry, simulation, yamlfile
+from dice_core.centroids import MODE_NEEDS, science_area_problem
 from dice_core.io import file_groups, write_text
 from dice_core.manifest import load_manifest, parse_manifest
 from dice_core.overrides import apply_dotted
+
+
+def fail(message):
+    """Stop the run with ``message``, one ``dice:`` line per line of it, and exit status 1: a problem of the
+    configuration or the dataset, said before any job runs. A WorkflowError would wrap it in Snakemake's
+    header and the file and line of this workflow, which are not the user's problem."""
+    print("\n".join(f"dice: {line}" for line in str(message).splitlines()), file=sys.stderr)
+    raise SystemExit(1)
+
+
+def check_config_files(paths):
+    """Refuse a configuration file that gives one key twice (Snakemake's YAML reader keeps the second)."""
+    for path in paths:
+        try:
+            yamlfile.read(path)
+        except DatasetError as exc:
+            fail(exc)
 
 
 def check_config(values, schema_path):
@@ -52,9 +68,10 @@ def check_config(values, schema_path):
             message = error.message if len(error.message) <= 200 else f"{error.message[:200]}..."
             problems.append(f"config {where.rstrip('.') or '(top level)'}: {message}")
     if problems:
-        raise WorkflowError("\n".join(problems))
+        fail("\n".join(problems))
 
 
+check_config_files(workflow.configfiles)
 check_config(config, Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml")
 validate(config, schema="../schemas/config.schema.yaml")  # passes now; sets the defaults
 
@@ -78,22 +95,24 @@ def load_dataset(value):
         try:
             return load_manifest(value), None
         except DatasetError as exc:
-            raise WorkflowError(f"config dataset={value}: {exc}") from None
+            fail(f"config dataset: {exc}")
     preset = PRESETS / f"{value}.yaml"
     if not preset.is_file():
         known = sorted(p.stem for p in PRESETS.glob("*.yaml"))
-        raise WorkflowError(
-            f"config dataset={value!r} is neither a manifest path (*.yaml) " f"nor a simulation preset {known}"
-        )
+        fail(f"config dataset={value!r} is neither a manifest path (*.yaml) nor a simulation preset {known}")
     try:
         sim = simulation.load_preset(preset, overrides=config.get("simulation") or {})
-    except ValueError as exc:
-        raise WorkflowError(str(exc)) from None
-    raw = config.get("raw") or Path(config["results"]) / sim.name / "raw"
-    return parse_manifest(simulation.dataset_layout(sim), Path(raw) / "dataset.yaml"), sim
+        raw = config.get("raw") or Path(config["results"]) / sim.name / "raw"
+        return parse_manifest(simulation.dataset_layout(sim), Path(raw) / "dataset.yaml"), sim
+    except ValueError as exc:  # DatasetError included: a preset's name or keys
+        fail(exc)
 
 
+# The sweeps' folder beside the datasets' own: no dataset may be named after it.
+SWEEPS_FOLDER = "sweeps"
 MANIFEST, SIMULATION = load_dataset(str(config["dataset"]))
+if MANIFEST.name == SWEEPS_FOLDER:
+    fail(f"{MANIFEST.path}: manifest name {SWEEPS_FOLDER!r} is the results folder's sweeps folder; rename the dataset")
 OUT = f"{config['results']}/{MANIFEST.name}"
 # A sweep point of the reduction alone reads its dataset's raw files where the main run simulates them
 # (config raw), instead of simulating them again.
@@ -176,7 +195,7 @@ def acquisition_files(acquisition):
 
 def flat_files(wildcards):
     if wildcards.flat not in MANIFEST.flats:
-        raise WorkflowError(f"no flat named {wildcards.flat!r} in {MANIFEST.path}")
+        fail(f"no flat named {wildcards.flat!r} in {MANIFEST.path}")
     return acquisition_files(MANIFEST.flats[wildcards.flat])
 
 
@@ -273,10 +292,8 @@ def centroid_pair():
     """The metrology pair whose offsets the metrology modes use."""
     pair = config["centroids"]["pair"] or MANIFEST.reference_pair
     if pair is not None and pair not in MANIFEST.pairs:
-        raise WorkflowError(
-            f"centroids.pair {pair!r} is not a pair of {MANIFEST.path} "
-            f"(pairs: {', '.join(MANIFEST.pairs) or 'none'})"
-        )
+        pairs = ", ".join(MANIFEST.pairs) or "none"
+        fail(f"config centroids.pair {pair!r} is not a pair of {MANIFEST.path} (pairs: {pairs})")
     return pair
 
 
@@ -329,6 +346,8 @@ def centroid_targets():
     if MANIFEST.dark is None:
         skipped("centroids", f"{MANIFEST.path} has no dark to subtract")
         return []
+    if (problem := science_area_problem(MANIFEST.detector, config["centroids"]["half_size"])) is not None:
+        fail(f"{MANIFEST.path}: {problem}")
     targets = []
     for mode in config["centroids"]["modes"]:
         needs = MODE_NEEDS[mode]
@@ -372,7 +391,7 @@ def centroid_products(wildcards):
 # --------------------------------------------------------------------------- sweeps and the paper target
 
 
-SWEEP_ROOT = f"{config['results']}/sweeps"
+SWEEP_ROOT = f"{config['results']}/{SWEEPS_FOLDER}"
 
 
 SWEEP_VALUES = {}  # sweep -> its points as {dotted key: value}, list values included (reduction sweeps)
@@ -403,18 +422,18 @@ def sweep_space(name, spec):
         points = [{spec["parameter"]: value} for value in spec["values"]]
     keys = sorted({key for p in points for key in p})
     if any(set(p) != set(keys) for p in points):
-        raise WorkflowError(f"config sweeps.{name}.points: every point must set the same parameters {keys}")
+        fail(f"config sweeps.{name}.points: every point must set the same parameters {keys}")
     columns = {key.rsplit(".", 1)[-1]: key for key in keys}  # folder names: the key's last part
     if len(columns) != len(keys):
-        raise WorkflowError(f"config sweeps.{name}: parameters {keys} share a last name; folders would clash")
+        fail(f"config sweeps.{name}: parameters {keys} share a last name; folders would clash")
     if spec["study"] != "reduction" and any(isinstance(v, (list, dict)) for p in points for v in p.values()):
-        raise WorkflowError(
+        fail(
             f"config sweeps.{name}: a parameter's value must be a number, a string or a boolean "
             "(one folder per point; lists, e.g. of centroids.modes, only in a reduction sweep)"
         )
     frame = DataFrame([{column: folder_value(p[key]) for column, key in columns.items()} for p in points])
     if frame.duplicated().any():
-        raise WorkflowError(f"config sweeps.{name}: a point is listed twice")
+        fail(f"config sweeps.{name}: a point is listed twice")
     SWEEP_VALUES[name] = points
     return Paramspace(frame, single_wildcard="point"), columns
 
@@ -427,7 +446,7 @@ STUDY_SWEEPS = [name for name in SWEEPS if name not in REDUCTION_SWEEPS]
 def sweep_points(name):
     """The point products of a configured sweep, in the config's order."""
     if name not in SWEEPS:
-        raise WorkflowError(f"no sweep named {name!r} in config sweeps (sweeps: {', '.join(SWEEPS) or 'none'})")
+        fail(f"no sweep named {name!r} in config sweeps (sweeps: {', '.join(SWEEPS) or 'none'})")
     space = SWEEPS[name][1]
     return [f"{SWEEP_ROOT}/{name}/{point}/point.nc" for point in space.instance_patterns]
 
@@ -443,7 +462,7 @@ def paper_sweep(study):
     """The sweep that config paper.<study> names, checked to run that study."""
     name = config["paper"][study]
     if name not in SWEEPS or SWEEPS[name][0]["study"] != study:
-        raise WorkflowError(f"config paper.{study}: {name!r} is not a sweep of study {study} in config sweeps")
+        fail(f"config paper.{study}: {name!r} is not a sweep of study {study} in config sweeps")
     return name
 
 
@@ -479,18 +498,18 @@ def reduction_point_config(name, point, folder):
     spec = SWEEPS[name][0]
     reserved = [k for k in point if k.split(".")[0] in ("dataset", "raw", "results", "sweeps", "paper")]
     if reserved or spec.get("bench") or spec.get("options"):
-        raise WorkflowError(
+        fail(
             f"config sweeps.{name}: a reduction sweep varies the reduction's config or "
             f"simulation.<key>, not {reserved or 'bench or options'}"
         )
     simulated = {k.split(".", 1)[1]: v for k, v in point.items() if k.startswith("simulation.")}
     reduction = {k: v for k, v in point.items() if not k.startswith("simulation.")}
     if simulated and SIMULATION is None:
-        raise WorkflowError(f"config sweeps.{name}: simulation.* parameters need a simulation preset as the dataset")
+        fail(f"config sweeps.{name}: simulation.* parameters need a simulation preset as the dataset")
     try:
         point_config = apply_dotted({k: v for k, v in config.items() if k != "sweeps"}, reduction, what="config")
     except (KeyError, ValueError) as exc:
-        raise WorkflowError(f"config sweeps.{name}: {exc.args[0]}") from None
+        fail(f"config sweeps.{name}: {exc.args[0]}")
     point_config["sweeps"] = {n: s for n, (s, *_) in SWEEPS.items() if s["study"] != "reduction"}
     point_config["simulation"] = {**(config.get("simulation") or {}), **simulated}
     point_config["results"] = f"{SWEEP_ROOT}/{name}/{folder}"
@@ -580,12 +599,19 @@ def file_frames(path):
         return SIM_FRAMES[relative.as_posix()]
     try:
         return int(fits.getheader(path).get("NAXIS3", 1))
-    except OSError as exc:
-        raise WorkflowError(f"{path}: cannot read its header for the job's resources: {exc}") from None
+    except (OSError, ValueError, IndexError) as exc:  # astropy's errors of a file that is not FITS
+        named_by = next((a.label for a in MANIFEST.acquisitions() if path in a.files), "an acquisition")
+        fail(f"{path}: not a readable FITS file ({' '.join(str(exc).split())}); named by {named_by} in {MANIFEST.path}")
 
 
 def acquisition_frames(acquisition):
     return sum(file_frames(f) for f in acquisition.files)
+
+
+# Every raw file's header read now, while the workflow is read: a file that is not FITS is then said in one
+# line, before the jobs are planned (the resources of a job read it, where an error is Snakemake's traceback).
+for _file in MANIFEST.all_files():
+    file_frames(_file)
 
 
 def part_files(wildcards):

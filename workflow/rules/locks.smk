@@ -8,12 +8,30 @@
 # folder on this machine, so the Snakemake locks it finds are stale and it
 # removes them; a run that does not get it leaves them to Snakemake, which
 # refuses to start on files that the live run is making. --nolock would instead
-# let two live runs write the same products.
+# let two live runs write the same products. Snakemake's refusal then names the
+# live run (its pid, from the guard file) and says not to --unlock. The
+# temporary files a killed run left are removed in workflow/rules/preflight.smk.
 
 import fcntl
+import os
 import socket
 import sys
+import time
 from pathlib import Path
+
+import snakemake.exceptions
+
+
+def explain_lock(message):
+    """Have Snakemake's refusal to start on locked files say ``message`` instead of its own, which asks for
+    ``--unlock`` whatever holds the lock (Snakemake raises ``snakemake.exceptions.LockException`` by that
+    name, after this file is read). Dry runs, which Snakemake lets through, are not affected."""
+
+    class RunLocked(snakemake.exceptions.LockException):
+        def __init__(self):
+            snakemake.exceptions.WorkflowError.__init__(self, f"dice: {message}")
+
+    snakemake.exceptions.LockException = RunLocked
 
 
 def take_run_lock(state=".snakemake"):
@@ -22,8 +40,9 @@ def take_run_lock(state=".snakemake"):
     Returns the open, flocked guard file (keep it for the life of the run), or
     None where this process is not the run itself (a job's Snakemake
     subprocess), another run of the workflow is alive, or the filesystem has no
-    flock. The guard file records the machine of the last run that held it: a
-    lock left by a run on another machine sharing this folder, whose flock this
+    flock. The guard file records the machine, process and start of the last run
+    that held it: a second run told that one is alive is told which, and a lock
+    left by a run on another machine sharing this folder, whose flock this
     machine may not see, is left alone.
     """
     if not getattr(workflow, "is_main_process", True):
@@ -34,16 +53,31 @@ def take_run_lock(state=".snakemake"):
     guard = open(path, "a+")
     try:
         fcntl.flock(guard, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:  # held by a live run (EWOULDBLOCK), or no flock on this filesystem
+    except OSError as exc:  # held by a live run (EWOULDBLOCK), or no flock on this filesystem
+        guard.seek(0)
+        holder = guard.read().split()
         guard.close()
+        if isinstance(exc, BlockingIOError):
+            who = f"pid {holder[1]}, started {holder[2]}" if len(holder) >= 3 else "its pid is not recorded"
+            explain_lock(
+                f"another run of this workflow is alive in this folder ({who}) and makes some of the same "
+                "files: wait for it to end, or stop it (Ctrl-C in its terminal, or kill its process group); "
+                "do not use --unlock, which would let both runs write the same products"
+            )
         return None
     guard.seek(0)
-    last_machine = guard.read().strip()
+    last = guard.read().split()
+    last_machine = last[0] if last else ""
     machine = socket.gethostname()
     locks = sorted((state / "locks").glob("*.lock"))
     if locks and last_machine != machine:
         # left by a run elsewhere (or by a version of the workflow before this guard): Snakemake
         # says whether they block this run, and --unlock removes them
+        explain_lock(
+            f"the files of this run are locked by a run on machine {last_machine or '(unknown)'}, which shares "
+            "this folder and whose processes this machine cannot see: if no run of this workflow is alive "
+            "there, remove its lock with snakemake --unlock; if one is, wait for it"
+        )
         return guard
     for lock in locks:
         lock.unlink(missing_ok=True)
@@ -55,7 +89,7 @@ def take_run_lock(state=".snakemake"):
         )
     guard.seek(0)
     guard.truncate()
-    guard.write(machine + "\n")
+    guard.write(f"{machine} {os.getpid()} {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
     guard.flush()
     return guard
 

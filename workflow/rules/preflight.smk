@@ -1,0 +1,81 @@
+# Checks made once the jobs are planned and before any of them runs: Snakemake's
+# onstart, which a dry run skips (it writes nothing). A problem stops the run
+# with one line; nothing has been written or deleted yet (Snakemake deletes a
+# job's old outputs only when the job starts).
+#
+# - Every file a job writes (output, log, benchmark) lies inside this run's
+#   results folders: the dataset's and the sweeps'. Names from a manifest are
+#   checked when it is read (dice_core.manifest.NAME_PATTERN); this is the one
+#   check over every path actually planned, whatever put it there.
+# - Every folder a job writes in can be written, and the disk holds the cubes
+#   the simulation is about to write.
+# - The temporary files (.<name>.<hex>.part) that a killed run left beside the
+#   products of this run are removed, when no other run of the workflow is alive
+#   here (workflow/rules/locks.smk) and Snakemake holds this run's lock on them.
+
+from dice_core import io as dice_io
+from dice_core import preflight
+
+
+def job_files(job):
+    """The files a planned job writes: its outputs, logs and benchmark."""
+    return [*job.output, *job.log, *([job.benchmark] if job.benchmark else [])]
+
+
+def simulated_bytes(jobs):
+    """Bytes of the FITS cubes the planned simulate_file jobs of this run write (headers aside)."""
+    pixels = MANIFEST.detector.shape[0] * MANIFEST.detector.shape[1]
+    cubes = [f for job in jobs if job.rule.name == "simulate_file" for f in job.output]
+    return sum(2 * pixels * SIM_FRAMES.get(str(Path(f).relative_to(RAW)), 0) for f in cubes)
+
+
+def check_planned_jobs(dag):
+    """Refuse the run, in one line, if a planned job would write outside the results folders or where it
+    cannot; remove the temporary files of a killed run."""
+    jobs = list(dag.jobs)
+    roots = [OUT, SWEEP_ROOT]
+    files = [str(f) for job in jobs for f in job_files(job)]
+    outside = preflight.paths_outside(files, roots)
+    if outside:
+        more = f" (and {len(outside) - 1} more)" if len(outside) > 1 else ""
+        fail(
+            f"{outside[0]}{more}: a planned job would write outside this run's results folders "
+            f"{' and '.join(roots)}; nothing was run"
+        )
+    running = list(dag.needrun_jobs())
+    folders = sorted({str(Path(str(f)).parent) for job in running for f in job_files(job)})
+    for existing, (why, asked) in preflight.unwritable_folders(folders).items():
+        more = f" and {len(asked) - 1} other folder(s)" if len(asked) > 1 else ""
+        fail(f"cannot write in {existing} ({why}), where this run writes {asked[0]}{more}; nothing was run")
+    needed = simulated_bytes(running)
+    short = preflight.disk_shortfall(RAW, needed) if needed else 0
+    if short:
+        fail(
+            f"{RAW}: the simulation writes {preflight.size_text(needed)} of cubes and the disk lacks "
+            f"{preflight.size_text(short)} of it; free some space or set config results to another disk; "
+            "nothing was run"
+        )
+    if RUN_LOCK is not None:
+        remove_stale_temporaries(jobs)
+
+
+def remove_stale_temporaries(jobs):
+    """Remove the temporary files that a killed run left beside this run's outputs (dice_core.io.atomic_write
+    names them .<name>.<hex>.part)."""
+    outputs = {preflight.normalised(str(f)) for job in jobs for f in job.output}
+    folders = {os.path.dirname(f) for f in outputs}
+    stale = [
+        part
+        for folder in folders
+        if os.path.isdir(folder)
+        for part in dice_io.temporary_files(folder, recursive=False)
+        if preflight.normalised(part.parent / part.name[1:].rsplit(".", 2)[0]) in outputs
+    ]
+    for part in stale:
+        part.unlink(missing_ok=True)
+    if stale:
+        print(f"dice: removed {len(stale)} temporary file(s) left by a run that was cut short", file=sys.stderr)
+
+
+onstart:
+    check_planned_jobs(workflow.dag)
