@@ -20,12 +20,29 @@ __all__ = ["duplicate_keys", "load", "read"]
 _MERGE = "tag:yaml.org,2002:merge"
 
 
-def duplicate_keys(node: yaml.Node, where: tuple = ()) -> list[str]:
+def _key(loader, node):
+    """A mapping key as YAML reads it (``1`` and ``0x1``, ``yes`` and ``true``, ``~`` and ``null`` are one
+    key), or its text where it is not a hashable value (a sequence as a key)."""
+    try:
+        value = loader.construct_object(node, deep=True)
+        hash(value)
+        return type(value), value
+    except (yaml.YAMLError, TypeError):
+        return "text", yaml.serialize(node).strip()
+
+
+def duplicate_keys(node: yaml.Node, where: tuple = (), *, loader=None, seen_nodes=None) -> list[str]:
     """Every key given twice in one mapping of a composed YAML document, as one line each.
 
-    Keys are compared as YAML resolves them (``1`` and ``"1"`` differ, ``H1H4`` and ``'H1H4'`` do not);
-    a merge key (``<<``) is YAML's own way to override and is not counted. Lines count from 1.
+    Keys are compared as YAML reads them (``1`` and ``"1"`` differ, ``1`` and ``0x1`` do not); a merge key
+    (``<<``) is YAML's own way to override and is not counted. A node an alias repeats is walked once, so
+    that nested aliases (a "billion laughs" document) cost no more than the text. Lines count from 1.
     """
+    loader = loader or yaml.SafeLoader("")
+    seen_nodes = set() if seen_nodes is None else seen_nodes
+    if id(node) in seen_nodes:
+        return []
+    seen_nodes.add(id(node))
     found = []
     if isinstance(node, yaml.MappingNode):
         seen = {}
@@ -33,17 +50,17 @@ def duplicate_keys(node: yaml.Node, where: tuple = ()) -> list[str]:
             if key.tag == _MERGE:
                 continue
             name = key.value if isinstance(key, yaml.ScalarNode) else yaml.serialize(key).strip()
-            identity = (key.tag, name)
+            identity = _key(loader, key)
             path = ".".join(str(part) for part in (*where, name))
             if identity in seen:
                 found.append(f"key {path} is given twice (lines {seen[identity] + 1} and "
                              f"{key.start_mark.line + 1}); YAML would keep the second silently")
             else:
                 seen[identity] = key.start_mark.line
-            found += duplicate_keys(value, (*where, name))
+            found += duplicate_keys(value, (*where, name), loader=loader, seen_nodes=seen_nodes)
     elif isinstance(node, yaml.SequenceNode):
         for index, item in enumerate(node.value):
-            found += duplicate_keys(item, (*where, index))
+            found += duplicate_keys(item, (*where, index), loader=loader, seen_nodes=seen_nodes)
     return found
 
 

@@ -133,7 +133,7 @@ def test_a_bad_bench_geometry_names_the_problem(layout, tmp_path, edit, expected
 
 
 # Names that would leave the results folder, or write somewhere it should not, if they became part of a path.
-HOSTILE_NAMES = ["..", ".", "../x", "/tmp/x", "a/b", "{x}", ".hidden", "", "x" * 65, "a b"]
+HOSTILE_NAMES = ["..", ".", "../x", "/tmp/x", "a/b", "{x}", ".hidden", "", "x" * 65, "a b", "a\n", "a\nb"]
 
 
 @pytest.mark.parametrize("key, where", [("name", "manifest name"), ("flat", "manifest flats key"),
