@@ -32,7 +32,4 @@ include: "workflow/rules/preflight.smk"
 rule all:
     default_target: True
     input:
-        calibration_targets(),
-        metrology_targets(),
-        centroid_targets(),
-        astrometry_targets(),
+        DEFAULT_TARGETS,

@@ -35,7 +35,7 @@ import numpy as np
 import xarray as xr
 from scipy.optimize import least_squares
 
-from dice_core.centroids import mode_needs
+from dice_core.centroids import MODES, mode_needs
 
 __all__ = [
     "AstrometryError",
@@ -512,7 +512,8 @@ def select_positions(ds, positions=None):
 
 
 #: The calibration modes of the paper's table (its cells: flat or not, metrology or not).
-_PAPER_MODES = ("raw", "flat", "metrology", "flat+metrology")
+# the paper's table: the modes that apply the flat, the pixel offsets, both or neither, and nothing else
+_PAPER_MODES = tuple(name for name, mode in MODES.items() if mode.needs <= {"flat", "offsets"})
 
 
 def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: int = 2000, seed: int = 0,

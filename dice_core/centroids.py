@@ -42,9 +42,11 @@ __all__ = [
     "fourier_displacement",
     "offset_corrected",
     "response_corrected",
+    "Mode",
     "MODES",
     "METHODS",
-    "MODE_NEEDS",
+    "mode_descriptions",
+    "method_descriptions",
     "mode_needs",
     "mode_corrections",
     "PositionCentroids",
@@ -409,25 +411,51 @@ def response_corrected(image: np.ndarray, dx: np.ndarray, dy: np.ndarray, varian
     return corrected
 
 
-MODES = ("raw", "flat", "metrology", "flat+metrology", "flat+metrology+width")
-METHODS = ("fourier", "gaussian")
+@dataclass(frozen=True)
+class Mode:
+    """A calibration mode: the calibrations it corrects a star window with, a subset of ``flat`` (the
+    reference PRNU), ``offsets`` (a pair's pixel offsets) and ``widths`` (the PRF width maps), and what that
+    means, in words. Dark subtraction is always on."""
 
-#: What each calibration mode corrects a star window with (dark subtraction always on): the reference
-#: PRNU (``flat``), the pair's pixel offsets (``offsets``), the PRF width maps (``widths``).
-MODE_NEEDS = {
-    "raw": frozenset(),
-    "flat": frozenset({"flat"}),
-    "metrology": frozenset({"offsets"}),
-    "flat+metrology": frozenset({"flat", "offsets"}),
-    "flat+metrology+width": frozenset({"flat", "offsets", "widths"}),
+    needs: frozenset
+    description: str
+
+
+#: Every calibration mode by name: the one list the configuration's choices, the workflow's products and
+#: their docs are derived from. A mode that adds a calibration appends it with ``+``.
+MODES = {
+    "raw": Mode(frozenset(), "dark subtracted only"),
+    "flat": Mode(frozenset({"flat"}), "divided by the reference PRNU (calibration/prnu.nc)"),
+    "metrology": Mode(frozenset({"offsets"}), "resampled for the pixel offsets of the centroid pair "
+                                              "(calibration/offsets_<pair>.nc)"),
+    "flat+metrology": Mode(frozenset({"flat", "offsets"}), "both: the paper's calibrated mode"),
+    "flat+metrology+width": Mode(frozenset({"flat", "offsets", "widths"}),
+                                 "both, and each pixel's PRF width (calibration/prf.nc): beyond the paper"),
+}
+
+#: Every centroid method by name, with what it does (:func:`measure_positions`).
+METHODS = {
+    "fourier": "each window resampled against the star's window at the first position (Fourier shift), tied to "
+               "the central star's Gaussian fit",
+    "gaussian": "a 7-parameter elliptical Gaussian fitted to each window",
 }
 
 
+def mode_descriptions() -> dict[str, str]:
+    """{mode: what it corrects}, for documentation."""
+    return {name: mode.description for name, mode in MODES.items()}
+
+
+def method_descriptions() -> dict[str, str]:
+    """{method: what it does}, for documentation."""
+    return dict(METHODS)
+
+
 def mode_needs(mode: str) -> frozenset:
-    """The calibrations a mode uses: a subset of {"flat", "offsets", "widths"} (:data:`MODE_NEEDS`)."""
-    if mode not in MODE_NEEDS:
+    """The calibrations a mode uses: a subset of {"flat", "offsets", "widths"} (:data:`MODES`)."""
+    if mode not in MODES:
         raise ValueError(f"unknown calibration mode {mode!r}; modes are {', '.join(MODES)}")
-    return MODE_NEEDS[mode]
+    return MODES[mode].needs
 
 
 def mode_corrections(mode: str) -> tuple[bool, bool]:
@@ -568,9 +596,9 @@ class _Locator:
                          [windows[s].col0 - windows[central].col0, windows[s].row0 - windows[central].row0])
                      for s in range(len(windows))]
 
-    def __call__(self, image, window, star, weights):
+    def __call__(self, image, window, star, weights, *, where=""):
         if self.method == "gaussian":
-            fit = gaussian_fit(image, window, weights=weights, label=f"star {star}")
+            fit = gaussian_fit(image, window, weights=weights, label=f"star {star}" + (f" at {where}" if where else ""))
             return np.array([fit.x, fit.y])
         ref_window, ref_image = self.references[star]
         shift = fourier_displacement(ref_image, image, weights=weights)
@@ -730,8 +758,10 @@ def measure_positions(stacks, positions, *, approx, detector, dark, read_noise, 
                 continue
             # the shape and flux of the bound
             fit = gaussian_fit(images[s], window, weights=noise[s], label=f"star {s} at {where}")
-            xy = np.array([fit.x, fit.y]) if method == "gaussian" else locate(images[s], window, s, noise[s])
-            batch_xy = np.array([locate(b[s], window, s, noise[s] / np.sqrt(n_batches)) for b in batch_images])
+            xy = np.array([fit.x, fit.y]) if method == "gaussian" else locate(images[s], window, s, noise[s],
+                                                                                where=where)
+            batch_xy = np.array([locate(b[s], window, s, noise[s] / np.sqrt(n_batches), where=f"{where}, batch {k}")
+                                 for k, b in enumerate(batch_images)])
             limit = cramer_rao(fit, window, gain=detector.gain * n, read_noise=read_noise[window.slices] / np.sqrt(n),
                                used=flags[window.slices] == 0)
             out["x"][i, s], out["y"][i, s] = xy

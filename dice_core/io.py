@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import csv
 import copy
 import datetime as _dt
 import errno
+import fcntl
 import hashlib
 import json
 import os
@@ -35,7 +37,7 @@ from astropy.io import fits
 from astropy.utils.exceptions import AstropyUserWarning
 
 import dice_core
-from dice_core import DatasetError
+from dice_core import DatasetError, products
 from dice_core.manifest import Acquisition, Detector
 
 __all__ = [
@@ -49,6 +51,7 @@ __all__ = [
     "write_text",
     "atomic_write",
     "temporary_files",
+    "remove_abandoned",
     "TEMPORARY_NAME",
     "provenance",
     "input_digests",
@@ -432,8 +435,9 @@ def _non_finite_report(cube: CubeFile) -> str:
             f"the first in frame {t}, row {r}, col {c} (counted from 0)")
 
 
+_TOKEN_BYTES = 6  # of randomness in a temporary file's name
 #: The name of :func:`atomic_write`'s temporary files: ``.<name>.<12 hex digits>.part`` beside the file.
-TEMPORARY_NAME = re.compile(r"\..+\.[0-9a-f]{12}\.part")
+TEMPORARY_NAME = re.compile(r"\..+\.[0-9a-f]{%d}\.part" % (2 * _TOKEN_BYTES))
 
 
 def temporary_files(root, *, recursive: bool = True) -> list[Path]:
@@ -448,6 +452,38 @@ def temporary_files(root, *, recursive: bool = True) -> list[Path]:
     return sorted(found)
 
 
+def remove_abandoned(folder, targets) -> list[Path]:
+    """Remove the temporary files of :func:`atomic_write` in ``folder`` that were to become one of
+    ``targets`` (paths) and that no live process is writing; return them.
+
+    Every :func:`atomic_write` holds a shared ``flock`` on its file's folder while its block runs, which the
+    kernel drops when the writer's process ends, however it ends (``kill -9`` included). This takes the
+    folder's lock exclusively, without waiting: if a writer holds it, nothing in the folder is removed.
+    Where the filesystem has no ``flock``, nothing is removed either.
+    """
+    folder = Path(folder)
+    wanted = {os.path.normpath(os.path.abspath(t)) for t in targets}
+    try:
+        descriptor = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return []
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # a live writer in the folder, or no flock: keep everything
+        os.close(descriptor)
+        return []
+    removed = []
+    try:
+        for part in temporary_files(folder, recursive=False):
+            target = part.parent / part.name[1:].rsplit(".", 2)[0]  # .<name>.<hex>.part -> <name>
+            if os.path.normpath(os.path.abspath(target)) in wanted:
+                part.unlink(missing_ok=True)
+                removed.append(part)
+    finally:
+        os.close(descriptor)  # and with it the lock
+    return removed
+
+
 def _atomic_target(path: Path):
     """A fresh temporary file beside ``path`` (named as :data:`TEMPORARY_NAME` says), with the mode a plain
     ``open`` would give ``path``.
@@ -457,7 +493,7 @@ def _atomic_target(path: Path):
     """
     path.parent.mkdir(parents=True, exist_ok=True)
     while True:
-        tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.part"
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(_TOKEN_BYTES)}.part"
         try:
             os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
         except FileExistsError:
@@ -494,6 +530,13 @@ def atomic_write(path):
     """
     path = Path(path)
     tmp = _atomic_target(path)
+    # a shared lock on the folder while the block writes, so that remove_abandoned() never takes a live
+    # writer's file (a lock on the file itself would clash with the HDF5 library's own on the files it writes)
+    lock = os.open(path.parent, os.O_RDONLY)
+    try:
+        fcntl.flock(lock, fcntl.LOCK_SH)
+    except OSError:  # no flock on this filesystem: the file is still written whole or not at all
+        pass
     try:
         yield tmp
         os.replace(tmp, path)
@@ -512,6 +555,8 @@ def atomic_write(path):
                 renamed.add_note(note)
             raise renamed from exc
         raise
+    finally:
+        os.close(lock)
 
 
 def write_cube(path, chunks, *, shape, n_frames, dtype="uint16", header=None):
@@ -581,9 +626,17 @@ def first_chunk(chunks) -> Chunk:
 
 
 def write_text(path, text: str):
-    """Write a text file (a table) atomically: under a temporary name, then renamed."""
+    """Write a text file (a table) atomically: under a temporary name, then renamed. A CSV table of the
+    catalogue (:mod:`dice_core.products`) must have the columns its entry promises."""
     if not isinstance(text, str):
         raise TypeError(f"{path}: text expected, got {type(text).__name__}")
+    found = products.match(path)
+    if found is not None and found[0].kind == "csv":
+        header = next(csv.reader([text.split("\n", 1)[0]]), [])
+        absent = [column for column in found[0].columns if column not in header]
+        if absent:
+            raise ValueError(f"{path}: not what the catalogue's table {found[0].key} promises: no column "
+                             f"{', '.join(absent)}")
     with atomic_write(path) as tmp:
         with open(tmp, "w") as f:
             f.write(text)
@@ -717,7 +770,9 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
     first of ``roots`` that holds it, whose name ``relative_to`` gives, and the
     SHA-256 of its bytes) and ``history``: the inputs' (and the dataset's own)
     history lines, once each, then this write's line, CF style. The file is written
-    through :func:`atomic_write`, so an existing product is never left half-written.
+    through :func:`atomic_write`, so an existing product is never left half-written. A path that is an
+    instance of a product of the catalogue (:mod:`dice_core.products`) must hold the variables its entry
+    promises, on its dims and in its units.
 
     ``code_version`` and ``roots`` default to those of the enclosing :func:`provenance` block.
     ``digests`` maps inputs (resolved paths, str) to their SHA-256 when already known
@@ -727,6 +782,11 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
     missing = [name for name, var in ds.data_vars.items() if "units" not in var.attrs]
     if missing:
         raise ValueError(f"{path}: variables without units: {missing}")
+    found = products.match(path)
+    if found is not None and found[0].kind == "netcdf":
+        problems = products.problems(ds, found[0])
+        if problems:
+            raise ValueError(f"{path}: not what the catalogue's product {found[0].key} promises: {'; '.join(problems)}")
     context = _PROVENANCE.get() or {}
     code_version = code_version if code_version is not None else context.get("code_version")
     roots = roots if roots is not None else context.get("roots") or {}

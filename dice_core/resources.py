@@ -34,9 +34,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
-__all__ = ["StepCost", "STEPS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
-           "step_cost"]
+__all__ = ["StepCost", "COSTS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
+           "step_cost", "job_data", "part_files", "FileFrames"]
 
 #: Factor on the modelled memory: the spread of repeated runs (383-419 MB for one fit) and of library versions.
 MEMORY_MARGIN = 1.5
@@ -84,8 +85,9 @@ class StepCost:
     s_per_position: float = 0.0
 
 
-#: Cost of each step, by rule name (BENCHMARKS.md, "Job resources"). Rules not listed here cost :data:`LIGHT`.
-STEPS: dict[str, StepCost] = {
+#: Cost of each step of :data:`dice_core.steps.STEPS` (BENCHMARKS.md, "Job resources"). Steps not listed here
+#: cost :data:`LIGHT`.
+COSTS: dict[str, StepCost] = {
     # 2.3-2.4 GB for a metrology file of 1024x1024 pixels (its truth maps and the spherical fringes'
     # per-pixel response); 48-66 s per 1e9 samples at every size (BENCHMARKS.md, "A large detector")
     "simulate_file": StepCost(base_mb=230.0, mb_per_mpixel=2200.0, start_s=3.0, s_per_gsample=60.0),
@@ -124,7 +126,7 @@ LIGHT = StepCost(base_mb=250.0, mb_per_mpixel=300.0, start_s=10.0, s_per_mpixel=
 
 def step_cost(step: str) -> StepCost:
     """The measured cost of a step (a rule name); :data:`LIGHT` for a step that reads products only."""
-    return STEPS.get(step, LIGHT)
+    return COSTS.get(step, LIGHT)
 
 
 def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0, attempt: int = 1) -> dict:
@@ -160,3 +162,82 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
     mem_mb = math.ceil(MEMORY_MARGIN * memory + EXECUTOR_MB) * attempt
     runtime = max(MIN_RUNTIME, math.ceil(TIME_MARGIN * seconds / 60)) * attempt
     return {"mem_mb": int(mem_mb), "runtime": int(runtime)}
+
+
+def part_files(files, frames_of, *, parts: int, part: int) -> list:
+    """The files of part ``part`` of a split fit over ``files`` (its baseline's, in order): the group of whole
+    files :meth:`dice_core.io.FrameStream.split` gives that part; none for a part beyond the groups.
+    ``frames_of(file)`` gives a file's frames."""
+    from dice_core.io import file_groups
+
+    groups = file_groups([frames_of(f) for f in files], parts)
+    return list(files[slice(*groups[part])]) if part < len(groups) else []
+
+
+def job_data(step: str, wildcards: dict, *, manifest, frames_of, raw=None, parts: int = 1) -> dict:
+    """What one job of ``step`` reads (or writes, for the simulation), for :func:`job_resources`:
+    ``frames`` over all its files and ``positions``.
+
+    ``wildcards`` are the job's; ``frames_of(path)`` gives a raw file's frames (planned or from its header);
+    ``raw`` is the simulated dataset's folder; ``parts`` the split fit's number of parts.
+    """
+    def acquisition(acq):
+        return sum(frames_of(f) for f in acq.files)
+
+    positions = len(manifest.positions)
+    if step == "simulate_file":
+        return {"frames": frames_of(Path(raw) / f"{wildcards['relpath']}.fits")}
+    if step == "simulate_truth":
+        return {"frames": sum(frames_of(f) for f in manifest.all_files()), "positions": positions}
+    if step == "measure_dark":
+        return {"frames": acquisition(manifest.dark) if manifest.dark else 0}
+    if step == "measure_prnu":
+        return {"frames": acquisition(manifest.flats[wildcards["flat"]])}
+    if step in ("fit_fringes", "allan_deviation", "fit_reduce", "fit_finish"):
+        return {"frames": acquisition(manifest.baselines[wildcards["baseline"]])}
+    if step == "fit_part":  # its own files' frames only (none for a part beyond the groups of files)
+        files = manifest.baselines[wildcards["baseline"]].files
+        return {"frames": sum(frames_of(f) for f in part_files(files, frames_of, parts=parts,
+                                                                  part=int(wildcards["part"])))}
+    if step == "fit_start":  # the first chunk only
+        return {"frames": 0}
+    if step == "stack_position":
+        position = next(p for p in manifest.positions if str(p.index) == str(wildcards["position"]))
+        return {"frames": acquisition(position.acquisition)}
+    return {"positions": positions}
+
+
+class FileFrames:
+    """Frames of a dataset's raw files: the simulation's plan (``planned``: path relative to the manifest's
+    folder -> frames) where it simulates a file, which may not exist yet, else NAXIS3 of the file's header,
+    read once (``cache``: resolved path -> frames, which may be shared)."""
+
+    def __init__(self, manifest, planned=None, cache=None):
+        self.manifest, self.planned = manifest, planned or {}
+        self.cache = {} if cache is None else cache
+
+    def __call__(self, path) -> int:
+        """The file's frames.
+
+        Raises
+        ------
+        DatasetError
+            A file that is not a readable FITS file, naming the acquisition and the manifest that name it.
+        """
+        from astropy.io import fits
+
+        from dice_core import DatasetError
+
+        path = Path(path).resolve()
+        folder = self.manifest.path.parent.resolve()
+        relative = path.relative_to(folder).as_posix() if path.is_relative_to(folder) else None
+        if relative in self.planned:
+            return self.planned[relative]
+        if path not in self.cache:
+            try:
+                self.cache[path] = int(fits.getheader(path).get("NAXIS3", 1))
+            except (OSError, ValueError, IndexError) as exc:  # astropy's errors of a file that is not FITS
+                named_by = next((a.label for a in self.manifest.acquisitions() if path in a.files), "an acquisition")
+                raise DatasetError(path, f"not a readable FITS file ({' '.join(str(exc).split())}); named by "
+                                         f"{named_by} in {self.manifest.path}") from None
+        return self.cache[path]

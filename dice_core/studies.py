@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from dice_core import fringes, geometry, simulation
+from dice_core import centroids, fringes, geometry, simulation
 from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
 from dice_core.overrides import apply_dotted
@@ -278,7 +278,7 @@ STAR_ACCURACY_BENCH = {
     "stars": {"positions": 12, "frames": 16, "tip_tilt_pv": 0.0},  # a roll only: Procrustes absorbs it
 }
 
-STAR_ACCURACY_MODES = ("raw", "flat", "metrology", "flat+metrology", "flat+metrology+width")
+STAR_ACCURACY_MODES = tuple(centroids.MODES)
 
 
 def _position_chunks(cfg, truth, index: int):

@@ -59,7 +59,12 @@ def run_together(workdir, argument_lists, at_once=2):
         batch, waiting = waiting[:at_once], waiting[at_once:]
         runs = [subprocess.Popen([sys.executable, "-m", "snakemake", "--cores", "2", *args], cwd=workdir, env=env,
                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for args in batch]
-        results += [(run.wait(timeout=300), run.stdout.read()) for run in runs]
+        for run in runs:
+            try:
+                said, _ = run.communicate(timeout=300)
+            finally:
+                run.kill()
+            results.append((run.returncode, said))
     return results
 
 
@@ -168,7 +173,7 @@ def test_start_up_problems_are_one_line_naming_the_file_or_key(sandbox, tmp_path
     assert not (repo / "results").exists()
 
 
-def test_a_second_run_while_one_is_alive_is_told_which_and_not_to_unlock(sandbox, tmp_path):
+def test_a_second_run_while_one_is_alive_is_told_which_and_not_to_unlock(tmp_path):
     """Snakemake's own message asks for --unlock, which would let both runs write the same products."""
     import fcntl
 
@@ -188,6 +193,19 @@ def test_a_second_run_while_one_is_alive_is_told_which_and_not_to_unlock(sandbox
         "makes some of the same files: wait for it to end, or stop it (Ctrl-C in its terminal, or kill its process "
         "group); do not use --unlock, which would let both runs write the same products"], said
     assert "--unlock argument" not in said and (repo / ".snakemake" / "locks" / "0.output.lock").is_file()
+
+
+def test_a_results_folder_that_is_a_file_is_one_line_before_any_job(tmp_path):
+    """What a folder that cannot be written gets (the write probe's failures are tested in test_preflight.py,
+    an immutable folder in the slow test below)."""
+    repo = copy_repository(tmp_path / "repo")
+    (repo / "results").write_text("a file where the results folder should be")
+    result = snakemake(repo, "--config", "dataset=ci", check=False)
+    said = result.stdout + result.stderr
+    lines = dice_lines(said)
+    assert result.returncode == 1 and len(lines) == 1 and lines[0].startswith(
+        f"dice: cannot write in {repo / 'results'} (a file, not a folder), where this run writes results/sim-ci/"), said
+    assert "Traceback" not in said
 
 
 def unwritable_results(repo):

@@ -419,7 +419,7 @@ def test_provenance_appends_history_and_records_relative_inputs_with_checksums_a
     dataset, results = tmp_path / "bench", tmp_path / "results" / "bench"
     raw = dataset / "raw" / "dark.fits"
     write_cube(raw, [np.zeros((2, 6, 7))], shape=(6, 7), n_frames=2)
-    first = results / "calibration" / "dark.nc"
+    first = results / "calibration" / "maps.nc"
     with provenance(code_version="0123abcd", dataset=dataset, results=results):
         write_product(product(), first, title="dark maps", inputs=[raw])
     dark = read_product(first)
@@ -427,15 +427,15 @@ def test_provenance_appends_history_and_records_relative_inputs_with_checksums_a
     [record] = json.loads(dark.attrs["inputs"])
     assert record == {"path": "raw/dark.fits", "relative_to": "dataset",
                       "sha256": hashlib.sha256(raw.read_bytes()).hexdigest()}
-    second = results / "calibration" / "prnu.nc"
+    second = results / "calibration" / "flat.nc"
     write_product(product().assign_coords(row=[10, 11]), second, title="prnu", inputs=[first, raw],
                   code_version="4567ef", roots={"dataset": dataset, "results": results})
     prnu = read_product(second)
     history = prnu.attrs["history"].splitlines()
     assert history[:-1] == dark.attrs["history"].splitlines()  # the input's history kept, then this write's
-    assert "prnu.nc (prnu) written by dice_core" in history[-1] and "code 4567ef" in history[-1]
+    assert "flat.nc (prnu) written by dice_core" in history[-1] and "code 4567ef" in history[-1]
     records = json.loads(prnu.attrs["inputs"])
-    assert [(r["path"], r["relative_to"]) for r in records] == [("calibration/dark.nc", "results"),
+    assert [(r["path"], r["relative_to"]) for r in records] == [("calibration/maps.nc", "results"),
                                                                 ("raw/dark.fits", "dataset")]
     assert records[0]["sha256"] == hashlib.sha256(first.read_bytes()).hexdigest()
     # an input under neither root keeps its absolute path
@@ -526,3 +526,39 @@ def test_temporary_files_of_a_killed_writer_are_found_by_their_name_only(tmp_pat
     assert temporary_files(tmp_path, recursive=False) == left[:1]
     assert temporary_files(tmp_path / "nowhere") == []
     assert TEMPORARY_NAME.fullmatch(".x.fits.0123456789ab.part")
+
+
+def test_a_killed_writers_temporary_file_is_removed_and_a_live_writers_kept(tmp_path):
+    """The next run removes a killed writer's temporary file, never a live writer's: atomic_write holds a
+    shared lock on the folder while its block runs, which the kernel drops when the process dies."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from dice_core.io import remove_abandoned, temporary_files
+
+    target = tmp_path / "figure.png"
+    writer = subprocess.Popen([sys.executable, "-c", (
+        "import time\n"
+        "from dice_core.io import atomic_write\n"
+        f"with atomic_write({str(target)!r}) as tmp:\n"
+        "    tmp.write_bytes(b'half')\n"
+        "    print('writing', flush=True)\n"
+        "    time.sleep(60)\n")], stdout=subprocess.PIPE, text=True)
+    try:
+        assert writer.stdout.readline() == "writing\n"
+        (part,) = temporary_files(tmp_path)
+        assert remove_abandoned(tmp_path, [target]) == [] and part.exists()  # a live writer's
+        writer.send_signal(signal.SIGKILL)
+        writer.wait()
+        other = tmp_path / ".notes.txt.0123456789ab.part"  # not a target of this run
+        other.write_bytes(b"")
+        deadline = time.monotonic() + 10
+        while not (removed := remove_abandoned(tmp_path, [target])):  # the kernel drops the lock with the process
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+    finally:
+        writer.kill()
+    assert removed == [part] and not part.exists() and other.exists()
+    assert remove_abandoned(tmp_path / "nowhere", [target]) == []

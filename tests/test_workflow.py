@@ -14,6 +14,7 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -120,6 +121,63 @@ def test_products_record_their_code_relative_inputs_with_checksums_and_history(o
     assert metrology["frame"].attrs["long_name"] and metrology["iteration"].attrs["units"] == "1"
     assert metrology["masked"].attrs["flag_meanings"] == "measured masked"
     assert metrology["masked"].attrs["flag_values"].tolist() == [0, 1]
+
+
+def merged(base, update):
+    """``update`` merged into ``base``, mapping by mapping, as Snakemake merges configuration files."""
+    out = dict(base)
+    for key, value in update.items():
+        out[key] = merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def ci_config(overrides=None):
+    """The configuration a run on the ci preset reads: config/config.yaml with ``overrides`` (a mapping, as a
+    configuration file or --config gives it), and the schema's defaults."""
+    from dice_core import settings
+
+    values = merged(yaml.safe_load((REPO / "config" / "config.yaml").read_text()), {"dataset": "ci"})
+    values = merged(values, overrides or {})
+    return settings.with_defaults(values, settings.config_schema(REPO / "workflow" / "schemas" / "config.schema.yaml"))
+
+
+def configuration_problems(out, config):
+    """Each netCDF product under ``out`` (the simulation's truth aside: its configuration is the preset) whose
+    ``configuration`` is not exactly its step's settings (dice_core.steps) as ``config`` gives them, or whose
+    ``code_version`` or ``inputs`` are missing or absolute; and the number of products read."""
+    import json
+
+    from dice_core import products, settings, steps
+
+    problems, count = [], 0
+    for path in sorted(out.rglob("*.nc")):
+        if path.relative_to(out).parts[0] == "raw":
+            continue
+        count += 1
+        entry, wildcards = products.match(path)
+        attrs = xr.open_dataset(path).attrs
+        expected = settings.select(config, steps.settings_keys(entry.step), **wildcards)
+        if "method" in wildcards:  # centroids/<method>/<mode>.nc: the method of its path
+            expected["centroids"]["method"] = wildcards["method"]
+        if json.loads(attrs.get("configuration", "null")) != json.loads(json.dumps(expected)):
+            problems.append(f"{path.relative_to(out)}: configuration {attrs.get('configuration')} is not {expected}")
+        if len(attrs.get("code_version", "")) != 16:
+            problems.append(f"{path.relative_to(out)}: no code_version")
+        if any(r["path"].startswith("/") or r["relative_to"] not in ("dataset", "results")
+               for r in json.loads(attrs.get("inputs", "[{}]") or "[{}]")):
+            problems.append(f"{path.relative_to(out)}: inputs {attrs.get('inputs')} not relative")
+    return problems, count
+
+
+def test_every_product_records_exactly_its_step_s_settings_its_code_and_relative_inputs(out):
+    """Every .nc of the run, not three: its configuration is its step's settings (dice_core.steps) and nothing
+    else, with the hash of its code and its inputs relative to the dataset's or the results folder."""
+    import json
+
+    problems, count = configuration_problems(out, ci_config())
+    assert count >= 40 and problems == []
+    truth = xr.open_dataset(out / "raw" / "truth.nc").attrs
+    assert len(truth["code_version"]) == 16 and json.loads(truth["inputs"]) == []
 
 
 def test_everything_written_is_readable_as_the_umask_allows(workdir, out):
@@ -259,13 +317,13 @@ def read_accuracy_table(path):
 def test_accuracy_table_follows_the_contract(out):
     rows = read_accuracy_table(out / "tables" / "accuracy.csv")
     assert {"flat", "metrology", "grouping", "accuracy", "error"} <= set(rows[0])
-    from dice_core.centroids import MODE_NEEDS
+    from dice_core.centroids import MODES, mode_needs
 
     for method in ("fourier", "gaussian"):  # the configured sweep: one row per mode and grouping
         assert sorted((r["mode"], r["grouping"]) for r in rows if r["method"] == method) == sorted(
-            (m, g) for m in MODE_NEEDS for g in ("position", "group"))
+            (m, g) for m in MODES for g in ("position", "group"))
     for r in rows:  # the flat and metrology columns say what the mode corrects with
-        needs = MODE_NEEDS[r["mode"]]
+        needs = mode_needs(r["mode"])
         assert (r["flat"], r["metrology"]) == (str("flat" in needs).lower(), str("offsets" in needs).lower())
     assert (out / "centroids" / "gaussian" / "flat+metrology.nc").is_file()
     assert all(float(r["accuracy"]) > 0 and float(r["error"]) > 0 for r in rows)
@@ -321,6 +379,92 @@ def test_a_mode_added_to_the_sweep_runs_only_its_own_jobs(workdir, out):
     assert ran.count("rule measure_centroids:") == 1 and "wildcards: mode=metrology" in ran
     assert "rule accuracy_table:" in ran
     assert (out / "centroids" / "metrology.nc").is_file()
+
+
+# A valid value other than the default of every key of the configuration that a step reads, for the ci preset
+# (dice_core.steps.PLANNING_KEYS choose what is made, not how: they are not in it).
+OTHER_VALUES = {
+    "chunk_frames": 16, "prnu.gradient_degree": 2, "metrology.tolerance": 2.0e-7, "metrology.max_passes": 9,
+    "metrology.parts": 3, "metrology.use_flat": False, "metrology.smooth_degree": 5, "metrology.tip_sigma": 2.0e-3,
+    "prf.order": 6.0, "prf.half_width": 0.45, "prf.sigma": 0.32, "centroids.modes": ["raw", "flat"],
+    "centroids.method": "gaussian", "centroids.methods": ["fourier"], "centroids.half_size": 6,
+    "centroids.batches": 3, "centroids.pair": "P24", "astrometry.positions": [1, 3], "astrometry.groups": 2,
+    "astrometry.trials": 1000, "astrometry.superimposition": "projective", "astrometry.pose.distance": 30000.0,
+    "astrometry.pose.off_axis_deg": 3.0, "astrometry.pose.centre": [20.0, 20.0],
+    "paper.offset_bias": "offset_bias_causes", "paper.error_propagation": "error_propagation_sources",
+}
+# the second error_propagation sweep paper.error_propagation may name
+EXTRA_SWEEP = {"sweeps": {"error_propagation_sources": {"study": "error_propagation", "parameter": "source",
+                                                        "values": ["prnu", "read"], "options": {"trials": 50}}}}
+
+
+def nested(key, value):
+    """{a: {b: value}} for the dotted key a.b."""
+    for part in reversed(key.split(".")):
+        value = {part: value}
+    return value
+
+
+def command_line(key, value):
+    """The README's way to set a nested key on the command line: ``--config 'section={key: value}'``, a YAML
+    mapping whose values the schema types."""
+    section, *rest = key.split(".")
+    inner = nested(".".join(rest), value)[rest[0]] if rest else value
+    text = yaml.safe_dump({rest[0]: inner} if rest else inner, default_flow_style=True, width=1000).strip()
+    return f"{section}={text.removesuffix('...').strip()}"
+
+
+def plan_of(workdir, *args):
+    """The jobs a dry run plans: {(rule, its outputs)}, the target rules aside."""
+    plan = snakemake(workdir, "-n", *args).stdout
+    jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?=^\S|\Z)", plan, re.M | re.S)
+    return {(rule, re.search(r"^\s+output: (.*)$", block, re.M).group(1)) for rule, block in jobs
+            if rule not in ("all", "paper")}
+
+
+def check_key_triggers_its_steps(workdir, key, tmp_path):
+    """After a complete run, ``key`` set to another value on the command line plans exactly the steps that
+    declare it (dice_core.steps) and what follows from them: the same jobs as a run that forces those steps,
+    for the default target and for those steps' own products."""
+    from dice_core import products, steps
+
+    declaring = [name for name, step in steps.STEPS.items() if key in steps.settings_keys(name)]
+    extra = tmp_path / "sweep.yaml"
+    extra.write_text(yaml.safe_dump(EXTRA_SWEEP))
+    args = ["--configfile", str(extra), "--config", "dataset=ci", command_line(key, OTHER_VALUES[key])]
+    forced = ["--forcerun", *declaring] if declaring else []
+    natural, forced_plan = plan_of(workdir, *args), plan_of(workdir, *args, *forced)
+    assert natural == forced_plan, (key, natural ^ forced_plan)
+    own = sorted({out for rule, outputs in forced_plan if rule in declaring for out in outputs.split(", ")} | {
+        products.path_of(p, dataset_root="results/sim-ci", sweeps_root="results/sweeps",
+                         suffix=".png" if products.entry(p).kind == "figure" else "")
+        for name in declaring for p in steps.step(name).writes if not products.entry(p).wildcards})
+    if own:
+        natural, forced_plan = plan_of(workdir, *own, *args), plan_of(workdir, *own, *args, *forced)
+        assert natural == forced_plan, (key, "own products", natural ^ forced_plan)
+        assert {rule for rule, _ in natural} & set(declaring), (key, natural)  # the step itself is planned
+    return natural
+
+
+# the two the issue found (nothing planned), and one key of each kind of step: streaming, table, method
+TRIGGER_KEYS_IN_CI = ["prnu.gradient_degree", "astrometry.superimposition", "centroids.method", "chunk_frames"]
+
+
+@pytest.mark.parametrize("key", TRIGGER_KEYS_IN_CI)
+def test_a_changed_setting_reruns_exactly_the_steps_that_read_it(workdir, key, tmp_path):
+    check_key_triggers_its_steps(workdir, key, tmp_path)
+
+
+@pytest.mark.slow  # 4 dry runs a key, 3-5 s each: about 6 min on 2 cores (2026-12-04): pytest -m slow
+def test_every_key_of_the_schema_reruns_exactly_the_steps_that_read_it(workdir, tmp_path):
+    """For every leaf key of the configuration's schema, from the step table: a key added tomorrow is checked
+    the day it is added (or this test names it)."""
+    from dice_core import settings, steps
+
+    leaves = settings.leaf_keys(settings.config_schema(REPO / "workflow" / "schemas" / "config.schema.yaml"))
+    assert sorted(OTHER_VALUES) == sorted(k for k in leaves if k not in steps.PLANNING_KEYS)
+    for key in OTHER_VALUES:
+        check_key_triggers_its_steps(workdir, key, tmp_path)
 
 
 def rules_planned_after_editing(workdir, module_name, *target):
@@ -508,6 +652,23 @@ def test_a_mistyped_config_key_is_named_with_the_nearest_valid_key(workdir):
     assert "config centroids.half_sise: unknown key; did you mean centroids.half_size?" in said
     assert "config astrometry.groups: 'many' is not of type 'integer'" in said
     assert len(said.splitlines()) < 25 and "additionalProperties" not in said  # not the schema in full
+
+
+def test_the_readme_s_command_line_form_sets_nested_keys_typed_and_checked(workdir):
+    """README, "Settings": --config 'section={key: value}' (Snakemake reads its values as strings; the schema
+    types them), a misspelt key named with the nearest valid one, in one line each."""
+    readme = (REPO / "README.md").read_text()
+    assert "--config 'centroids={method: gaussian, half_size: 6}' chunk_frames=16" in readme
+    plan = snakemake(workdir, "-n", "--config", "dataset=ci", "centroids={method: gaussian, half_size: 6}",
+                     "chunk_frames=16").stdout
+    assert "rule measure_centroids:" in plan and "rule measure_dark:" in plan
+    result = snakemake(workdir, "-n", "--config", "dataset=ci", "centroids={half_sise: 4}", "prnu={gradient_degree: x}",
+                       check=False)
+    said = result.stdout + result.stderr
+    assert result.returncode == 1 and [line for line in said.splitlines() if line.startswith("dice: ")] == [
+        "dice: config centroids.half_sise: unknown key; did you mean centroids.half_size? (keys of centroids: "
+        "modes, method, methods, half_size, batches, pair)",
+        "dice: config prnu.gradient_degree: 'x' is not of type 'integer'"], said
 
 
 def test_unknown_preset_is_a_clear_error(workdir):

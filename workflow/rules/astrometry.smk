@@ -4,12 +4,12 @@
 
 rule accuracy_table:
     input:
-        centroids=centroid_products,
+        centroids=lambda w: PLAN.centroid_products(),
     output:
-        csv=f"{OUT}/tables/accuracy.csv",
-        tex=f"{OUT}/tables/accuracy.tex",
-        residuals=f"{OUT}/tables/procrustes_residuals.nc",
-        model_residuals=[f"{OUT}/tables/{model}_residuals.nc" for model in extra_superimpositions()],
+        csv=output_of("accuracy_table"),
+        tex=output_of("accuracy_latex"),
+        residuals=output_of("procrustes_residuals"),
+        model_residuals=[PLAN.path("model_residuals", model=model) for model in PLAN.extra_superimpositions()],
     log:
         f"{OUT}/logs/accuracy_table.log",
     conda:
@@ -17,30 +17,17 @@ rule accuracy_table:
     resources:
         **step_resources("accuracy_table"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        code=code_version("io", "astrometry"),
-        options=lambda w: config["astrometry"],
-        models=extra_superimpositions(),
+        **step_params("accuracy_table", models=PLAN.extra_superimpositions()),
     script:
         "../scripts/accuracy_table.py"
 
 
 rule plot_procrustes_residuals:
     input:
-        residuals=rules.accuracy_table.output.residuals,
+        residuals=output_of("procrustes_residuals"),
     output:
-        png=report(
-            f"{OUT}/figures/procrustes_residuals.png",
-            category="Astrometry",
-            caption="../report/procrustes_residuals.rst",
-        ),
-        pdf=f"{OUT}/figures/procrustes_residuals.pdf",
-        barycentre_png=report(
-            f"{OUT}/figures/barycentre_residuals.png",
-            category="Astrometry",
-            caption="../report/barycentre_residuals.rst",
-        ),
-        barycentre_pdf=f"{OUT}/figures/barycentre_residuals.pdf",
+        **figure_of("figure_procrustes_residuals", category="Astrometry", caption="procrustes_residuals"),
+        **figure_of("figure_barycentre_residuals", "barycentre_", category="Astrometry", caption="barycentre_residuals"),
     log:
         f"{OUT}/logs/plot_procrustes_residuals.log",
     conda:
@@ -48,30 +35,23 @@ rule plot_procrustes_residuals:
     resources:
         **step_resources("plot_procrustes_residuals"),
     params:
-        code=code_version("plotting", "io"),
+        **step_params("plot_procrustes_residuals"),
     script:
         "../scripts/plot_procrustes_residuals.py"
 
 
 rule plot_superimposition_residuals:
     input:
-        residuals=f"{OUT}/tables/{{model}}_residuals.nc",
+        residuals=output_of("model_residuals"),
     output:
-        png=report(
-            f"{OUT}/figures/{{model}}_residuals.png",
-            category="Astrometry",
-            caption="../report/superimposition_residuals.rst",
-        ),
-        pdf=f"{OUT}/figures/{{model}}_residuals.pdf",
+        **figure_of("figure_model_residuals", category="Astrometry", caption="superimposition_residuals"),
     log:
         f"{OUT}/logs/plot_{{model}}_residuals.log",
-    wildcard_constraints:
-        model="projective|pose",
     conda:
         "../envs/dice.yaml"
     resources:
         **step_resources("plot_superimposition_residuals"),
     params:
-        code=code_version("plotting", "io"),
+        **step_params("plot_superimposition_residuals"),
     script:
         "../scripts/plot_superimposition_residuals.py"

@@ -7,7 +7,7 @@ rule measure_dark:
         manifest=MANIFEST_FILE,
         cubes=acquisition_files(MANIFEST.dark) if MANIFEST.dark else [],
     output:
-        dark=f"{OUT}/calibration/dark.nc",
+        dark=output_of("dark"),
     log:
         f"{OUT}/logs/measure_dark.log",
     benchmark:
@@ -17,8 +17,7 @@ rule measure_dark:
     resources:
         **step_resources("measure_dark"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        code=code_version("io", "manifest", "calibration", "polynomials"),
+        **step_params("measure_dark"),
     script:
         "../scripts/measure_dark.py"
 
@@ -26,10 +25,10 @@ rule measure_dark:
 rule measure_prnu:
     input:
         manifest=MANIFEST_FILE,
-        dark=rules.measure_dark.output.dark,
+        dark=output_of("dark"),
         cubes=flat_files,
     output:
-        prnu=f"{OUT}/calibration/flats/prnu_{{flat}}.nc",
+        prnu=output_of("flat_prnu"),
     log:
         f"{OUT}/logs/measure_prnu_{{flat}}.log",
     benchmark:
@@ -39,17 +38,16 @@ rule measure_prnu:
     resources:
         **step_resources("measure_prnu"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        code=code_version("io", "manifest", "calibration", "polynomials"),
+        **step_params("measure_prnu"),
     script:
         "../scripts/measure_prnu.py"
 
 
 rule select_reference_prnu:
     input:
-        prnu=f"{OUT}/calibration/flats/prnu_{MANIFEST.reference_flat}.nc",
+        prnu=PLAN.path("flat_prnu", flat=MANIFEST.reference_flat) if MANIFEST.flats else [],
     output:
-        prnu=f"{OUT}/calibration/prnu.nc",
+        prnu=output_of("prnu"),
     log:
         f"{OUT}/logs/select_reference_prnu.log",
     conda:
@@ -57,20 +55,18 @@ rule select_reference_prnu:
     resources:
         **step_resources("select_reference_prnu"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        reference=MANIFEST.reference_flat,
-        code=code_version("io"),
+        **step_params("select_reference_prnu", reference=MANIFEST.reference_flat),
     script:
         "../scripts/select_reference_prnu.py"
 
 
 rule compare_prnu:
     input:
-        reference=rules.select_reference_prnu.output.prnu,
-        other=f"{OUT}/calibration/flats/prnu_{{flat}}.nc",
+        reference=output_of("prnu"),
+        other=output_of("flat_prnu"),
         manifest=MANIFEST_FILE,
     output:
-        difference=f"{OUT}/calibration/prnu_difference_{{flat}}.nc",
+        difference=output_of("prnu_difference"),
     log:
         f"{OUT}/logs/compare_prnu_{{flat}}.log",
     conda:
@@ -78,8 +74,7 @@ rule compare_prnu:
     resources:
         **step_resources("compare_prnu"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        code=code_version("io", "manifest", "calibration", "polynomials"),
+        **step_params("compare_prnu"),
     script:
         "../scripts/compare_prnu.py"
 
@@ -87,10 +82,10 @@ rule compare_prnu:
 rule find_bad_pixels:
     input:
         manifest=MANIFEST_FILE,
-        dark=rules.measure_dark.output.dark,
-        prnu=rules.select_reference_prnu.output.prnu,
+        dark=output_of("dark"),
+        prnu=output_of("prnu"),
     output:
-        bad_pixels=f"{OUT}/calibration/bad_pixels.nc",
+        bad_pixels=output_of("bad_pixels"),
     log:
         f"{OUT}/logs/find_bad_pixels.log",
     conda:
@@ -98,7 +93,6 @@ rule find_bad_pixels:
     resources:
         **step_resources("find_bad_pixels"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        code=code_version("io", "manifest", "calibration", "polynomials"),
+        **step_params("find_bad_pixels"),
     script:
         "../scripts/find_bad_pixels.py"

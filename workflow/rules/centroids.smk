@@ -8,7 +8,7 @@ rule stack_position:
         manifest=MANIFEST_FILE,
         cubes=position_files,
     output:
-        stack=f"{OUT}/stars/{{position}}.nc",
+        stack=output_of("stack"),
     log:
         f"{OUT}/logs/stack_position_{{position}}.log",
     benchmark:
@@ -18,21 +18,19 @@ rule stack_position:
     resources:
         **step_resources("stack_position"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        batches=config["centroids"]["batches"],
-        code=code_version("io", "manifest", "stacks"),
+        **step_params("stack_position"),
     script:
         "../scripts/stack_position.py"
 
 
 rule measure_centroids:
     input:
-        unpack(centroid_calibrations),
+        unpack(lambda w: PLAN.centroid_calibrations(w.mode)),
         manifest=MANIFEST_FILE,
-        dark=rules.measure_dark.output.dark,
+        dark=output_of("dark"),
         stacks=position_stacks,
     output:
-        centroids=f"{OUT}/centroids/{{mode}}.nc",
+        centroids=output_of("centroids"),
     log:
         f"{OUT}/logs/measure_centroids_{{mode}}.log",
     benchmark:
@@ -42,28 +40,28 @@ rule measure_centroids:
     resources:
         **step_resources("measure_centroids"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        code=code_version("io", "manifest", "calibration", "centroids", "polynomials", "stacks"),
-        options=centroid_options,
+        **step_params("measure_centroids", method=config["centroids"]["method"]),
     script:
         "../scripts/measure_centroids.py"
 
 
+# each other method of centroids.methods: the same step, its method from the path
 use rule measure_centroids as measure_centroids_by_method with:
     output:
-        centroids=f"{OUT}/centroids/{{method}}/{{mode}}.nc",
+        centroids=output_of("centroids_by_method"),
     log:
         f"{OUT}/logs/measure_centroids_{{method}}_{{mode}}.log",
     benchmark:
         f"{OUT}/benchmarks/measure_centroids_{{method}}_{{mode}}.tsv"
+    params:
+        **step_params("measure_centroids_by_method", method=lambda w: w.method),
 
 
 rule plot_centroids:
     input:
-        centroids=rules.measure_centroids.output.centroids,
+        centroids=output_of("centroids"),
     output:
-        png=report(f"{OUT}/figures/centroids_{{mode}}.png", category="Pseudo stars", caption="../report/centroids.rst"),
-        pdf=f"{OUT}/figures/centroids_{{mode}}.pdf",
+        **figure_of("figure_centroids", category="Pseudo stars", caption="centroids"),
     log:
         f"{OUT}/logs/plot_centroids_{{mode}}.log",
     conda:
@@ -71,7 +69,6 @@ rule plot_centroids:
     resources:
         **step_resources("plot_centroids"),
     params:
-        code=code_version("plotting", "io"),
-        positions=config["astrometry"]["positions"],  # the used range, marked red
+        **step_params("plot_centroids"),
     script:
         "../scripts/plot_centroids.py"

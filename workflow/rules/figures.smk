@@ -3,13 +3,11 @@
 
 rule plot_dark:
     input:
-        dark=rules.measure_dark.output.dark,
+        dark=output_of("dark"),
         manifest=MANIFEST_FILE,
     output:
-        dark_png=report(f"{OUT}/figures/dark.png", category="Dark", caption="../report/dark.rst"),
-        dark_pdf=f"{OUT}/figures/dark.pdf",
-        noise_png=report(f"{OUT}/figures/dark_noise.png", category="Dark", caption="../report/dark_noise.rst"),
-        noise_pdf=f"{OUT}/figures/dark_noise.pdf",
+        **figure_of("figure_dark", "dark_", category="Dark", caption="dark"),
+        **figure_of("figure_dark_noise", "noise_", category="Dark", caption="dark_noise"),
     log:
         f"{OUT}/logs/plot_dark.log",
     conda:
@@ -17,18 +15,17 @@ rule plot_dark:
     resources:
         **step_resources("plot_dark"),
     params:
-        code=code_version("plotting", "manifest", "io"),
+        **step_params("plot_dark"),
     script:
         "../scripts/plot_dark.py"
 
 
 rule plot_prnu:
     input:
-        prnu=rules.measure_prnu.output.prnu,
+        prnu=output_of("flat_prnu"),
         manifest=MANIFEST_FILE,
     output:
-        png=report(f"{OUT}/figures/prnu_{{flat}}.png", category="PRNU", caption="../report/prnu.rst"),
-        pdf=f"{OUT}/figures/prnu_{{flat}}.pdf",
+        **figure_of("figure_prnu", category="PRNU", caption="prnu"),
     log:
         f"{OUT}/logs/plot_prnu_{{flat}}.log",
     conda:
@@ -36,20 +33,17 @@ rule plot_prnu:
     resources:
         **step_resources("plot_prnu"),
     params:
-        code=code_version("plotting", "manifest", "io"),
+        **step_params("plot_prnu"),
     script:
         "../scripts/plot_prnu.py"
 
 
 rule plot_prnu_difference:
     input:
-        difference=rules.compare_prnu.output.difference,
+        difference=output_of("prnu_difference"),
         manifest=MANIFEST_FILE,
     output:
-        png=report(
-            f"{OUT}/figures/prnu_difference_{{flat}}.png", category="PRNU", caption="../report/prnu_difference.rst"
-        ),
-        pdf=f"{OUT}/figures/prnu_difference_{{flat}}.pdf",
+        **figure_of("figure_prnu_difference", category="PRNU", caption="prnu_difference"),
     log:
         f"{OUT}/logs/plot_prnu_difference_{{flat}}.log",
     conda:
@@ -57,18 +51,17 @@ rule plot_prnu_difference:
     resources:
         **step_resources("plot_prnu_difference"),
     params:
-        code=code_version("plotting", "manifest", "io"),
+        **step_params("plot_prnu_difference"),
     script:
         "../scripts/plot_prnu_difference.py"
 
 
 rule plot_metrology:
     input:
-        metrology=f"{OUT}/metrology/{{baseline}}.nc",
+        metrology=output_of("metrology"),
         manifest=MANIFEST_FILE,
     output:
-        png=report(f"{OUT}/figures/metrology_{{baseline}}.png", category="Metrology", caption="../report/metrology.rst"),
-        pdf=f"{OUT}/figures/metrology_{{baseline}}.pdf",
+        **figure_of("figure_metrology", category="Metrology", caption="metrology"),
     log:
         f"{OUT}/logs/plot_metrology_{{baseline}}.log",
     conda:
@@ -76,17 +69,16 @@ rule plot_metrology:
     resources:
         **step_resources("plot_metrology"),
     params:
-        code=code_version("plotting", "manifest", "io"),
+        **step_params("plot_metrology"),
     script:
         "../scripts/plot_metrology.py"
 
 
 rule plot_allan:
     input:
-        allan=rules.allan_deviation.output.allan,
+        allan=output_of("allan"),
     output:
-        png=report(f"{OUT}/figures/allan_{{baseline}}.png", category="Metrology", caption="../report/allan.rst"),
-        pdf=f"{OUT}/figures/allan_{{baseline}}.pdf",
+        **figure_of("figure_allan", category="Metrology", caption="allan"),
     log:
         f"{OUT}/logs/plot_allan_{{baseline}}.log",
     conda:
@@ -94,18 +86,17 @@ rule plot_allan:
     resources:
         **step_resources("plot_allan"),
     params:
-        code=code_version("plotting", "io"),
+        **step_params("plot_allan"),
     script:
         "../scripts/plot_allan.py"
 
 
 rule plot_offsets:
     input:
-        offsets=rules.deproject_offsets.output.offsets,
+        offsets=output_of("offsets"),
         manifest=MANIFEST_FILE,
     output:
-        png=report(f"{OUT}/figures/offsets_{{pair}}.png", category="Metrology", caption="../report/offsets.rst"),
-        pdf=f"{OUT}/figures/offsets_{{pair}}.pdf",
+        **figure_of("figure_offsets", category="Metrology", caption="offsets"),
     log:
         f"{OUT}/logs/plot_offsets_{{pair}}.log",
     conda:
@@ -113,18 +104,17 @@ rule plot_offsets:
     resources:
         **step_resources("plot_offsets"),
     params:
-        code=code_version("plotting", "manifest", "io"),
+        **step_params("plot_offsets"),
     script:
         "../scripts/plot_offsets.py"
 
 
 rule plot_prf:
     input:
-        prf=rules.prf_widths.output.prf,
+        prf=output_of("prf"),
         manifest=MANIFEST_FILE,
     output:
-        png=report(f"{OUT}/figures/prf.png", category="Metrology", caption="../report/prf.rst"),
-        pdf=f"{OUT}/figures/prf.pdf",
+        **figure_of("figure_prf", category="Metrology", caption="prf"),
     log:
         f"{OUT}/logs/plot_prf.log",
     conda:
@@ -132,22 +122,17 @@ rule plot_prf:
     resources:
         **step_resources("plot_prf"),
     params:
-        code=code_version("plotting", "manifest", "io"),
+        **step_params("plot_prf"),
     script:
         "../scripts/plot_prf.py"
 
 
 rule plot_offsets_difference:
     input:
-        difference=rules.compare_pairs.output.difference,
+        difference=output_of("offsets_difference"),
         manifest=MANIFEST_FILE,
     output:
-        png=report(
-            f"{OUT}/figures/offsets_difference_{{pair}}.png",
-            category="Metrology",
-            caption="../report/offsets_difference.rst",
-        ),
-        pdf=f"{OUT}/figures/offsets_difference_{{pair}}.pdf",
+        **figure_of("figure_offsets_difference", category="Metrology", caption="offsets_difference"),
     log:
         f"{OUT}/logs/plot_offsets_difference_{{pair}}.log",
     conda:
@@ -155,6 +140,6 @@ rule plot_offsets_difference:
     resources:
         **step_resources("plot_offsets_difference"),
     params:
-        code=code_version("plotting", "manifest", "io"),
+        **step_params("plot_offsets_difference"),
     script:
         "../scripts/plot_offsets_difference.py"

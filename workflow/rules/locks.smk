@@ -17,33 +17,45 @@ import os
 import socket
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import snakemake.exceptions
 
 
 def explain_lock(message):
-    """Have Snakemake's refusal to start on locked files say ``message`` instead of its own, which asks for
-    ``--unlock`` whatever holds the lock (Snakemake raises ``snakemake.exceptions.LockException`` by that
-    name, after this file is read). Dry runs, which Snakemake lets through, are not affected."""
+    """Have Snakemake's refusal to start on locked files say ``message``, in one line, instead of its own,
+    which asks for ``--unlock`` whatever holds the lock (Snakemake raises
+    ``snakemake.exceptions.LockException`` by that name, after this file is read). Dry runs, which Snakemake
+    lets through, are not affected."""
 
     class RunLocked(snakemake.exceptions.LockException):
-        def __init__(self):
-            snakemake.exceptions.WorkflowError.__init__(self, f"dice: {message}")
+        def __init__(self):  # raised before Snakemake writes any lock: nothing to release
+            print(f"dice: {message}", file=sys.stderr)
+            raise SystemExit(1)
 
     snakemake.exceptions.LockException = RunLocked
+
+
+@dataclass
+class RunLock:
+    """This run's hold on the working folder: ``guard``, the flocked guard file (kept open for the life of
+    the run), and ``alone``, whether no other run of the workflow can be alive here: this run holds the
+    flock and no lock of a run on another machine sharing the folder is left (what the removal of a killed
+    run's temporary files waits for)."""
+
+    guard: object
+    alone: bool
 
 
 def take_run_lock(state=".snakemake"):
     """Hold this run's flock and remove Snakemake's locks when they are stale.
 
-    Returns the open, flocked guard file (keep it for the life of the run), or
-    None where this process is not the run itself (a job's Snakemake
-    subprocess), another run of the workflow is alive, or the filesystem has no
-    flock. The guard file records the machine, process and start of the last run
-    that held it: a second run told that one is alive is told which, and a lock
-    left by a run on another machine sharing this folder, whose flock this
-    machine may not see, is left alone.
+    Returns a :class:`RunLock`, or None where this process is not the run itself (a job's Snakemake
+    subprocess), another run of the workflow is alive, or the filesystem has no flock. The guard file
+    records the machine, process and start of the run that holds it: a second run told that one is alive is
+    told which, and a lock left by a run on another machine sharing this folder, whose flock this machine
+    may not see, is left alone.
     """
     if not getattr(workflow, "is_main_process", True):
         return None
@@ -78,7 +90,12 @@ def take_run_lock(state=".snakemake"):
             "this folder and whose processes this machine cannot see: if no run of this workflow is alive "
             "there, remove its lock with snakemake --unlock; if one is, wait for it"
         )
-        return guard
+        return RunLock(guard, alone=False)
+    # this run's line, at once: a second run started from here on is told this run's pid
+    guard.seek(0)
+    guard.truncate()
+    guard.write(f"{machine} {os.getpid()} {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
+    guard.flush()
     for lock in locks:
         lock.unlink(missing_ok=True)
     if locks:
@@ -87,11 +104,11 @@ def take_run_lock(state=".snakemake"):
             "no other run of this workflow is alive here",
             file=sys.stderr,
         )
-    guard.seek(0)
-    guard.truncate()
-    guard.write(f"{machine} {os.getpid()} {time.strftime('%Y-%m-%dT%H:%M:%S')}\n")
-    guard.flush()
-    return guard
+    return RunLock(guard, alone=True)
 
 
-RUN_LOCK = take_run_lock()
+# Once per run: the modules of a reduction sweep's points read this file again with the same workflow object,
+# and their second flock on the guard would fail against the run's own.
+if "_dice_run_lock" not in vars(workflow):
+    vars(workflow)["_dice_run_lock"] = take_run_lock()
+RUN_LOCK = vars(workflow)["_dice_run_lock"]

@@ -2,7 +2,6 @@
 # and each other pair's difference from the reference pair.
 
 
-SPLIT = f"{OUT}/metrology/split/{{baseline}}"
 PASSES = config["metrology"]["max_passes"]
 
 
@@ -14,12 +13,12 @@ if config["metrology"]["split"]:
     rule fit_start:
         input:
             manifest=MANIFEST_FILE,
-            dark=rules.measure_dark.output.dark,
-            prnu=prnu_for_metrology,
-            bad_pixels=bad_pixel_mask,
+            dark=output_of("dark"),
+            prnu=lambda w: PLAN.prnu_for_metrology(),
+            bad_pixels=lambda w: PLAN.bad_pixel_mask(),
             cubes=baseline_files,
         output:
-            state=temp(f"{SPLIT}/state_0.nc"),
+            state=temp(output_of("fit_state", npass=0)),
         log:
             f"{OUT}/logs/fit_start_{{baseline}}.log",
         benchmark:
@@ -29,25 +28,22 @@ if config["metrology"]["split"]:
         resources:
             **step_resources("fit_start"),
         params:
-            roots=ROOTS,  # inputs are recorded relative to these
-            code=code_version("io", "manifest", "calibration", "fringes"),
-            options=config["metrology"],  # the fit's options are the state's
-            chunk_frames=config["chunk_frames"],  # the reference frame is the first chunk's mean
+            **step_params("fit_start"),
         script:
             "../scripts/fit_start.py"
 
     rule fit_part:
         input:
             manifest=MANIFEST_FILE,
-            state=lambda w: f"{OUT}/metrology/split/{w.baseline}/state_{int(w.npass) - 1}.nc",
+            state=lambda w: fit_state(w, int(w.npass) - 1),
             # its own group of files only: it reads no other samples (the others' headers, which every job of
             # the fit reads, exist once fit_start has run)
             cubes=part_files,
             # pass 1's part, which recorded its files' checksums: later passes do not read them again for it
-            first=lambda w: [f"{OUT}/metrology/split/{w.baseline}/pass_1/part_{w.part}.nc"] if int(w.npass) > 1 else [],
+            first=lambda w: [fit_part_of(w, 1, w.part)] if int(w.npass) > 1 else [],
         output:
             # small (25 bytes a pixel), but one per part and pass: removed once the passes that need it have run
-            part=temp(f"{SPLIT}/pass_{{npass}}/part_{{part}}.nc"),
+            part=temp(output_of("fit_part")),
         log:
             f"{OUT}/logs/fit_part_{{baseline}}_{{npass}}_{{part}}.log",
         benchmark:
@@ -60,22 +56,16 @@ if config["metrology"]["split"]:
         resources:
             **step_resources("fit_part"),
         params:
-            roots=ROOTS,  # inputs are recorded relative to these
-            code=code_version("io", "manifest", "fringes"),
-            parts=config["metrology"]["parts"],
-            chunk_frames=config["chunk_frames"],
+            **step_params("fit_part"),
         script:
             "../scripts/fit_part.py"
 
     rule fit_reduce:
         input:
-            state=lambda w: f"{OUT}/metrology/split/{w.baseline}/state_{int(w.npass) - 1}.nc",
-            parts=lambda w: [
-                f"{OUT}/metrology/split/{w.baseline}/pass_{w.npass}/part_{part}.nc"
-                for part in range(config["metrology"]["parts"])
-            ],
+            state=lambda w: fit_state(w, int(w.npass) - 1),
+            parts=lambda w: [fit_part_of(w, w.npass, part) for part in range(config["metrology"]["parts"])],
         output:
-            state=temp(f"{SPLIT}/state_{{npass}}.nc"),
+            state=temp(output_of("fit_state")),
         log:
             f"{OUT}/logs/fit_reduce_{{baseline}}_{{npass}}.log",
         benchmark:
@@ -87,27 +77,23 @@ if config["metrology"]["split"]:
         resources:
             **step_resources("fit_reduce"),
         params:
-            roots=ROOTS,  # inputs are recorded relative to these
-            code=code_version("io", "fringes"),
+            **step_params("fit_reduce"),
         script:
             "../scripts/fit_reduce.py"
 
     rule fit_finish:
         input:
             manifest=MANIFEST_FILE,
-            dark=rules.measure_dark.output.dark,
-            prnu=prnu_for_metrology,
-            bad_pixels=bad_pixel_mask,
-            state=f"{SPLIT}/state_{PASSES}.nc",
+            dark=output_of("dark"),
+            prnu=lambda w: PLAN.prnu_for_metrology(),
+            bad_pixels=lambda w: PLAN.bad_pixel_mask(),
+            state=lambda w: fit_state(w, PASSES),
             # not read (their checksums come from pass 1's parts), but declared: the states and parts are
             # temporary, so this job is what a changed cube makes rerun, and with it the passes
             cubes=baseline_files,
-            first=lambda w: [
-                f"{OUT}/metrology/split/{w.baseline}/pass_1/part_{part}.nc"
-                for part in range(config["metrology"]["parts"])
-            ],
+            first=lambda w: [fit_part_of(w, 1, part) for part in range(config["metrology"]["parts"])],
         output:
-            metrology=f"{OUT}/metrology/{{baseline}}.nc",
+            metrology=output_of("metrology"),
         log:
             f"{OUT}/logs/fit_finish_{{baseline}}.log",
         benchmark:
@@ -117,13 +103,9 @@ if config["metrology"]["split"]:
         resources:
             **step_resources("fit_finish"),
         params:
-            roots=ROOTS,  # inputs are recorded relative to these
-            # the code, scripts and settings of every step of the split fit: its states and parts are temporary,
-            # so a change to any of them must rerun this job (and through its missing inputs, the passes)
-            code=code_version("io", "manifest", "calibration", "fringes", "geometry"),
-            scripts=script_version("fit_start", "fit_part", "fit_reduce"),
-            options=config["metrology"],
-            chunk_frames=config["chunk_frames"],
+            # its step stands for every step of the split fit (dice_core.steps): their states and parts are
+            # temporary, so a change to their settings or code must rerun this job (and the passes with it)
+            **step_params("fit_finish"),
         script:
             "../scripts/fit_finish.py"
 
@@ -133,12 +115,12 @@ else:
     rule fit_fringes:
         input:
             manifest=MANIFEST_FILE,
-            dark=rules.measure_dark.output.dark,
-            prnu=prnu_for_metrology,
-            bad_pixels=bad_pixel_mask,
+            dark=output_of("dark"),
+            prnu=lambda w: PLAN.prnu_for_metrology(),
+            bad_pixels=lambda w: PLAN.bad_pixel_mask(),
             cubes=baseline_files,
         output:
-            metrology=f"{OUT}/metrology/{{baseline}}.nc",
+            metrology=output_of("metrology"),
         log:
             f"{OUT}/logs/fit_fringes_{{baseline}}.log",
         benchmark:
@@ -149,9 +131,7 @@ else:
         resources:
             **step_resources("fit_fringes"),
         params:
-            roots=ROOTS,  # inputs are recorded relative to these
-            code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
-            options=config["metrology"],  # a changed option (tip_sigma, tolerance...) reruns the fits
+            **step_params("fit_fringes"),
         script:
             "../scripts/fit_fringes.py"
 
@@ -159,10 +139,10 @@ else:
 rule prf_widths:
     input:
         manifest=MANIFEST_FILE,
-        dark=rules.measure_dark.output.dark,
-        metrology=metrology_products,
+        dark=output_of("dark"),
+        metrology=lambda w: PLAN.metrology_products(),
     output:
-        prf=f"{OUT}/calibration/prf.nc",
+        prf=output_of("prf"),
     log:
         f"{OUT}/logs/prf_widths.log",
     benchmark:
@@ -172,20 +152,18 @@ rule prf_widths:
     resources:
         **step_resources("prf_widths"),
     params:
-        code=code_version("io", "manifest", "prf"),
-        options=config["prf"],  # the assumed kernel
-        smooth_degree=config["metrology"]["smooth_degree"],
+        **step_params("prf_widths"),
     script:
         "../scripts/prf_widths.py"
 
 
 rule deproject_offsets:
     input:
-        first=lambda w: f"{OUT}/metrology/{pair_baselines(w)[0]}.nc",
-        second=lambda w: f"{OUT}/metrology/{pair_baselines(w)[1]}.nc",
+        first=lambda w: PLAN.path("metrology", baseline=pair_baselines(w)[0]),
+        second=lambda w: PLAN.path("metrology", baseline=pair_baselines(w)[1]),
         manifest=MANIFEST_FILE,  # names the pair in errors
     output:
-        offsets=f"{OUT}/calibration/offsets_{{pair}}.nc",
+        offsets=output_of("offsets"),
     log:
         f"{OUT}/logs/deproject_offsets_{{pair}}.log",
     conda:
@@ -193,19 +171,17 @@ rule deproject_offsets:
     resources:
         **step_resources("deproject_offsets"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        baselines=pair_baselines,
-        code=code_version("io", "deprojection", "geometry"),
+        **step_params("deproject_offsets", baselines=pair_baselines),
     script:
         "../scripts/deproject_offsets.py"
 
 
 rule compare_pairs:
     input:
-        reference=f"{OUT}/calibration/offsets_{MANIFEST.reference_pair}.nc",
-        other=f"{OUT}/calibration/offsets_{{pair}}.nc",
+        reference=PLAN.path("offsets", pair=MANIFEST.reference_pair) if MANIFEST.pairs else [],
+        other=output_of("offsets"),
     output:
-        difference=f"{OUT}/calibration/offsets_difference_{{pair}}.nc",
+        difference=output_of("offsets_difference"),
     log:
         f"{OUT}/logs/compare_pairs_{{pair}}.log",
     conda:
@@ -213,9 +189,7 @@ rule compare_pairs:
     resources:
         **step_resources("compare_pairs"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        reference=MANIFEST.reference_pair,
-        code=code_version("io", "deprojection", "geometry"),
+        **step_params("compare_pairs", reference=MANIFEST.reference_pair),
     script:
         "../scripts/compare_pairs.py"
 
@@ -223,11 +197,11 @@ rule compare_pairs:
 rule allan_deviation:
     input:
         manifest=MANIFEST_FILE,
-        metrology=f"{OUT}/metrology/{{baseline}}.nc",
-        dark=rules.measure_dark.output.dark,
+        metrology=output_of("metrology"),
+        dark=output_of("dark"),
         cubes=baseline_files,
     output:
-        allan=f"{OUT}/allan/{{baseline}}.nc",
+        allan=output_of("allan"),
     log:
         f"{OUT}/logs/allan_deviation_{{baseline}}.log",
     benchmark:
@@ -238,7 +212,6 @@ rule allan_deviation:
     resources:
         **step_resources("allan_deviation"),
     params:
-        roots=ROOTS,  # inputs are recorded relative to these
-        code=code_version("io", "manifest", "allan", "fringes", "geometry", "parallel", "polynomials"),
+        **step_params("allan_deviation"),
     script:
         "../scripts/allan_deviation.py"

@@ -1,5 +1,5 @@
 # Sweeps (config sweeps) and the `paper` target: the paper's simulation studies one job per
-# sweep point (Snakemake's Paramspace), and every regenerated number beside the paper's.
+# sweep point (dice_core.planning.plan_sweep), and every regenerated number beside the paper's.
 #
 #   snakemake --cores 2 paper        # the reduction of the dataset, the studies, the comparison
 
@@ -12,103 +12,76 @@ if SWEEPS:
 
 rule sweep_point:
     output:
-        point=f"{SWEEP_ROOT}/{{sweep}}/{{point}}/point.nc",
+        point=output_of("sweep_point"),
     log:
         f"{SWEEP_ROOT}/{{sweep}}/{{point}}/point.log",
     benchmark:
         f"{SWEEP_ROOT}/{{sweep}}/{{point}}/benchmark.tsv"
     wildcard_constraints:  # only the configured points: another folder is no job, not a cryptic error
         sweep="|".join(map(re.escape, STUDY_SWEEPS)) or "(?!)",
-        point="|".join(
-            sorted({re.escape(pattern) for name in STUDY_SWEEPS for pattern in SWEEPS[name][1].instance_patterns})
-        )
+        point="|".join(sorted({re.escape(folder) for name in STUDY_SWEEPS for folder in SWEEPS[name].folders}))
         or "(?!)",
     conda:
         "../envs/dice.yaml"
     resources:
         **step_resources("sweep_point"),
     params:
-        study=lambda w: SWEEPS[w.sweep][0]["study"],
-        parameters=point_parameters,
-        bench=lambda w: SWEEPS[w.sweep][0].get("bench", {}),
-        options=lambda w: SWEEPS[w.sweep][0].get("options", {}),
-        code=code_version("studies"),
+        **step_params("sweep_point", parameters=lambda w: PLAN.point_parameters(w.sweep, w.point)),
     script:
         "../scripts/sweep_point.py"
 
 
-# Rules of the run as a whole, not of one point: a point's module leaves them out.
-RUN_LEVEL_RULES = (
-    "all",
-    "paper",
-    "paper_pdf",
-    "paper_comparison",
-    "plot_offset_bias",
-    "error_propagation_table",
-    "plot_error_propagation",
-    "procrustes_deflation",
-    "sweep_point",
-    "sweep_summary",
-    "plot_star_accuracy",
-    "reduction_sweep_summary",
-)
-REDUCTION_CONFIGS = {
-    module_name(name, folder): reduction_point_config(name, point, folder)
-    for name in REDUCTION_SWEEPS
-    for point, folder in sweep_instances(name)
-}
-
-if REDUCTION_CONFIGS:
-    # Each point of a reduction sweep is the whole workflow again (a Snakemake module) with the point's
-    # config, its products under results/sweeps/<sweep>/<point>/. Modules cannot be declared in a loop,
-    # so their declarations are written out (the configs stay here, named), then included; the file is
-    # named by its content, so that runs with other sweeps in the same folder never share one.
-    declarations = []
-    for point_module in REDUCTION_CONFIGS:
-        declarations += [
-            f"module {point_module}:",
-            f"    snakefile: {workflow.main_snakefile!r}",
-            f"    config: REDUCTION_CONFIGS[{point_module!r}]",
-            "",
-            f"use rule * from {point_module} exclude {', '.join(RUN_LEVEL_RULES)} as {point_module}_*",
-            "",
-            "",
-        ]
-    text = "# Written by workflow/rules/paper.smk from config sweeps; do not edit.\n\n" + "\n".join(declarations)
-    generated = Path(".snakemake/dice") / f"reduction_sweeps_{hashlib.sha256(text.encode()).hexdigest()[:12]}.smk"
-    if not generated.is_file():
-        write_text(generated, text)  # atomically, readable as the umask allows
-
-    include: str(generated.resolve())
+# Each point of a reduction sweep is the whole workflow again (a Snakemake module) with the point's config,
+# its products under results/sweeps/<sweep>/<point>/, without the steps of the run as a whole.
+REDUCTION_CONFIGS = {}
+try:
+    for _name in REDUCTION_SWEEPS:
+        for _index, _folder in enumerate(SWEEPS[_name].folders):
+            REDUCTION_CONFIGS[planning.module_name(_name, _folder)] = planning.reduction_point_config(
+                config, SWEEPS[_name], index=_index, simulated=SIMULATION is not None, raw=RAW, sweeps_root=SWEEP_ROOT
+            )
+except planning.PlanningError as exc:
+    fail(exc)
+RUN_LEVEL_RULES = ["all", "paper", *(name for name, step in steps.STEPS.items() if step.whole_run)]
+for _point_module, _point_config in REDUCTION_CONFIGS.items():
+    # what `module <name>: snakefile: ...; config: ...` and `use rule * from <name> exclude ... as <name>_*`
+    # compile to: the statements cannot be written in a loop, their calls can
+    workflow.module(name=_point_module, snakefile=workflow.main_snakefile, config=_point_config)
+    workflow.userule(
+        rules=["*"], from_module=_point_module, exclude_rules=RUN_LEVEL_RULES, name_modifier=f"{_point_module}_*"
+    )(lambda: None)
 
 
 rule reduction_sweep_summary:
     input:
         tables=reduction_point_tables,
     output:
-        csv=f"{SWEEP_ROOT}/{{sweep}}/summary.csv",
-        png=f"{SWEEP_ROOT}/{{sweep}}/accuracy.png",
-        pdf=f"{SWEEP_ROOT}/{{sweep}}/accuracy.pdf",
+        **figure_of("sweep_accuracy_figure", category="Sweeps", caption="reduction_sweep"),
+        csv=output_of("sweep_summary"),
     log:
         f"{SWEEP_ROOT}/{{sweep}}/summary.log",
     wildcard_constraints:
-        sweep="|".join(map(re.escape, REDUCTION_SWEEPS)) or "(?!)",
+        sweep=sweeps_of("reduction"),
     conda:
         "../envs/dice.yaml"
     resources:
         **step_resources("reduction_sweep_summary"),
     params:
-        points=lambda w: [{k: folder_value(v) for k, v in point.items()} for point, _ in sweep_instances(w.sweep)],
-        code=code_version("plotting", "io"),
+        **step_params(
+            "reduction_sweep_summary",
+            points=lambda w: [
+                {k: planning.folder_value(v) for k, v in point.items()} for point in SWEEPS[w.sweep].points
+            ],
+        ),
     script:
         "../scripts/reduction_sweep_summary.py"
 
 
 rule sweep_summary:
     input:
-        points=lambda w: sweep_points(w.sweep),
+        points=lambda w: PLAN.sweep_points(w.sweep),
     output:
-        csv=f"{SWEEP_ROOT}/{{sweep}}/summary.csv",
+        csv=output_of("sweep_summary"),
     log:
         f"{SWEEP_ROOT}/{{sweep}}/summary.log",
     wildcard_constraints:
@@ -118,59 +91,54 @@ rule sweep_summary:
     resources:
         **step_resources("sweep_summary"),
     params:
-        code=code_version("io"),
+        **step_params("sweep_summary"),
     script:
         "../scripts/sweep_summary.py"
 
 
 rule plot_star_accuracy:
     input:
-        points=lambda w: sweep_points(w.sweep),
+        points=lambda w: PLAN.sweep_points(w.sweep),
     output:
-        png=f"{SWEEP_ROOT}/{{sweep}}/accuracy.png",
-        pdf=f"{SWEEP_ROOT}/{{sweep}}/accuracy.pdf",
+        **figure_of("sweep_accuracy_figure", category="Sweeps", caption="star_accuracy"),
     log:
         f"{SWEEP_ROOT}/{{sweep}}/accuracy.log",
     wildcard_constraints:
-        sweep="|".join(re.escape(n) for n, (spec, *_) in SWEEPS.items() if spec["study"] == "star_accuracy") or "(?!)",
+        sweep=sweeps_of("star_accuracy"),
     conda:
         "../envs/dice.yaml"
     resources:
         **step_resources("plot_star_accuracy"),
     params:
-        code=code_version("plotting", "io"),
+        **step_params("plot_star_accuracy"),
     script:
         "../scripts/plot_star_accuracy.py"
 
 
 rule plot_tip_tilt:
     input:
-        points=lambda w: sweep_points(w.sweep),
+        points=lambda w: PLAN.sweep_points(w.sweep),
     output:
-        png=f"{SWEEP_ROOT}/{{sweep}}/tip_tilt.png",
-        pdf=f"{SWEEP_ROOT}/{{sweep}}/tip_tilt.pdf",
+        **figure_of("tip_tilt_figure", category="Sweeps", caption="tip_tilt"),
     log:
         f"{SWEEP_ROOT}/{{sweep}}/tip_tilt.log",
     wildcard_constraints:
-        sweep="|".join(re.escape(n) for n, (spec, *_) in SWEEPS.items() if spec["study"] == "tip_tilt") or "(?!)",
+        sweep=sweeps_of("tip_tilt"),
     conda:
         "../envs/dice.yaml"
     resources:
         **step_resources("plot_tip_tilt"),
     params:
-        code=code_version("plotting", "io"),
+        **step_params("plot_tip_tilt"),
     script:
         "../scripts/plot_tip_tilt.py"
 
 
 rule plot_offset_bias:
     input:
-        points=lambda w: sweep_points(paper_sweep("offset_bias")),
+        points=PLAN.sweep_points(PAPER_SWEEPS["offset_bias"]),
     output:
-        png=report(
-            f"{OUT}/figures/offset_bias.png", category="Numerical simulations", caption="../report/offset_bias.rst"
-        ),
-        pdf=f"{OUT}/figures/offset_bias.pdf",
+        **figure_of("figure_offset_bias", category="Numerical simulations", caption="offset_bias"),
     log:
         f"{OUT}/logs/plot_offset_bias.log",
     conda:
@@ -178,16 +146,16 @@ rule plot_offset_bias:
     resources:
         **step_resources("plot_offset_bias"),
     params:
-        code=code_version("plotting", "io"),
+        **step_params("plot_offset_bias"),
     script:
         "../scripts/plot_offset_bias.py"
 
 
 rule error_propagation_table:
     input:
-        points=lambda w: sweep_points(paper_sweep("error_propagation")),
+        points=PLAN.sweep_points(PAPER_SWEEPS["error_propagation"]),
     output:
-        csv=f"{OUT}/tables/error_propagation.csv",
+        csv=output_of("error_propagation"),
     log:
         f"{OUT}/logs/error_propagation_table.log",
     conda:
@@ -195,21 +163,16 @@ rule error_propagation_table:
     resources:
         **step_resources("error_propagation_table"),
     params:
-        code=code_version("studies", "error_budget", "io"),
+        **step_params("error_propagation_table"),
     script:
         "../scripts/error_propagation_table.py"
 
 
 rule plot_error_propagation:  # apart from the table: a plot edit re-runs the plot alone
     input:
-        points=lambda w: sweep_points(paper_sweep("error_propagation")),
+        points=PLAN.sweep_points(PAPER_SWEEPS["error_propagation"]),
     output:
-        png=report(
-            f"{OUT}/figures/error_propagation.png",
-            category="Numerical simulations",
-            caption="../report/error_propagation.rst",
-        ),
-        pdf=f"{OUT}/figures/error_propagation.pdf",
+        **figure_of("figure_error_propagation", category="Numerical simulations", caption="error_propagation"),
     log:
         f"{OUT}/logs/plot_error_propagation.log",
     conda:
@@ -217,14 +180,14 @@ rule plot_error_propagation:  # apart from the table: a plot edit re-runs the pl
     resources:
         **step_resources("plot_error_propagation"),
     params:
-        code=code_version("studies", "plotting", "io"),
+        **step_params("plot_error_propagation"),
     script:
         "../scripts/plot_error_propagation.py"
 
 
 rule procrustes_deflation:  # a Monte Carlo of its own: the comparison's figure never re-runs it
     output:
-        csv=f"{OUT}/tables/procrustes_deflation.csv",
+        csv=output_of("procrustes_deflation"),
     log:
         f"{OUT}/logs/procrustes_deflation.log",
     benchmark:
@@ -234,23 +197,17 @@ rule procrustes_deflation:  # a Monte Carlo of its own: the comparison's figure 
     resources:
         **step_resources("procrustes_deflation"),
     params:
-        trials=config["astrometry"]["trials"],
-        code=code_version("reproduction"),
+        **step_params("procrustes_deflation"),
     script:
         "../scripts/procrustes_deflation.py"
 
 
 rule paper_comparison:
     input:
-        unpack(comparison_inputs),
+        **PLAN.comparison_inputs(),
     output:
-        csv=f"{OUT}/tables/paper_comparison.csv",
-        png=report(
-            f"{OUT}/figures/paper_comparison.png",
-            category="Paper comparison",
-            caption="../report/paper_comparison.rst",
-        ),
-        pdf=f"{OUT}/figures/paper_comparison.pdf",
+        **figure_of("figure_paper_comparison", category="Paper comparison", caption="paper_comparison"),
+        csv=output_of("paper_comparison"),
     log:
         f"{OUT}/logs/paper_comparison.log",
     conda:
@@ -258,21 +215,21 @@ rule paper_comparison:
     resources:
         **step_resources("paper_comparison"),
     params:
-        code=code_version("reproduction", "plotting", "io"),
-        dataset=MANIFEST.name,
-        positions=config["astrometry"]["positions"],
-        method=config["centroids"]["method"],  # the method of centroids/<mode>.nc
+        **step_params("paper_comparison", dataset=MANIFEST.name),
     script:
         "../scripts/paper_comparison.py"
 
 
+PAPER_PAGES = planning.paper_pdf_pages(PLAN, BASE / "workflow" / "report")
+
+
 rule paper_pdf:
     input:
-        figures=lambda w: [png for png, _ in paper_pdf_pages()],
-        captions=lambda w: [caption for _, caption in paper_pdf_pages()],  # an edited caption rebuilds it
-        comparison=rules.paper_comparison.output.csv,
+        figures=[png for png, _ in PAPER_PAGES],
+        captions=[caption for _, caption in PAPER_PAGES],  # an edited caption rebuilds it
+        comparison=output_of("paper_comparison"),
     output:
-        pdf=f"{OUT}/report/paper_reproduction.pdf",
+        pdf=output_of("paper_report"),
     log:
         f"{OUT}/logs/paper_pdf.log",
     conda:
@@ -280,8 +237,7 @@ rule paper_pdf:
     resources:
         **step_resources("paper_pdf"),
     params:
-        dataset=MANIFEST.name,
-        code=code_version("plotting"),
+        **step_params("paper_pdf", dataset=MANIFEST.name),
     script:
         "../scripts/paper_pdf.py"
 
@@ -289,12 +245,9 @@ rule paper_pdf:
 rule paper:
     input:
         rules.paper_pdf.output,
-        calibration_targets(),
-        metrology_targets(),
-        centroid_targets(),
-        astrometry_targets(),
+        DEFAULT_TARGETS,
         rules.plot_offset_bias.output,
         rules.error_propagation_table.output,
         rules.plot_error_propagation.output,
         rules.paper_comparison.output,
-        [f"{SWEEP_ROOT}/{paper_sweep(study)}/summary.csv" for study in ("offset_bias", "error_propagation")],
+        [PLAN.path("sweep_summary", sweep=name) for name in PAPER_SWEEPS.values()],

@@ -1,5 +1,6 @@
 # Simulated testbed (only when config dataset names a preset): truth first, then
-# one job per FITS file, then the manifest that makes it a dataset.
+# one job per FITS file, then the manifest that makes it a dataset. Their
+# settings are the preset with config simulation's overrides, handed over whole.
 
 if SIMULATE:
     SIM_CONFIG = SIMULATION.to_dict()
@@ -7,7 +8,7 @@ if SIMULATE:
 
     rule simulate_truth:
         output:
-            truth=f"{RAW}/truth.nc",
+            truth=output_of("truth"),
         log:
             f"{OUT}/logs/simulate_truth.log",
         conda:
@@ -15,8 +16,7 @@ if SIMULATE:
         resources:
             **step_resources("simulate_truth"),
         params:
-            simulation=SIM_CONFIG,
-            code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
+            **step_params("simulate_truth", simulation=SIM_CONFIG),
         script:
             "../scripts/simulate_truth.py"
 
@@ -24,7 +24,7 @@ if SIMULATE:
         input:
             truth=rules.simulate_truth.output.truth,
         output:
-            cube=f"{RAW}/{{relpath}}.fits",
+            cube=output_of("cube"),
         log:
             f"{OUT}/logs/simulate/{{relpath}}.log",
         benchmark:
@@ -36,8 +36,7 @@ if SIMULATE:
         resources:
             **step_resources("simulate_file"),
         params:
-            simulation=SIM_CONFIG,
-            code=code_version("detector", "geometry", "simulation", "io", "polynomials"),
+            **step_params("simulate_file", simulation=SIM_CONFIG),
         script:
             "../scripts/simulate_file.py"
 
@@ -46,7 +45,7 @@ if SIMULATE:
             truth=rules.simulate_truth.output.truth,
             cubes=[f"{RAW}/{f}" for f in SIM_FILES],
         output:
-            manifest=f"{RAW}/dataset.yaml",
+            manifest=output_of("manifest"),
         log:
             f"{OUT}/logs/simulate_manifest.log",
         conda:
@@ -54,7 +53,6 @@ if SIMULATE:
         resources:
             **step_resources("simulate_manifest"),
         params:
-            simulation=SIM_CONFIG,
-            code=code_version("geometry", "simulation", "manifest"),
+            **step_params("simulate_manifest", simulation=SIM_CONFIG),
         script:
             "../scripts/simulate_manifest.py"

@@ -36,4 +36,5 @@ dice_core.run_logged(snakemake.log[0], accuracy_table, list(snakemake.input.cent
                      snakemake.output.tex,
                      {"procrustes": snakemake.output.residuals,
                       **{m: p for m, p in zip(snakemake.params.models, snakemake.output.model_residuals)}},
-                     snakemake.config, provenance={"code_version": snakemake.params.code, **snakemake.params.roots})
+                     snakemake.params.settings,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -27,5 +27,6 @@ def allan_deviation(manifest_path, metrology_path, dark_path, baseline, output, 
 
 
 dice_core.run_logged(snakemake.log[0], allan_deviation, snakemake.input.manifest, snakemake.input.metrology,
-                     snakemake.input.dark, snakemake.wildcards.baseline, snakemake.output.allan, snakemake.config,
+                     snakemake.input.dark, snakemake.wildcards.baseline, snakemake.output.allan,
+                     snakemake.params.settings,
                      snakemake.threads, provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -19,4 +19,5 @@ def compare_pairs(reference_path, other_path, reference, pair, output, config):
 
 dice_core.run_logged(snakemake.log[0], compare_pairs, snakemake.input.reference, snakemake.input.other,
                      snakemake.params.reference, snakemake.wildcards.pair, snakemake.output.difference,
-                     snakemake.config, provenance={"code_version": snakemake.params.code, **snakemake.params.roots})
+                     snakemake.params.settings,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -20,5 +20,5 @@ def compare_prnu(reference_path, other_path, manifest_path, output, config):
 
 
 dice_core.run_logged(snakemake.log[0], compare_prnu, snakemake.input.reference, snakemake.input.other,
-                     snakemake.input.manifest, snakemake.output.difference, snakemake.config,
+                     snakemake.input.manifest, snakemake.output.difference, snakemake.params.settings,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -22,5 +22,6 @@ def deproject_offsets(manifest_path, first_path, second_path, pair, baselines, o
 
 dice_core.run_logged(snakemake.log[0], deproject_offsets, snakemake.input.manifest, snakemake.input.first,
                      snakemake.input.second,
-                     snakemake.wildcards.pair, snakemake.params.baselines, snakemake.output.offsets, snakemake.config,
+                     snakemake.wildcards.pair, snakemake.params.baselines, snakemake.output.offsets,
+                     snakemake.params.settings,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -20,5 +20,5 @@ def find_bad_pixels(manifest_path, dark_path, prnu_path, output, config):
 
 
 dice_core.run_logged(snakemake.log[0], find_bad_pixels, snakemake.input.manifest, snakemake.input.dark,
-                     snakemake.input.prnu, snakemake.output.bad_pixels, snakemake.config,
+                     snakemake.input.prnu, snakemake.output.bad_pixels, snakemake.params.settings,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -34,4 +34,5 @@ def fit_finish(manifest_path, dark_path, prnu_paths, bad_pixel_paths, state_path
 dice_core.run_logged(snakemake.log[0], fit_finish, snakemake.input.manifest, snakemake.input.dark,
                      list(snakemake.input.prnu), list(snakemake.input.bad_pixels), snakemake.input.state,
                      list(snakemake.input.first), snakemake.wildcards.baseline, snakemake.output.metrology,
-                     snakemake.config, provenance={"code_version": snakemake.params.code, **snakemake.params.roots})
+                     snakemake.params.settings,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -40,5 +40,5 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
 dice_core.run_logged(snakemake.log[0], fit_fringes, snakemake.input.manifest, snakemake.input.dark,
                      list(snakemake.input.prnu), list(snakemake.input.bad_pixels), snakemake.wildcards.baseline,
                      snakemake.output.metrology,
-                     snakemake.config, snakemake.threads,
+                     snakemake.params.settings, snakemake.threads,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

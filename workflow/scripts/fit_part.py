@@ -27,5 +27,5 @@ def fit_part(manifest_path, state_path, first_paths, baseline, part, output, con
 
 dice_core.run_logged(snakemake.log[0], fit_part, snakemake.input.manifest, snakemake.input.state,
                      list(snakemake.input.first), snakemake.wildcards.baseline, int(snakemake.wildcards.part),
-                     snakemake.output.part, snakemake.config,
+                     snakemake.output.part, snakemake.params.settings,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

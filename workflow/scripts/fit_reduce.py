@@ -16,5 +16,5 @@ def fit_reduce(state_path, part_paths, baseline, output, config):
 
 
 dice_core.run_logged(snakemake.log[0], fit_reduce, snakemake.input.state, list(snakemake.input.parts),
-                     snakemake.wildcards.baseline, snakemake.output.state, snakemake.config,
+                     snakemake.wildcards.baseline, snakemake.output.state, snakemake.params.settings,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -29,5 +29,5 @@ def fit_start(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline, o
 
 dice_core.run_logged(snakemake.log[0], fit_start, snakemake.input.manifest, snakemake.input.dark,
                      list(snakemake.input.prnu), list(snakemake.input.bad_pixels), snakemake.wildcards.baseline,
-                     snakemake.output.state, snakemake.config,
+                     snakemake.output.state, snakemake.params.settings,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -14,7 +14,11 @@ def read_stacks(paths):
 
 
 def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pixel_paths, stack_paths, mode, output,
-                      config, options, prf_path=None):
+                      settings, method, prf_path=None):
+    """``settings``: the step's configuration (centroids.half_size...); ``method``: the centroid method, the
+    configured one or, for centroids/<method>/<mode>.nc, the path's."""
+    options = {**settings["centroids"], "method": method}
+    config = {**settings, "centroids": options}  # what the product records: the method it was made with
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     use_flat, use_metrology = centroids.mode_corrections(mode)
@@ -34,7 +38,8 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pix
     bad_pixels = io.read_product(bad_pixel_paths[0])["bad_pixel"].values if bad_pixel_paths else None
     positions = [p.index for p in manifest.positions]
     log.info("mode %s (flat %s, pixel offsets %s%s), method %s, %d positions, %d stars, %dx%d windows", mode,
-             use_flat, use_metrology, ", PRF widths True" if use_widths else "", options["method"], len(positions), len(manifest.star_approx),
+             use_flat, use_metrology, ", PRF widths True" if use_widths else "", options["method"], len(positions),
+             len(manifest.star_approx),
              2 * options["half_size"] + 1, 2 * options["half_size"] + 1)
     result = centroids.measure_positions(
         read_stacks(stack_paths), positions, approx=manifest.star_approx, detector=manifest.detector,
@@ -53,6 +58,6 @@ dice_core.run_logged(snakemake.log[0], measure_centroids, snakemake.input.manife
                      snakemake.input.get("prnu"), snakemake.input.get("offsets"),
                      list(snakemake.input.get("bad_pixels", [])), list(snakemake.input.stacks),
                      snakemake.wildcards.mode,
-                     snakemake.output.centroids, snakemake.config, snakemake.params.options,
+                     snakemake.output.centroids, snakemake.params.settings, snakemake.params.method,
                      snakemake.input.get("prf"),
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -19,4 +19,5 @@ def measure_dark(manifest_path, output, config):
 
 
 dice_core.run_logged(snakemake.log[0], measure_dark, snakemake.input.manifest, snakemake.output.dark,
-                     snakemake.config, provenance={"code_version": snakemake.params.code, **snakemake.params.roots})
+                     snakemake.params.settings,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -25,5 +25,5 @@ def measure_prnu(manifest_path, dark_path, flat, output, config):
 
 
 dice_core.run_logged(snakemake.log[0], measure_prnu, snakemake.input.manifest, snakemake.input.dark,
-                     snakemake.wildcards.flat, snakemake.output.prnu, snakemake.config,
+                     snakemake.wildcards.flat, snakemake.output.prnu, snakemake.params.settings,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -44,5 +44,6 @@ def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, method):
 
 inputs = {key: (list(value) if not isinstance(value, str) else value) for key, value in snakemake.input.items()}
 dice_core.run_logged(snakemake.log[0], paper_comparison, inputs, snakemake.output.csv, snakemake.output.png,
-                     snakemake.output.pdf, snakemake.params.dataset, snakemake.params.positions,
-                     snakemake.params.method)
+                     snakemake.output.pdf, snakemake.params.dataset,
+                     snakemake.params.settings["astrometry"]["positions"],
+                     snakemake.params.settings["centroids"]["method"])

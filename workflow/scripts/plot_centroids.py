@@ -12,4 +12,4 @@ def plot_centroids(path, mode, png, pdf, positions=None):
 
 dice_core.run_logged(snakemake.log[0], plot_centroids, snakemake.input.centroids, snakemake.wildcards.mode,
                      snakemake.output.png, snakemake.output.pdf,
-                     snakemake.params.positions)
+                     snakemake.params.settings["astrometry"]["positions"])

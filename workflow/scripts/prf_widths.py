@@ -33,4 +33,5 @@ def prf_widths(manifest_path, dark_path, metrology_paths, output, config):
 
 
 dice_core.run_logged(snakemake.log[0], prf_widths, snakemake.input.manifest, snakemake.input.dark,
-                     list(snakemake.input.metrology), snakemake.output.prf, snakemake.config)
+                     list(snakemake.input.metrology), snakemake.output.prf, snakemake.params.settings,
+                     provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

@@ -15,4 +15,5 @@ def procrustes_deflation(csv_path, trials):
     io.write_text(csv_path, f"factor,error,trials,positions,stars\n{factor:.6g},{error:.6g},{trials},{positions},5\n")
 
 
-dice_core.run_logged(snakemake.log[0], procrustes_deflation, snakemake.output.csv, snakemake.params.trials)
+dice_core.run_logged(snakemake.log[0], procrustes_deflation, snakemake.output.csv,
+                     snakemake.params.settings["astrometry"]["trials"])

@@ -11,5 +11,5 @@ def select_reference_prnu(source, reference, output, config):
 
 
 dice_core.run_logged(snakemake.log[0], select_reference_prnu, snakemake.input.prnu, snakemake.params.reference,
-                     snakemake.output.prnu, snakemake.config,
+                     snakemake.output.prnu, snakemake.params.settings,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

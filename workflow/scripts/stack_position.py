@@ -23,5 +23,6 @@ def stack_position(manifest_path, position, output, config, n_batches):
 
 
 dice_core.run_logged(snakemake.log[0], stack_position, snakemake.input.manifest, snakemake.wildcards.position,
-                     snakemake.output.stack, snakemake.config, snakemake.params.batches,
+                     snakemake.output.stack,
+                     snakemake.params.settings, snakemake.params.settings["centroids"]["batches"],
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

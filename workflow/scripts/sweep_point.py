@@ -10,9 +10,11 @@ def sweep_point(output, study, parameters, bench, options, sweep, config):
     ds = studies.run_point(study, parameters, bench=bench, options=options, workdir=Path(output).parent)
     ds.attrs["sweep"] = sweep
     io.write_product(ds, output, title=f"sweep {sweep}, study {study}, point {parameters}",
-                     config={"sweep": config["sweeps"][sweep], "point": parameters})
+                     config={**config, "point": parameters})
 
 
-dice_core.run_logged(snakemake.log[0], sweep_point, snakemake.output.point, snakemake.params.study,
-                     dict(snakemake.params.parameters), dict(snakemake.params.bench), dict(snakemake.params.options),
-                     snakemake.wildcards.sweep, snakemake.config, provenance={"code_version": snakemake.params.code})
+spec = snakemake.params.settings["sweeps"][snakemake.wildcards.sweep]
+dice_core.run_logged(snakemake.log[0], sweep_point, snakemake.output.point, spec["study"],
+                     dict(snakemake.params.parameters), dict(spec["bench"]), dict(spec["options"]),
+                     snakemake.wildcards.sweep, snakemake.params.settings,
+                     provenance={"code_version": snakemake.params.code})

@@ -1,0 +1,185 @@
+"""The table of the workflow's steps: what each reads of the configuration and what it writes.
+
+One entry per step, said once; the rest is derived from it. A step is a
+workflow rule of the same name that runs ``workflow/scripts/<script>.py``. Its
+``settings`` (dotted configuration keys, possibly with ``{wildcard}`` fields)
+are all it reads of the configuration: the rule hands the script exactly those
+(:func:`dice_core.settings.select`), Snakemake re-runs the step when one of them
+changes, and each product the step writes records them as its
+``configuration``. The library modules it runs are those its script imports,
+followed through ``dice_core`` (the code hash the workflow re-runs it by); its
+products are entries of :data:`dice_core.products.CATALOGUE`.
+
+``stands_for`` names the steps a step answers for: ``fit_finish`` stands for
+the split fit's passes, whose states are temporary, so that a change to their
+settings or scripts re-runs it (and, through its missing inputs, them).
+``whole_run`` marks the steps of the run as a whole (the sweeps, the paper's
+studies and report), which a reduction sweep's point, the whole workflow again
+for one dataset, leaves out.
+
+Keys no step declares only plan what is made, not how: the dataset and where
+results go (``dataset``, ``results``, ``raw``, ``simulation``: another results
+folder), the sweeps' points (``sweeps.<name>.values``...: which points exist),
+and ``metrology.split`` (how the fit runs; its product is the single job's bit
+for bit). :data:`PLANNING_KEYS` lists them, with why.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["Step", "STEPS", "PLANNING_KEYS", "step", "settings_keys", "code_hash", "dice_core_imports"]
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of the workflow (the module's docstring gives the conventions)."""
+
+    name: str
+    settings: tuple[str, ...] = ()
+    script: str = ""
+    stands_for: tuple[str, ...] = ()
+    whole_run: bool = False  # a step of the run as a whole (sweeps, the paper), not of one dataset
+
+    @property
+    def script_name(self) -> str:
+        """The script it runs, ``workflow/scripts/<script_name>.py``."""
+        return self.script or self.name
+
+    @property
+    def writes(self) -> tuple[str, ...]:
+        """The catalogue's products it writes (:data:`dice_core.products.CATALOGUE` names each one's steps)."""
+        from dice_core.products import CATALOGUE
+
+        return tuple(key for key, p in CATALOGUE.items() if self.name in (p.step, *p.extra))
+
+
+_STREAM = ("chunk_frames",)  # a step that streams cubes: the chunks' size sets the sums' order, hence the bits
+_FIT = ("metrology.tolerance", "metrology.max_passes", "metrology.smooth_degree", "metrology.use_flat")
+_ASTROMETRY = ("astrometry.positions", "astrometry.groups", "astrometry.trials", "astrometry.superimposition",
+               "astrometry.pose.distance", "astrometry.pose.off_axis_deg", "astrometry.pose.centre")
+_SWEEP = ("sweeps.{sweep}.study", "sweeps.{sweep}.bench", "sweeps.{sweep}.options")
+
+_STEPS = [
+    # the simulated testbed: its settings are the preset (config dataset) with config simulation's overrides,
+    # which the rules hand over whole as the simulation's configuration
+    Step("simulate_truth"),
+    Step("simulate_file"),
+    Step("simulate_manifest"),
+    # dark and flat field
+    Step("measure_dark", _STREAM),
+    Step("measure_prnu", (*_STREAM, "prnu.gradient_degree")),
+    Step("select_reference_prnu"),
+    Step("compare_prnu"),
+    Step("find_bad_pixels"),
+    # metrology
+    Step("fit_fringes", (*_STREAM, *_FIT, "metrology.parts", "metrology.tip_sigma")),
+    Step("fit_start", (*_STREAM, *_FIT, "metrology.parts")),
+    Step("fit_part", (*_STREAM, *_FIT, "metrology.parts")),
+    Step("fit_reduce", _FIT),
+    Step("fit_finish", (*_STREAM, *_FIT, "metrology.parts", "metrology.tip_sigma"),
+         stands_for=("fit_start", "fit_part", "fit_reduce")),
+    Step("prf_widths", ("prf.order", "prf.half_width", "prf.sigma", "metrology.smooth_degree")),
+    Step("deproject_offsets"),
+    Step("compare_pairs"),
+    Step("allan_deviation", _STREAM),
+    # pseudo stars and astrometry
+    Step("stack_position", (*_STREAM, "centroids.batches")),
+    Step("measure_centroids", ("centroids.method", "centroids.half_size", "centroids.pair")),
+    Step("measure_centroids_by_method", ("centroids.half_size", "centroids.pair"), script="measure_centroids"),
+    Step("accuracy_table", ("centroids.modes", "centroids.method", "centroids.methods", *_ASTROMETRY)),
+    # figures
+    Step("plot_dark"),
+    Step("plot_prnu"),
+    Step("plot_prnu_difference"),
+    Step("plot_metrology"),
+    Step("plot_allan"),
+    Step("plot_offsets"),
+    Step("plot_offsets_difference"),
+    Step("plot_prf"),
+    Step("plot_centroids", ("astrometry.positions",)),
+    Step("plot_procrustes_residuals"),
+    Step("plot_superimposition_residuals"),
+    # sweeps and the paper
+    Step("sweep_point", _SWEEP, whole_run=True),
+    Step("sweep_summary", whole_run=True),
+    Step("reduction_sweep_summary", whole_run=True),
+    Step("plot_star_accuracy", whole_run=True),
+    Step("plot_tip_tilt", whole_run=True),
+    Step("plot_offset_bias", ("paper.offset_bias",), whole_run=True),
+    Step("error_propagation_table", ("paper.error_propagation",), whole_run=True),
+    Step("plot_error_propagation", ("paper.error_propagation",), whole_run=True),
+    Step("procrustes_deflation", ("astrometry.trials",), whole_run=True),
+    Step("paper_comparison", ("paper.offset_bias", "paper.error_propagation", "astrometry.positions",
+                              "centroids.method"), whole_run=True),
+    Step("paper_pdf", whole_run=True),
+]
+
+#: Every step by name.
+STEPS: dict[str, Step] = {s.name: s for s in _STEPS}
+
+#: The configuration keys that no step reads, with why: they choose what is made or where, not how.
+PLANNING_KEYS = {
+    "dataset": "the dataset: another results folder",
+    "results": "where results go: another results folder",
+    "raw": "where a sweep point's raw files are: set by the workflow itself",
+    "simulation": "the preset's overrides: another dataset, named by their hash, in its own folder",
+    "sweeps": "which sweeps and points exist; a point's own settings are its step's (sweeps.<name>.study, "
+              "bench, options)",
+    "metrology.split": "how the fit runs, as one job or as many; its product is the single job's bit for bit",
+}
+
+
+def step(name: str) -> Step:
+    """The table's entry ``name``; a KeyError names the known steps."""
+    try:
+        return STEPS[name]
+    except KeyError:
+        raise KeyError(f"no step {name!r} in the step table (steps: {', '.join(STEPS)})") from None
+
+
+def settings_keys(name: str) -> tuple[str, ...]:
+    """The settings a step reads, with those of the steps it stands for, once each in order."""
+    entry = step(name)
+    keys = [*entry.settings, *(k for other in entry.stands_for for k in step(other).settings)]
+    return tuple(dict.fromkeys(keys))
+
+
+
+
+def dice_core_imports(path) -> set[str]:
+    """Names a source file imports from dice_core, at its top or inside functions: its modules, and other
+    names (classes, functions), which :func:`code_hash` tells apart by looking for their files."""
+    names = set()
+    for node in ast.walk(ast.parse(Path(path).read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module == "dice_core":
+            names |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("dice_core."):
+            names.add(node.module.split(".")[1])
+        elif isinstance(node, ast.Import):
+            names |= {alias.name.split(".")[1] for alias in node.names if alias.name.startswith("dice_core.")}
+    return names
+
+
+def code_hash(scripts) -> str:
+    """Hash (16 hex digits) of the code that ``scripts`` run: their own bytes and those of every dice_core
+    module they import, followed through the modules' own imports (the package's ``__init__`` always counts).
+    A step's rule passes it as a parameter (Snakemake re-runs a job whose parameters changed), so that an edit
+    to a module re-runs the steps that use it, directly or through another module, and only those."""
+    package = Path(__file__).parent
+    scripts = [Path(script) for script in scripts]
+    todo = ["__init__", *(name for script in scripts for name in sorted(dice_core_imports(script)))]
+    closure = set()
+    while todo:
+        name = todo.pop()
+        if name in closure or not (package / f"{name}.py").is_file():  # a class or function, not a module
+            continue
+        closure.add(name)
+        todo += sorted(dice_core_imports(package / f"{name}.py"))
+    digest = hashlib.sha256()
+    for path in [*scripts, *(package / f"{name}.py" for name in sorted(closure))]:
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]

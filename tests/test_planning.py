@@ -1,0 +1,131 @@
+"""dice_core.planning: what a run makes of a dataset and a configuration, without the workflow engine."""
+
+import copy
+
+import pytest
+import yaml
+
+from dice_core import planning, settings
+from dice_core.manifest import parse_manifest
+from dice_core.simulation import dataset_layout
+
+from conftest import REPO, small_config
+
+SCHEMA = settings.config_schema(REPO / "workflow" / "schemas" / "config.schema.yaml")
+CONFIG = settings.with_defaults(yaml.safe_load((REPO / "config" / "config.yaml").read_text()), SCHEMA)
+
+
+def plan(document=None, **config):
+    layout = document if document is not None else dataset_layout(small_config())
+    values = copy.deepcopy(CONFIG)
+    for section, options in config.items():
+        values[section] = {**values[section], **options} if isinstance(options, dict) else options
+    return planning.Plan(parse_manifest(layout, "/data/bench/dataset.yaml"), values, "results/sim-test",
+                         "results/sweeps")
+
+
+def test_the_default_targets_are_every_stage_s_products_under_the_dataset_s_folder():
+    targets = plan().default_targets()
+    assert all(t.startswith("results/sim-test/") for t in targets) and len(targets) == len(set(targets))
+    for expected in ("calibration/dark.nc", "calibration/prnu.nc", "calibration/prnu_difference_fiber_b.nc",
+                     "metrology/H1H4.nc", "allan/V2V4.nc", "calibration/offsets_P24.nc",
+                     "calibration/offsets_difference_P24.nc", "centroids/flat+metrology+width.nc",
+                     "centroids/gaussian/raw.nc", "tables/accuracy.csv", "figures/procrustes_residuals.pdf"):
+        assert f"results/sim-test/{expected}" in targets, expected
+    assert "results/sim-test/centroids/fourier/raw.nc" not in targets  # the configured method has no folder
+    with_pose = plan(astrometry={"superimposition": ["pose", "procrustes"]}).default_targets()
+    assert set(with_pose) - set(targets) == {"results/sim-test/figures/pose_residuals.png",
+                                             "results/sim-test/figures/pose_residuals.pdf"}
+
+
+def test_what_a_dataset_lacks_is_skipped_and_said_once():
+    layout = dataset_layout(small_config())
+    del layout["flats"]
+    layout["metrology"]["pairs"] = {}
+    p = plan(layout)
+    targets = p.default_targets()
+    p.default_targets()  # asked again: said once
+    assert not any("prnu" in t for t in targets) and "results/sim-test/centroids/raw.nc" in targets
+    assert p.skipped == [f"skipping PRNU: {p.manifest.path} has no flats section",
+                         "skipping deprojection: the dataset names no pair of baselines",
+                         "skipping centroid mode flat: the dataset has no flat field",
+                         "skipping centroid mode metrology: the dataset names no pair of metrology baselines",
+                         "skipping centroid mode flat+metrology: the dataset has no flat field",
+                         "skipping centroid mode flat+metrology+width: the dataset has no flat field"]
+
+
+@pytest.mark.parametrize("config, expected", [
+    ({"centroids": {"pair": "P99"}}, "config centroids.pair 'P99' is not a pair of /data/bench/dataset.yaml"),
+    ({"centroids": {"half_size": 30}}, "detector.science_area holds 37 row(s) x 40 col(s), too few for the 61x61"),
+])
+def test_a_plan_the_dataset_cannot_hold_is_one_line(config, expected):
+    with pytest.raises(planning.PlanningError, match=expected.replace("(", r"\(").replace(")", r"\)")):
+        plan(**config).default_targets()
+
+
+@pytest.mark.parametrize("section, name, other", [("pairs", "difference_P24", "P24"),
+                                                   ("flats", "difference_fiber_b", "fiber_b")])
+def test_names_that_would_make_two_products_one_file_are_refused(section, name, other):
+    """A pair named difference_P24 beside P24: offsets_difference_P24.nc would be both (a 12-line
+    AmbiguousRuleException from Snakemake); a flat difference_fiber_b beside fiber_b likewise."""
+    layout = dataset_layout(small_config())
+    entries = layout["metrology"]["pairs"] if section == "pairs" else layout["flats"]
+    entries[name] = copy.deepcopy(entries[other])
+    with pytest.raises(planning.PlanningError) as info:
+        plan(layout).check_names()
+    assert f"'{name}'" in str(info.value) and f"'{other}'" in str(info.value) and "would both write" in str(info.value)
+    plan().check_names()
+
+
+def test_sweep_points_are_folders_as_snakemake_s_paramspace_names_them():
+    """The folders of the existing results stay valid: the same names as Paramspace gave them (pandas typing
+    included: an integer beside a float in one column is spelt as a float)."""
+    from pandas import DataFrame
+    from snakemake.utils import Paramspace
+
+    specs = {**CONFIG["sweeps"], "mixed": {"study": "offset_bias", "parameter": "detector.prnu_rms",
+                                           "values": [0, 2.5e-3, 1]},
+             "words": {"study": "error_propagation", "grid": {"source": ["prnu", "read"], "seed": [1, 2]}}}
+    for name, spec in specs.items():
+        sweep = planning.plan_sweep(name, spec)
+        columns = sweep.columns
+        frame = DataFrame([{c: planning.folder_value(point[k]) for c, k in columns.items()} for point in
+                           ([{k: v for k, v in p.items()} for p in _raw_points(spec)])])
+        assert list(sweep.folders) == list(Paramspace(frame, single_wildcard="point").instance_patterns), name
+    assert planning.plan_sweep("mixed", specs["mixed"]).points[0] == {"detector.prnu_rms": 0.0}
+
+
+def _raw_points(spec):
+    import itertools
+
+    if "points" in spec:
+        return spec["points"]
+    if "grid" in spec:
+        return [dict(zip(spec["grid"], c)) for c in itertools.product(*spec["grid"].values())]
+    return [{spec["parameter"]: v} for v in spec["values"]]
+
+
+@pytest.mark.parametrize("spec, expected", [
+    ({"study": "offset_bias", "parameter": "source", "values": ["../../x"]}, "cannot name a point's folder"),
+    ({"study": "offset_bias", "parameter": "source", "values": ["{x}"]}, "cannot name a point's folder"),
+    ({"study": "offset_bias", "parameter": "a", "values": [1, 1]}, "a point is listed twice"),
+    ({"study": "offset_bias", "points": [{"a": 1}, {"b": 2}]}, "every point must set the same parameters"),
+    ({"study": "offset_bias", "points": [{"x.a": 1, "y.a": 2}]}, "share a last name"),
+    ({"study": "offset_bias", "parameter": "a", "values": [[1, 2]]}, "lists, e.g. of centroids.modes, only in a"),
+])
+def test_a_sweep_that_cannot_be_planned_is_one_line_naming_it(spec, expected):
+    with pytest.raises(planning.PlanningError, match=f"^config sweeps.s.*{expected}"):
+        planning.plan_sweep("s", spec)
+
+
+def test_a_reduction_point_is_the_run_s_config_with_its_keys_set():
+    sweep = planning.plan_sweep("r", {"study": "reduction", "parameter": "centroids.half_size", "values": [4, 5]})
+    point = planning.reduction_point_config(CONFIG, sweep, index=0, simulated=True, raw="results/sim-ci/raw",
+                                            sweeps_root="results/sweeps")
+    assert point["centroids"]["half_size"] == 4 and point["raw"] == "results/sim-ci/raw"
+    assert point["results"] == "results/sweeps/r/half_size~4" and "r" not in point["sweeps"]
+    assert planning.module_name("r", "half_size~4") != planning.module_name("r", "half_size~5")
+    with pytest.raises(planning.PlanningError, match="need a simulation preset"):
+        simulated = planning.plan_sweep("r", {"study": "reduction", "parameter": "simulation.seed", "values": [1]})
+        planning.reduction_point_config(CONFIG, simulated, index=0, simulated=False, raw="x",
+                                        sweeps_root="results/sweeps")
