@@ -5,7 +5,8 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.manifest` -- read and validate a raw dataset manifest;
 - :mod:`dice_core.io` -- stream FITS cubes in chunks of frames, write netCDF products;
 - :mod:`dice_core.calibration` -- dark and PRNU (flat-field) maps;
-- :mod:`dice_core.fringes` -- global fringe solution of a metrology baseline;
+- :mod:`dice_core.fringes` -- the fringe model of a metrology baseline: its gauge, pixel offsets, photon floor, product;
+- :mod:`dice_core.fringe_fit` -- the streaming fringe fit: its passes, its state, a fit split across jobs;
 - :mod:`dice_core.allan` -- Allan deviations of the pixel offsets;
 - :mod:`dice_core.stacks` -- each star position's frames read once into a mean and batch means;
 - :mod:`dice_core.centroids` -- pseudo-star windows, Gaussian fit, Fourier resampling, offset correction;

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from dice_core import fringes, geometry, simulation
+from dice_core import fringe_fit, geometry, simulation
 from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
 from dice_core.overrides import apply_dotted
@@ -90,8 +90,8 @@ def _offset_errors(cfg: simulation.SimulationConfig, workdir: Path, baseline: st
     stream = FrameStream(manifest.baselines[baseline], manifest.detector)
     dark = truth["bias"].values
     t0 = time.perf_counter()
-    ours = fringes.fit_baseline(stream, dark, detector=manifest.detector, flat=truth["sensitivity"].values,
-                                read_noise=truth["read_noise"].values, label=f"{baseline} (ours)")
+    ours = fringe_fit.fit_baseline(stream, dark, detector=manifest.detector, flat=truth["sensitivity"].values,
+                                   read_noise=truth["read_noise"].values, label=f"{baseline} (ours)")
     t1 = time.perf_counter()
     paper = fit_baseline_paper(stream, dark, detector=manifest.detector, iterations=iterations,
                                label=f"{baseline} (paper's method)")

@@ -30,7 +30,7 @@ if config["metrology"]["split"]:
             **step_resources("fit_start"),
         params:
             roots=ROOTS,  # inputs are recorded relative to these
-            code=code_version("io", "manifest", "calibration", "fringes"),
+            code=code_version("io", "manifest", "calibration", "fringe_fit"),
             options=config["metrology"],  # the fit's options are the state's
             chunk_frames=config["chunk_frames"],  # the reference frame is the first chunk's mean
         script:
@@ -61,7 +61,7 @@ if config["metrology"]["split"]:
             **step_resources("fit_part"),
         params:
             roots=ROOTS,  # inputs are recorded relative to these
-            code=code_version("io", "manifest", "fringes"),
+            code=code_version("io", "manifest", "fringe_fit"),
             parts=config["metrology"]["parts"],
             chunk_frames=config["chunk_frames"],
         script:
@@ -88,7 +88,7 @@ if config["metrology"]["split"]:
             **step_resources("fit_reduce"),
         params:
             roots=ROOTS,  # inputs are recorded relative to these
-            code=code_version("io", "fringes"),
+            code=code_version("io", "fringe_fit"),
         script:
             "../scripts/fit_reduce.py"
 
@@ -120,7 +120,7 @@ if config["metrology"]["split"]:
             roots=ROOTS,  # inputs are recorded relative to these
             # the code, scripts and settings of every step of the split fit: its states and parts are temporary,
             # so a change to any of them must rerun this job (and through its missing inputs, the passes)
-            code=code_version("io", "manifest", "calibration", "fringes", "geometry"),
+            code=code_version("io", "manifest", "calibration", "fringes", "fringe_fit", "geometry"),
             scripts=script_version("fit_start", "fit_part", "fit_reduce"),
             options=config["metrology"],
             chunk_frames=config["chunk_frames"],
@@ -150,7 +150,9 @@ else:
             **step_resources("fit_fringes"),
         params:
             roots=ROOTS,  # inputs are recorded relative to these
-            code=code_version("io", "manifest", "calibration", "fringes", "geometry", "parallel", "polynomials"),
+            code=code_version(
+                "io", "manifest", "calibration", "fringes", "fringe_fit", "geometry", "parallel", "polynomials"
+            ),
             options=config["metrology"],  # a changed option (tip_sigma, tolerance...) reruns the fits
         script:
             "../scripts/fit_fringes.py"
