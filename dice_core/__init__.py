@@ -10,7 +10,8 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.allan` -- Allan deviations of the pixel offsets;
 - :mod:`dice_core.stacks` -- each star position's frames read once into a mean and batch means;
 - :mod:`dice_core.centroids` -- pseudo-star windows, Gaussian fit, Fourier resampling, offset correction;
-- :mod:`dice_core.astrometry` -- barycentre residuals, Procrustes superimposition, accuracies;
+- :mod:`dice_core.superimposition` -- Procrustes, projective and pose superimpositions of the star pattern;
+- :mod:`dice_core.accuracies` -- barycentre residuals, corrected accuracies with error bars, the tables;
 - :mod:`dice_core.deprojection` -- x and y offsets from a pair of baselines;
 - :mod:`dice_core.detector` -- the pixel-response model (truncated hyper-Gaussian PRFs);
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;

@@ -18,7 +18,7 @@ rule accuracy_table:
         **step_resources("accuracy_table"),
     params:
         roots=ROOTS,  # inputs are recorded relative to these
-        code=code_version("io", "astrometry"),
+        code=code_version("io", "superimposition", "accuracies"),
         options=lambda w: config["astrometry"],
         models=extra_superimpositions(),
     script:

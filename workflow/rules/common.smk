@@ -15,7 +15,7 @@ from pathlib import Path
 from pandas import DataFrame
 from snakemake.utils import Paramspace, validate
 
-from dice_core import DatasetError, astrometry, simulation, yamlfile
+from dice_core import DatasetError, simulation, superimposition, yamlfile
 from dice_core.centroids import MODE_NEEDS, science_area_problem
 from dice_core.io import file_groups, write_text
 from dice_core.manifest import load_manifest, parse_manifest
@@ -380,7 +380,7 @@ def astrometry_targets():
 
 def extra_superimpositions():
     """The superimpositions configured besides Procrustes (which always runs): projective, pose."""
-    return astrometry.configured_superimpositions(config["astrometry"].get("superimposition", "procrustes"))[1:]
+    return superimposition.configured_superimpositions(config["astrometry"].get("superimposition", "procrustes"))[1:]
 
 
 def centroid_products(wildcards):
