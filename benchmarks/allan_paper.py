@@ -27,7 +27,7 @@ import xarray as xr
 sys.path.insert(0, str(Path(__file__).parent))
 from fringe_fit import load, prepare  # noqa: E402
 
-from dice_core import allan, fringes  # noqa: E402
+from dice_core import allan, fringe_fit, fringes  # noqa: E402
 
 
 def main():
@@ -40,9 +40,9 @@ def main():
     prepare(args.frames, workdir)
     manifest, truth, stream = load(args.frames, workdir)
     start = time.perf_counter()
-    solution = fringes.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
-                                    flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
-                                    workers=2)
+    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
+                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
+                                       workers=2)
     fit_seconds = time.perf_counter() - start
     metrology = fringes.solution_dataset(solution, manifest.detector)
     dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),

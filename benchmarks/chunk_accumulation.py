@@ -3,7 +3,7 @@
     OPENBLAS_NUM_THREADS=1 python benchmarks/chunk_accumulation.py 1024 128 1 4 16 32 64 128
 
 Arguments: the detector's side (pixels), the frames, then the chunk sizes (frames) to time. Each chunk
-size runs ``dice_core.fringes._accumulate`` (pass 1's 7-column projector, the reference subtracted
+size runs ``dice_core.fringe_fit._accumulate`` (pass 1's 7-column projector, the reference subtracted
 from each chunk) over the same float32 frames twice; the faster is printed, in s per 1e9 samples.
 BENCHMARKS.md, "A large detector", quotes it (why auto chunks hold at least 16 frames).
 """
@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from dice_core.fringes import _accumulate
+from dice_core.fringe_fit import _accumulate
 from dice_core.io import Chunk
 
 

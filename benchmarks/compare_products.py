@@ -28,7 +28,7 @@ def main():
     import numpy as np
 
     import dice_core
-    from dice_core import allan, fringes, io
+    from dice_core import allan, fringe_fit, fringes, io
     from dice_core.manifest import load_manifest
 
     if not Path(dice_core.__file__).resolve().is_relative_to(args.old_code.resolve()):
@@ -39,8 +39,8 @@ def main():
     dark = io.read_product(products / "calibration/dark.nc")
     prnu = io.read_product(products / "calibration/prnu.nc")
     stream = io.FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
-    solution = fringes.fit_baseline(stream, dark["dark"].values, detector=manifest.detector, flat=prnu["prnu"].values,
-                                    read_noise=dark["noise"].values, workers=2)
+    solution = fringe_fit.fit_baseline(stream, dark["dark"].values, detector=manifest.detector,
+                                       flat=prnu["prnu"].values, read_noise=dark["noise"].values, workers=2)
     old = fringes.solution_dataset(solution, manifest.detector)
     new = io.read_product(products / "metrology/H1H4.nc")
     floor = float(new["photon_noise_floor_rms"])

@@ -8,7 +8,7 @@ Simulates one 80x84 metrology baseline of N frames (default 200,000; cached in
 - ``plain pass``: one plain numpy pass over the cube (read in the same chunks,
   converted to float32 as the fit reads them, summed over frames), the reference
   for one iteration;
-- ``fit``: the whole reduction of the baseline (:func:`dice_core.fringes.fit_baseline`),
+- ``fit``: the whole reduction of the baseline (:func:`dice_core.fringe_fit.fit_baseline`),
   in a fresh process that also reports its peak resident memory;
 - ``LM per frame``: the paper's per-frame Levenberg-Marquardt spatial fit
   (scipy.optimize.least_squares, method "lm", 5 parameters B, A, phi, Kx, Ky)
@@ -77,13 +77,13 @@ def load(frames, workdir, chunk_frames="auto"):
 
 def fit_child(frames, workdir, chunk_frames, workers):
     """The whole reduction, in this process; prints time, passes, accuracy and peak memory as JSON."""
-    from dice_core import fringes
+    from dice_core import fringe_fit
 
     manifest, truth, stream = load(frames, workdir, chunk_frames)
     start = time.perf_counter()
-    solution = fringes.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
-                                    flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
-                                    workers=workers)
+    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
+                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
+                                       workers=workers)
     elapsed = time.perf_counter() - start
     n = solution.k / np.hypot(*solution.k)
     r, c = solution.rows, solution.cols

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dice_core import fringes, simulation
+from dice_core import fringe_fit, simulation
 from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
 
@@ -30,10 +30,10 @@ def draw(seed, **metrology):
     with tempfile.TemporaryDirectory() as folder:
         manifest = load_manifest(simulation.simulate_dataset(cfg, Path(folder)))
         truth = read_product(Path(folder) / "truth.nc").load()
-        solution = fringes.fit_baseline(FrameStream(manifest.baselines["H1H4"], manifest.detector),
-                                        truth["bias"].values, detector=manifest.detector,
-                                        flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
-                                        label="H1H4")
+        solution = fringe_fit.fit_baseline(FrameStream(manifest.baselines["H1H4"], manifest.detector),
+                                           truth["bias"].values, detector=manifest.detector,
+                                           flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
+                                           label="H1H4")
     difference = np.sqrt(np.nanmean((solution.offsets - solution.offsets_prnu_free) ** 2))
     return difference, solution.gauge_difference_floor, np.sqrt(np.nanmean(solution.photon_floor**2))
 

@@ -1,6 +1,6 @@
 """Why the fringe fit's workers are processes: one pass's streaming work in threads and in processes.
 
-Runs the streaming part of one fit pass (:func:`dice_core.fringes._accumulate`:
+Runs the streaming part of one fit pass (:func:`dice_core.fringe_fit._accumulate`:
 read, convert, two products per chunk) over the two parts of a simulated
 baseline (:meth:`dice_core.io.FrameStream.split`): one after the other, in two
 threads, and in two forked processes. Reuses the cube cached by
@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from fringe_fit import load  # noqa: E402
 
-from dice_core.fringes import _accumulate  # noqa: E402
+from dice_core.fringe_fit import _accumulate  # noqa: E402
 
 
 def main():

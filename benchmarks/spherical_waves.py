@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dice_core import deprojection, fringes, geometry, simulation
+from dice_core import deprojection, fringe_fit, fringes, geometry, simulation
 from dice_core.geometry import BaselineGeometry, remove_modes, two_source_phase
 from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
@@ -48,7 +48,7 @@ def main():
     with tempfile.TemporaryDirectory() as folder:
         manifest = load_manifest(simulation.simulate_dataset(cfg, Path(folder)))
         truth = read_product(Path(folder) / "truth.nc").load()
-        solutions = {b: fringes.fit_baseline(
+        solutions = {b: fringe_fit.fit_baseline(
             FrameStream(manifest.baselines[b], manifest.detector), truth["bias"].values, detector=manifest.detector,
             flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
             geometry=BaselineGeometry.of_baseline(manifest.geometry, b), label=b) for b in manifest.baselines}

@@ -17,7 +17,7 @@ import logging
 
 import numpy as np
 
-from dice_core import astrometry, studies
+from dice_core import accuracies, studies, superimposition
 from dice_core.studies import flat_metrology_centroids
 
 MODELS = ("procrustes", "projective", "pose")
@@ -41,12 +41,12 @@ def main():
                 "seed": seed, "stars.positions": args.positions, "stars.tip_tilt_pv": amplitude, **noise})
             configurations, truth, geometry = flat_metrology_centroids(settings)
             for model in MODELS:
-                result = astrometry.accuracy(configurations, model=model, geometry=geometry, trials=args.trials)
+                result = accuracies.accuracy(configurations, model=model, geometry=geometry, trials=args.trials)
                 accuracies[amplitude, model] = result
                 line = (f"seed {seed} tip-tilt {amplitude:.0e} rad PV  {model:10s} accuracy {result.accuracy:.3e} "
                         f"+- {result.error:.1e} pixel (rms residual {result.rms_residual:.3e}, factor {result.factor:.3f})")
                 if model == "pose" and amplitude > 0:
-                    report = astrometry.pose_identifiability(result.result, sigma=result.accuracy)
+                    report = superimposition.pose_identifiability(result.result, sigma=result.accuracy)
                     stage = truth["stage_rotation"].values
                     errors = (result.result.poses[:, 3:5] - stage[:, :2]) / report.crlb_nominal_field[:, 3:5]
                     line += (f"\n      identifiable {report.identifiable}, tip/tilt SNR {report.snr['tip']:.1f}/"

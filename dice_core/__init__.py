@@ -5,11 +5,13 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.manifest` -- read and validate a raw dataset manifest;
 - :mod:`dice_core.io` -- stream FITS cubes in chunks of frames, write netCDF products;
 - :mod:`dice_core.calibration` -- dark and PRNU (flat-field) maps;
-- :mod:`dice_core.fringes` -- global fringe solution of a metrology baseline;
+- :mod:`dice_core.fringes` -- the fringe model of a metrology baseline: its gauge, pixel offsets, photon floor, product;
+- :mod:`dice_core.fringe_fit` -- the streaming fringe fit: its passes, its state, a fit split across jobs;
 - :mod:`dice_core.allan` -- Allan deviations of the pixel offsets;
 - :mod:`dice_core.stacks` -- each star position's frames read once into a mean and batch means;
 - :mod:`dice_core.centroids` -- pseudo-star windows, Gaussian fit, Fourier resampling, offset correction;
-- :mod:`dice_core.astrometry` -- barycentre residuals, Procrustes superimposition, accuracies;
+- :mod:`dice_core.superimposition` -- Procrustes, projective and pose superimpositions of the star pattern;
+- :mod:`dice_core.accuracies` -- barycentre residuals, corrected accuracies with error bars, the tables;
 - :mod:`dice_core.deprojection` -- x and y offsets from a pair of baselines;
 - :mod:`dice_core.detector` -- the pixel-response model (truncated hyper-Gaussian PRFs);
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;

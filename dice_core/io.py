@@ -56,6 +56,7 @@ __all__ = [
     "provenance",
     "input_digests",
     "read_product",
+    "product_attrs",
     "first_chunk",
     "CHUNK_BYTES",
     "auto_chunk_frames",
@@ -328,7 +329,7 @@ class FrameStream:
         frames; a stream of fewer files than ``parts`` gives one stream per
         file. Chunks keep their index in the whole acquisition (``start``), and
         each part verifies the checksums of its own files. For reductions run
-        on the parts in parallel (:func:`dice_core.fringes.fit_baseline`).
+        on the parts in parallel (:func:`dice_core.fringe_fit.fit_baseline`).
         """
         pieces = []
         for begin, end in file_groups([c.n_frames for c in self.cubes], parts):
@@ -814,9 +815,19 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
         ds.to_netcdf(tmp, engine="netcdf4")
 
 
-def read_product(path) -> xr.Dataset:
-    """Load a netCDF product fully into memory (and close the file)."""
+def _existing_product(path) -> Path:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "product not found")
-    return xr.load_dataset(path, engine="netcdf4")
+    return path
+
+
+def read_product(path) -> xr.Dataset:
+    """Load a netCDF product fully into memory (and close the file)."""
+    return xr.load_dataset(_existing_product(path), engine="netcdf4")
+
+
+def product_attrs(path) -> dict:
+    """The global attributes of a netCDF product, none of its variables read (the file closed)."""
+    with xr.open_dataset(_existing_product(path), engine="netcdf4") as ds:
+        return dict(ds.attrs)

@@ -15,7 +15,7 @@ Crouzier et al. (A&A), section "Metrology", "Minimization strategy":
 4. the offsets are the pixel phases minus the plane of K, normalised to zero
    mean and gradient; there is no gauge constraint beyond these.
 
-Step 3 is where it differs from :func:`dice_core.fringes.fit_baseline`: the
+Step 3 is where it differs from :func:`dice_core.fringe_fit.fit_baseline`: the
 frame fits weigh every pixel as if its sensitivity were 1. An uncalibrated
 PRNU then correlates with the fringe: each frame's phase is off by a periodic
 function of the fringe phase, of order (B / A) sigma_PRNU / sqrt(pixels), the
@@ -38,11 +38,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# _pass is fringes' private streaming pass (frame factors, then per-pixel normal equations): the paper's
+# _pass is fringe_fit's private streaming pass (frame factors, then per-pixel normal equations): the paper's
 # method must run the very same pass as ours, so that the comparison shows the method and not two
-# implementations of the numerics; it stays private to fringes because its arguments and returns are that
-# module's internals, which only this sibling module, tested against fringes' own results, may rely on.
-from dice_core.fringes import (FringeError, _pass, initial_wavevector, perfect_pixel_design, projected_offsets,
+# implementations of the numerics; it stays private to fringe_fit because its arguments and returns are that
+# module's internals, which only this sibling module, tested against fringe_fit's own results, may rely on.
+from dice_core.fringe_fit import _pass
+from dice_core.fringes import (FringeError, initial_wavevector, perfect_pixel_design, projected_offsets,
                                wavevector_per_frame)
 from dice_core.io import first_chunk
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dice_core import astrometry, error_budget
+from dice_core import accuracies, error_budget, superimposition
 
 __all__ = ["PAPER", "Row", "comparison_csv", "nominal_configurations", "procrustes_deflation", "accuracy_rows",
            "allan_rows", "offset_bias_rows", "error_propagation_rows"]
@@ -133,8 +133,8 @@ def nominal_configurations(n_positions: int = 33, *, side: float = 40.0, step=(0
 
 def procrustes_deflation(n_positions: int = 33, *, trials: int = 2000, seed: int = 0) -> tuple[float, float]:
     """The paper's Procrustes deflation factor by Monte Carlo for its geometry: (factor, 1-sigma error)."""
-    result = astrometry.procrustes(nominal_configurations(n_positions))
-    return astrometry.correction_factor(result, trials=trials, seed=seed)
+    result = superimposition.procrustes(nominal_configurations(n_positions))
+    return accuracies.correction_factor(result, trials=trials, seed=seed)
 
 
 def accuracy_rows(rows, *, dataset: str, note: str) -> list[Row]:

@@ -594,20 +594,10 @@ def fiber_tips(cfg: SimulationConfig) -> tuple[dict, dict]:
     return true, nominal
 
 
-def make_truth(cfg: SimulationConfig) -> xr.Dataset:
-    """Everything the simulation knows, before any frame is drawn (the ``truth.nc`` content).
-
-    Holds the contract's variables (dx, dy, sensitivity, kx, ky, phase,
-    star_x, star_y) and the rest of the model, which the acquisitions are
-    generated from: PRF scales and widths, bias and read-noise maps, fringe
-    level and amplitude per frame, envelope and visibility, flat illuminations,
-    detector poses.
-    """
-    d, m, st = cfg.detector, cfg.metrology, cfg.stars
-    rows, cols = d.shape
-    mask = np.zeros(d.shape, bool)
-    mask[slice(*d.science_rows), slice(*d.science_cols)] = True
-
+def _pixel_response_truth(cfg: SimulationConfig, mask: np.ndarray) -> tuple[PixelResponse, np.ndarray]:
+    """The detector's pixel response (offsets, PRF widths and slopes, sensitivity with dust and dead pixels)
+    and its defect flags (row, col) of :data:`BAD_DEAD`, :data:`BAD_HOT`, :data:`BAD_DUST`."""
+    d = cfg.detector
     rng = _rng(cfg, "offsets")
     dx = _remove_affine(d.offset_rms * rng.standard_normal(d.shape), mask)
     dy = _remove_affine(d.offset_rms * rng.standard_normal(d.shape), mask)
@@ -623,7 +613,13 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
     defects[dust & (defects == 0)] |= BAD_DUST
     sensitivity[(defects & BAD_DEAD) > 0] = 0.0
     prf = PixelResponse(sensitivity, dx, dy, sigma_x, sigma_y, d.prf_order, d.prf_half_width, slope_x, slope_y)
+    return prf, defects
 
+
+def _bias_and_read_noise(cfg: SimulationConfig, defects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bias (columns, a row slope; hot pixels' dark signal on top) and read noise maps (row, col), adu."""
+    d = cfg.detector
+    rows, cols = d.shape
     rng = _rng(cfg, "bias")
     bias = (d.bias + d.bias_column_rms * rng.standard_normal(cols)[None, :]
             + d.bias_row_slope * np.linspace(0, 1, rows)[:, None])
@@ -631,33 +627,51 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
     hot = (defects & BAD_HOT) > 0
     bias[hot] += d.hot_level  # a hot pixel's dark signal, with its shot noise as a read noise
     read_noise[hot] = np.sqrt(read_noise[hot] ** 2 + d.hot_level / d.gain)
+    return bias, read_noise
 
-    x0, y0 = prf.centres()
+
+def _envelope_and_visibility(cfg: SimulationConfig, x0, y0, mask) -> tuple[np.ndarray, np.ndarray]:
+    """The metrology beam's envelope (mean 1 over ``mask``) and the fringe visibility at the pixels' true
+    centres ``x0``, ``y0`` (row, col)."""
+    m, (rows, cols) = cfg.metrology, cfg.detector.shape
     xc, yc = (cols - 1) / 2, (rows - 1) / 2
     ex, ey = m.envelope_centre
     envelope = np.exp(-0.5 * ((x0 - xc - ex) ** 2 + (y0 - yc - ey) ** 2) / m.envelope_sigma**2)
     envelope /= envelope[mask].mean()
     visibility = 1 + m.visibility_gradient[0] * (x0 - xc) / cols + m.visibility_gradient[1] * (y0 - yc) / rows
+    return envelope, visibility
 
-    names = list(m.baselines)
+
+def _wavevectors(cfg: SimulationConfig, x0, y0, mask) -> tuple[np.ndarray, dict, dict]:
+    """Each baseline's wavevector (baseline, 2), rad/pixel; with spherical waves also each baseline's phase
+    surface at the pixels' true centres (:func:`dice_core.geometry.two_source_phase`) and the true fiber
+    tips (empty dicts for plane waves)."""
+    m = cfg.metrology
     kvec = np.array([[2 * np.pi / b["period"] * math.cos(math.radians(b["angle_deg"])),
                       2 * np.pi / b["period"] * math.sin(math.radians(b["angle_deg"]))]
                      for b in m.baselines.values()]).reshape(-1, 2)
-    spherical = {}
+    spherical, tips = {}, {}
     if m.spherical:
         tips, _ = fiber_tips(cfg)
         design = np.column_stack([np.ones(mask.sum()), x0[mask], y0[mask]])  # coefficients in rad/pixel
-        for i, name in enumerate(names):
+        for i, name in enumerate(m.baselines):
             surface = two_source_phase(x0, y0, tips[name + "a"], tips[name + "b"], wavelength=m.wavelength,
                                        pixel_pitch=m.pixel_pitch)
             spherical[name] = surface
             # the contract's kx, ky: the best plane of the phase over the science area
             kvec[i] = np.linalg.lstsq(design, surface[0][mask], rcond=None)[0][1:]
-    phase = np.empty((len(names), m.frames))
+    return kvec, spherical, tips
+
+
+def _fringe_histories(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each baseline's fringe phase phi(t) (rad), level B(t) and amplitude A(t) (adu) and the stray-light
+    fringe's phase (rad), all (baseline, frame)."""
+    m = cfg.metrology
+    phase = np.empty((len(m.baselines), m.frames))
     level = np.empty_like(phase)
     amplitude = np.empty_like(phase)
     stray_phase = np.empty_like(phase)
-    for i, name in enumerate(names):
+    for i, name in enumerate(m.baselines):
         rng = _rng(cfg, "metrology", name)
         phase[i] = _phase_history(cfg, name, rng)
         laser = 1 + m.laser_rsd * rng.standard_normal(m.frames)
@@ -668,26 +682,42 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
         rng = _rng(cfg, "stray light", name)
         stray_phase[i] = phase[i] + rng.uniform(0, 2 * np.pi) + m.stray_light_phase_walk * np.cumsum(
             rng.standard_normal(m.frames))
+    return phase, level, amplitude, stray_phase
 
-    # what the laser sees beyond the flat: a chromatic PRNU, and each baseline's speckle
+
+def _laser_response(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray]:
+    """What the laser sees beyond the flat: a chromatic PRNU (row, col) and each baseline's speckle
+    (baseline, row, col), relative (ones when not simulated)."""
+    d, m = cfg.detector, cfg.metrology
     chromatic = np.ones(d.shape)
     if m.chromatic_prnu_rms:
         chromatic += m.chromatic_prnu_rms * _rng(cfg, "chromatic prnu").standard_normal(d.shape)
-    speckle = np.ones((len(names), rows, cols))
+    speckle = np.ones((len(m.baselines), *d.shape))
     if m.speckle_rms:
-        for i, name in enumerate(names):
+        for i, name in enumerate(m.baselines):
             grains = gaussian_filter(_rng(cfg, "speckle", name).standard_normal(d.shape), m.speckle_grain,
                                      mode="wrap")
             speckle[i] = 1 + m.speckle_rms * (grains - grains.mean()) / grains.std()
+    return chromatic, speckle
 
-    fibers = list(cfg.flats.fibers)
-    illumination = np.empty((len(fibers), rows, cols))
-    for i, f in enumerate(fibers):
+
+def _flat_illuminations(cfg: SimulationConfig, x0, y0) -> np.ndarray:
+    """Each flat fiber's relative illumination (flat, row, col) at the pixels' true centres ``x0``, ``y0``."""
+    rows, cols = cfg.detector.shape
+    xc, yc = (cols - 1) / 2, (rows - 1) / 2
+    illumination = np.empty((len(cfg.flats.fibers), rows, cols))
+    for i, f in enumerate(cfg.flats.fibers):
         fib = _build(FiberConfig, cfg.flats.fibers[f], f"flats.fibers.{f}")
         corner2 = (cols / 2) ** 2 + (rows / 2) ** 2
         illumination[i] = (1 + fib.gradient[0] * (x0 - xc) / cols + fib.gradient[1] * (y0 - yc) / rows
                            + fib.curvature * ((x0 - xc) ** 2 + (y0 - yc) ** 2) / corner2)
+    return illumination
 
+
+def _stage_poses(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The detector's pose at each star position (position, 6: translation x, y, z in pixel, then tip, tilt,
+    roll in rad) and the stars' true positions there (position, star, 2), pixel."""
+    st = cfg.stars
     rng = _rng(cfg, "stage")
     poses = _nominal_poses(st)
     poses[:, :2] += st.step_jitter * rng.standard_normal((st.positions, 2))
@@ -696,7 +726,35 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
         span = np.ptp(walk)
         poses[:, axis] = (walk - walk.mean()) * (st.tip_tilt_pv / span if span > 0 else 0.0)
     poses[:, 5] = st.roll_rms * rng.standard_normal(st.positions)
-    stars = project_stars(_nominal_pattern(st), poses, cfg=cfg)
+    return poses, project_stars(_nominal_pattern(st), poses, cfg=cfg)
+
+
+def make_truth(cfg: SimulationConfig) -> xr.Dataset:
+    """Everything the simulation knows, before any frame is drawn (the ``truth.nc`` content).
+
+    Holds the contract's variables (dx, dy, sensitivity, kx, ky, phase,
+    star_x, star_y) and the rest of the model, which the acquisitions are
+    generated from: PRF scales and widths, bias and read-noise maps, fringe
+    level and amplitude per frame, envelope and visibility, flat illuminations,
+    detector poses.
+    """
+    d, m, st = cfg.detector, cfg.metrology, cfg.stars
+    rows, cols = d.shape
+    mask = np.zeros(d.shape, bool)
+    mask[slice(*d.science_rows), slice(*d.science_cols)] = True
+    # each part draws from its own named random streams (_rng): the order of the calls does not matter
+    prf, defects = _pixel_response_truth(cfg, mask)
+    dx, dy, sigma_x, sigma_y, slope_x, slope_y = prf.dx, prf.dy, prf.sigma_x, prf.sigma_y, prf.slope_x, prf.slope_y
+    bias, read_noise = _bias_and_read_noise(cfg, defects)
+    x0, y0 = prf.centres()
+    envelope, visibility = _envelope_and_visibility(cfg, x0, y0, mask)
+    names = list(m.baselines)
+    kvec, spherical, tips = _wavevectors(cfg, x0, y0, mask)
+    phase, level, amplitude, stray_phase = _fringe_histories(cfg)
+    chromatic, speckle = _laser_response(cfg)
+    fibers = list(cfg.flats.fibers)
+    illumination = _flat_illuminations(cfg, x0, y0)
+    poses, stars = _stage_poses(cfg)
 
     rc = ("row", "col")
     ds = xr.Dataset(

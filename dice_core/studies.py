@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from dice_core import centroids, fringes, geometry, simulation
+from dice_core import centroids, fringe_fit, geometry, simulation
 from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
 from dice_core.overrides import apply_dotted
@@ -90,8 +90,8 @@ def _offset_errors(cfg: simulation.SimulationConfig, workdir: Path, baseline: st
     stream = FrameStream(manifest.baselines[baseline], manifest.detector)
     dark = truth["bias"].values
     t0 = time.perf_counter()
-    ours = fringes.fit_baseline(stream, dark, detector=manifest.detector, flat=truth["sensitivity"].values,
-                                read_noise=truth["read_noise"].values, label=f"{baseline} (ours)")
+    ours = fringe_fit.fit_baseline(stream, dark, detector=manifest.detector, flat=truth["sensitivity"].values,
+                                   read_noise=truth["read_noise"].values, label=f"{baseline} (ours)")
     t1 = time.perf_counter()
     paper = fit_baseline_paper(stream, dark, detector=manifest.detector, iterations=iterations,
                                label=f"{baseline} (paper's method)")
@@ -332,7 +332,7 @@ def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "g
         ``error_position``, ``accuracy_group``, ``error_group`` (the accuracy
         table's Procrustes numbers, pixel).
     """
-    from dice_core import astrometry, centroids, stacks
+    from dice_core import accuracies, centroids, stacks
     from dice_core.manifest import parse_manifest
 
     cfg = simulation.SimulationConfig.from_dict(settings)
@@ -361,7 +361,7 @@ def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "g
         errors = np.stack([result.x - truth["star_x"].values, result.y - truth["star_y"].values])
         errors -= np.nanmean(errors, axis=2, keepdims=True)  # each position's common displacement
         truth_errors.append(float(np.sqrt(np.nanmean(errors**2))))
-    rows, _ = astrometry.mode_accuracies(datasets, groups=groups, trials=trials)
+    rows, _ = accuracies.mode_accuracies(datasets, groups=groups, trials=trials)
     table = {(r["mode"], r["grouping"]): r for r in rows}
     dims = ("mode",)
     ds = xr.Dataset({"truth_error": (dims, truth_errors, {"units": "pixel", "long_name": "rms centroid error against "
@@ -396,10 +396,10 @@ def flat_metrology_centroids(settings: dict, *, method: str = "gaussian", half_s
         Centroids, pixel.
     truth : xarray.Dataset
         The simulation's truth (``stage_rotation``: tip, tilt, roll in rad).
-    geometry : dice_core.astrometry.PoseGeometry
+    geometry : dice_core.superimposition.PoseGeometry
         The simulated bench's distance, off-axis angle and detector centre.
     """
-    from dice_core import astrometry, centroids, stacks
+    from dice_core import centroids, stacks, superimposition
     from dice_core.manifest import parse_manifest
 
     cfg = simulation.SimulationConfig.from_dict(settings)
@@ -413,8 +413,8 @@ def flat_metrology_centroids(settings: dict, *, method: str = "gaussian", half_s
         read_noise=np.maximum(truth["read_noise"].values, 1e-3), prnu=truth["sensitivity"].values,
         dx=truth["dx"].values, dy=truth["dy"].values, method=method, half_size=half_size, label="flat+metrology")
     rows, cols = cfg.detector.shape
-    geometry = astrometry.PoseGeometry(distance=cfg.stars.distance, off_axis=np.radians(cfg.stars.off_axis_deg),
-                                       centre=((cols - 1) / 2, (rows - 1) / 2))
+    geometry = superimposition.PoseGeometry(distance=cfg.stars.distance, off_axis=np.radians(cfg.stars.off_axis_deg),
+                                            centre=((cols - 1) / 2, (rows - 1) / 2))
     return np.stack([result.x, result.y], axis=-1), truth, geometry
 
 
@@ -426,12 +426,12 @@ def tip_tilt(settings: dict, *, models=("procrustes", "projective", "pose"), tri
     twice with the same seed and detector: as set, and with no tip-tilt
     (its twin). Per model: the corrected accuracy over positions and its
     error, and the excess variance accuracy^2 - twin's accuracy^2 (pixel^2).
-    For the pose model also its identifiability (:func:`dice_core.astrometry.pose_identifiability`):
+    For the pose model also its identifiability (:func:`dice_core.superimposition.pose_identifiability`):
     the tip and tilt SNR, whether identifiable (1/0), their rms Cramer-Rao
     bounds from the data alone and with the field's direction known, and the
     rms of fitted minus true tip and tilt (rad).
     """
-    from dice_core import astrometry
+    from dice_core import accuracies, superimposition
 
     twin = apply_overrides(settings, {"stars.tip_tilt_pv": 0.0})
     configurations, truth, geometry = flat_metrology_centroids(settings, method=method)
@@ -439,13 +439,13 @@ def tip_tilt(settings: dict, *, models=("procrustes", "projective", "pose"), tri
     ds = xr.Dataset(coords={"model": list(models)})
     accuracy, error, excess = [], [], []
     for model in models:
-        result = astrometry.accuracy(configurations, model=model, geometry=geometry, trials=trials)
-        reference = astrometry.accuracy(untilted, model=model, geometry=geometry, trials=trials)
+        result = accuracies.accuracy(configurations, model=model, geometry=geometry, trials=trials)
+        reference = accuracies.accuracy(untilted, model=model, geometry=geometry, trials=trials)
         accuracy.append(result.accuracy)
         error.append(result.error)
         excess.append(result.accuracy**2 - reference.accuracy**2)
         if model == "pose":
-            report = astrometry.pose_identifiability(result.result, sigma=result.accuracy)
+            report = superimposition.pose_identifiability(result.result, sigma=result.accuracy)
             true = truth["stage_rotation"].values
             for k, angle in ((3, "tip"), (4, "tilt")):
                 rms = float(np.sqrt(np.mean((result.result.poses[:, k] - true[:, k - 3]) ** 2)))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from dice_core import allan, fringes, simulation
+from dice_core import allan, fringe_fit, fringes, simulation
 from dice_core.io import Chunk, FrameStream, first_chunk, read_product
 from dice_core.manifest import Detector, load_manifest
 
@@ -71,8 +71,8 @@ def simulate_and_fit(tmp_path, **metrology):
     manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
     truth = read_product(tmp_path / "truth.nc")
     stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
-    solution = fringes.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
-                                    flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
+    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
+                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
     dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
                        "noise": (("row", "col"), truth["read_noise"].values)})
     metrology_product = fringes.solution_dataset(solution, manifest.detector)
@@ -232,8 +232,8 @@ def test_allan_is_the_same_bit_for_bit_whatever_the_workers(tmp_path):
     truth = read_product(tmp_path / "truth.nc")
     stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
     assert len(stream.split(2)) == 2
-    solution = fringes.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
-                                    flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
+    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
+                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
     metrology = fringes.solution_dataset(solution, manifest.detector)
     dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
                        "noise": (("row", "col"), truth["read_noise"].values)})

@@ -19,7 +19,7 @@ EXCEPTIONS = {
     # data of one kind passed as a group: the window's offsets and PRF variances, a pixel list's values and
     # coordinates, the Allan statistics' per-pixel arrays, the pose model's directions, poses and bench
     "centroids.response_corrected", "prf.log_transfer", "prf.pixel_scale", "allan.allan_statistics",
-    "allan.statistics_dataset", "astrometry.pose_project",
+    "allan.statistics_dataset", "superimposition.pose_project",
     # a dotted key, the value to set there and the value it replaces
     "overrides.typed_value",
 }

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dice_core import DatasetError, fringes, simulation
+from dice_core import DatasetError, fringe_fit, fringes, simulation
 from dice_core.io import Chunk, FrameStream, read_product, write_cube
 from dice_core.manifest import Acquisition, load_manifest
 
@@ -33,10 +33,10 @@ def true_projection(truth, solution):
 
 def fit(manifest, truth, baseline, *, flat=True, noisy=True, stream=None, **options):
     stream = stream or FrameStream(manifest.baselines[baseline], manifest.detector)
-    return fringes.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
-                                flat=truth["sensitivity"].values if flat else None,
-                                read_noise=truth["read_noise"].values if noisy else None, label=baseline,
-                                **options)
+    return fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
+                                   flat=truth["sensitivity"].values if flat else None,
+                                   read_noise=truth["read_noise"].values if noisy else None, label=baseline,
+                                   **options)
 
 
 def rms(values):
@@ -113,9 +113,9 @@ def test_photon_floor_matches_the_scatter_between_noise_realisations(tmp_path):
         chunks = [Chunk(0, frames, np.zeros(frames.shape, bool))
                   for frames in simulation.acquisition_chunks(draw, truth, kind="baseline", name="H1H4", start=0,
                                                               stop=3000)]
-        solutions.append(fringes.fit_baseline(chunks, truth["bias"].values, detector=manifest.detector,
-                                              flat=truth["sensitivity"].values,
-                                              read_noise=truth["read_noise"].values))
+        solutions.append(fringe_fit.fit_baseline(chunks, truth["bias"].values, detector=manifest.detector,
+                                                 flat=truth["sensitivity"].values,
+                                                 read_noise=truth["read_noise"].values))
     a, b = solutions
     assert rms(a.offsets - b.offsets) / np.sqrt(2) == pytest.approx(rms(a.photon_floor), rel=0.05)
 
@@ -129,7 +129,7 @@ def naive_offsets(manifest, truth, baseline):
     theta = kx * cols + ky * rows
     G = np.column_stack([np.ones(idx.size), np.sin(theta), np.cos(theta)])
     for _ in range(3):
-        _, FtI, FtF, _, _, _, _ = fringes._pass([stream], truth["bias"].values, idx, G)
+        _, FtI, FtF, _, _, _, _ = fringe_fit._pass([stream], truth["bias"].values, idx, G)
         G = np.linalg.solve(FtF, FtI).T
     k, offsets = fringes.projected_offsets(np.arctan2(G[:, 1], G[:, 2]), cols.astype(float), rows.astype(float),
                                            np.array([kx, ky]))
@@ -224,22 +224,6 @@ def test_non_finite_samples_stop_the_fit(tmp_path, noisy):
         fit(manifest, truth, "H1H4", stream=FrameStream(Acquisition("baseline H1H4", (path,)), manifest.detector))
 
 
-def test_worker_processes_give_the_same_solution_bit_for_bit(tmp_path, caplog):
-    """Files are reduced in fixed consecutive lanes, in worker processes or one after the other."""
-    manifest, truth = simulate(tmp_path, metrology={"frames": 1200}, frames_per_file=300)
-    assert len(manifest.baselines["H1H4"].files) == 4
-    with caplog.at_level("INFO", logger="dice_core.fringes"):
-        one, two = (fit(manifest, truth, "H1H4", workers=n) for n in (1, 2))
-    assert "reads 2 part(s) of the frames, in 1 process(es)" in caplog.text
-    assert "reads 2 part(s) of the frames, in 2 process(es)" in caplog.text
-    for name in ("offsets", "photon_floor", "iota", "alpha", "k", "k_frame", "level", "amplitude", "phase"):
-        np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
-    assert one.history == two.history
-    # lanes are a summation order, not a different estimate
-    whole = fit(manifest, truth, "H1H4", stream=list(FrameStream(manifest.baselines["H1H4"], manifest.detector)))
-    np.testing.assert_allclose(whole.offsets, one.offsets, rtol=0, atol=1e-9)
-
-
 def test_a_bad_sample_read_by_a_worker_process_is_reported_with_its_file(tmp_path, noisy):
     manifest, truth = noisy
     stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, chunk_frames=1000)
@@ -263,7 +247,7 @@ def test_pixels_that_do_not_converge_are_masked_and_counted(noisy, caplog):
     # a tolerance that the last pass meets for most pixels, not for those that moved most (the
     # last change is a faint ripple at K, so those lie along its crests: several percent)
     tolerance = 0.9 * converged.history[-1]["max_change"]
-    with caplog.at_level("WARNING", logger="dice_core.fringes"):
+    with caplog.at_level("WARNING", logger="dice_core.fringe_fit"):
         solution = fit(manifest, truth, "H1H4", max_passes=2, tolerance=tolerance)
     n = solution.masked_by_reason["unconverged"]
     assert 1 <= n < 0.2 * solution.masked.size and solution.masked.sum() == n
@@ -424,96 +408,3 @@ def test_the_gauge_difference_has_its_noise_floor_measured_from_two_halves(tmp_p
     product = fringes.solution_dataset(solution, manifest.detector)
     assert float(product["gauge_difference_rms"]) > 5 * pooled_floor
     assert product["gauge_difference_floor"].attrs["units"] == "pixel"
-
-
-def split_fit(manifest, truth, baseline, folder, *, parts, flat=True, bad_pixels=None, **options):
-    """The fit as a split workflow runs it: a start, then each pass's parts and its reduction as separate
-    steps, every state and part written to netCDF in ``folder`` and read back, and the finish."""
-    import xarray as xr
-
-    from dice_core.io import write_product
-
-    stream = FrameStream(manifest.baselines[baseline], manifest.detector)
-    state = fringes.start_fit(stream, truth["bias"].values, detector=manifest.detector,
-                              flat=truth["sensitivity"].values if flat else None, bad_pixels=bad_pixels,
-                              label=baseline, **options)
-    path = folder / "state_0.nc"
-    write_product(fringes.state_dataset(state), path, title="state")
-    for n_pass in range(1, state.options["max_passes"] + 1):
-        paths = []
-        for part in range(parts):
-            with xr.open_dataset(path, engine="netcdf4") as ds:
-                # a part reads its projector and reference only: nothing else of the state is needed
-                needed = ds[["projector", "offset", "pixels", "centre"]] if "projector" in ds else ds
-                paths.append(folder / f"part_{n_pass}_{part}.nc")
-                write_product(fringes.part_dataset(stream, needed, part=part, parts=parts), paths[-1], title="part")
-        path = folder / f"state_{n_pass}.nc"
-        write_product(fringes.reduce_dataset(read_product(folder / f"state_{n_pass - 1}.nc"), paths), path,
-                      title="state")
-    return fringes.finish_fit(fringes.state_from_dataset(read_product(path)), detector=manifest.detector,
-                              read_noise=truth["read_noise"].values)
-
-
-def assert_same_solution(one, two):
-    for name in ("rows", "cols", "offsets", "photon_floor", "iota", "alpha", "k", "k_frame", "level", "amplitude",
-                 "phase", "masked", "pixel_phase", "offsets_prnu_free"):
-        np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
-    assert one.history == two.history and one.masked_by_reason == two.masked_by_reason
-    assert one.gauge_difference_floor == two.gauge_difference_floor
-
-
-def test_a_fit_split_across_jobs_is_the_single_fit_bit_for_bit(tmp_path, caplog):
-    """Four files, in 2 parts (the default), 3 (halves of unequal parts for the gauge floor) and 5 (a part
-    without files): each pass's parts reduced separately into netCDF products, summed in part order by
-    another step, the state written between passes: the single process's solution, bit for bit. Dead
-    pixels (not in a mask) leave the fit at pass 1 for no contrast, hot pixels (not in a mask either) are
-    saturated in some frames of some parts, two pixels are flagged in a bad-pixel mask, and a tolerance the fit
-    cannot meet masks pixels at the end: all as in the single fit."""
-    manifest, truth = simulate(tmp_path, metrology={"frames": 1200}, frames_per_file=300,
-                               detector={"dead_pixels": 3, "hot_pixels": 2, "hot_level": 55000.0})
-    assert len(manifest.baselines["H1H4"].files) == 4
-    mask = np.zeros_like(truth["bad_pixel"].values)
-    assert not truth["bad_pixel"].values[[40, 41], [50, 20]].any()
-    mask[40, 50] = mask[41, 20] = 1  # flagged dead in the mask (working in fact): left out all the same
-    for parts in (2, 3, 5):
-        with caplog.at_level("INFO", logger="dice_core.fringes"):
-            caplog.clear()
-            single = fit(manifest, truth, "H1H4", parts=parts, bad_pixels=mask)
-            single_log = caplog.text
-            caplog.clear()
-            (tmp_path / f"split{parts}").mkdir()
-            split = split_fit(manifest, truth, "H1H4", tmp_path / f"split{parts}", parts=parts, bad_pixels=mask)
-        assert_same_solution(single, split)
-        assert single.masked_by_reason["no_contrast"] > 0  # pixels that left during the passes
-        assert single.masked_by_reason["saturated"] == 2 and single.masked_by_reason["bad_pixel"] == 2
-        n_pass = single.history[-1]["pass"]
-        assert f"converged to 1.0e-07 pixel at pass {n_pass}" in single_log and n_pass < 10
-        assert f"converged to 1.0e-07 pixel at pass {n_pass}" in caplog.text
-        assert f"done after pass {n_pass} (converged): state carried over" in caplog.text
-    assert "the frames make 4 part(s): part 5 has no file" in caplog.text
-    xr_single = fringes.solution_dataset(single, manifest.detector)
-    xr_split = fringes.solution_dataset(split, manifest.detector)
-    xr_single.attrs, xr_split.attrs = {}, {}
-    assert xr_single.identical(xr_split)
-    # not converged after max_passes: the same pixels masked, from the state the last reduction wrote
-    tolerance = 0.9 * fit(manifest, truth, "H1H4", max_passes=2).history[-1]["max_change"]
-    single = fit(manifest, truth, "H1H4", max_passes=2, tolerance=tolerance)
-    (tmp_path / "unconverged").mkdir()
-    split = split_fit(manifest, truth, "H1H4", tmp_path / "unconverged", parts=2, max_passes=2,
-                      tolerance=tolerance)
-    assert split.masked_by_reason["unconverged"] > 0
-    assert_same_solution(single, split)
-    # parts summed out of their order, or of another pass, or a file that is not a state: errors naming files
-    folder = tmp_path / "split2"
-    state_0 = read_product(folder / "state_0.nc")
-    with pytest.raises(fringes.FringeError, match="out of part order: .*part_1_1.nc"):
-        fringes.reduce_dataset(state_0, [folder / "part_1_1.nc", folder / "part_1_0.nc"])
-    with pytest.raises(fringes.FringeError, match="do not match the state after pass 0 .*part_2_0.nc"):
-        fringes.reduce_dataset(state_0, [folder / "part_2_0.nc", folder / "part_2_1.nc"])
-    with pytest.raises(fringes.FringeError, match="part_1_0.nc: not a split fringe-fit state"):
-        fringes.state_from_dataset(read_product(folder / "part_1_0.nc"))
-    # a state made with other options than the run's (a rerun by file times only) is refused, naming it
-    made = {key: state_0.attrs[f"fit_{key}"] for key in ("tolerance", "max_passes", "smooth_degree")}
-    fringes.check_state_options(state_0, **made)
-    with pytest.raises(fringes.FringeError, match=r"state_0.nc: made with metrology.max_passes = \d+, the run has 99"):
-        fringes.check_state_options(state_0, **{**made, "max_passes": 99})

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dice_core import deprojection, fringes, geometry, simulation
+from dice_core import deprojection, fringe_fit, fringes, geometry, simulation
 from dice_core.geometry import BaselineGeometry, fit_two_source, remove_modes, two_source_phase
 from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
@@ -138,7 +138,7 @@ def spherical(tmp_path_factory):
     truth = read_product(outdir / "truth.nc")
     products = {}
     for baseline in manifest.baselines:
-        solution = fringes.fit_baseline(
+        solution = fringe_fit.fit_baseline(
             FrameStream(manifest.baselines[baseline], manifest.detector), truth["bias"].values,
             detector=manifest.detector, flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
             geometry=BaselineGeometry.of_baseline(manifest.geometry, baseline), label=baseline)

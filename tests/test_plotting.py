@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from dice_core import allan, astrometry, plotting
+from dice_core import accuracies, allan, plotting
 from dice_core.manifest import Detector
 from test_allan import allan_inputs
-from test_astrometry import centroid_datasets
+from test_accuracies import centroid_datasets
 
 USED = (3, 9)
 
@@ -20,8 +20,8 @@ USED = (3, 9)
 def residuals_product(rng):
     """A residuals product of 12 positions, 3-9 used, for two modes; and its centroid datasets."""
     datasets = centroid_datasets(rng)
-    rows, residuals = astrometry.mode_accuracies(datasets, positions=USED, trials=50)
-    return astrometry.residuals_dataset(datasets, rows, residuals=residuals), datasets
+    rows, residuals = accuracies.mode_accuracies(datasets, positions=USED, trials=50)
+    return accuracies.residuals_dataset(datasets, rows, residuals=residuals), datasets
 
 
 def lines(ax, gid):
@@ -439,8 +439,8 @@ MODES = ("raw", "flat+metrology+width")  # the longest mode name of the configur
 def every_figure(rng):
     """(name, figure) of each figure function that draws data, from small synthetic products."""
     datasets = centroid_datasets(rng, modes=MODES)
-    rows, residuals = astrometry.mode_accuracies(datasets, positions=USED, trials=20)
-    product = astrometry.residuals_dataset(datasets, rows, residuals=residuals)
+    rows, residuals = accuracies.mode_accuracies(datasets, positions=USED, trials=20)
+    product = accuracies.residuals_dataset(datasets, rows, residuals=residuals)
     args, keywords = allan_inputs(rng)
     allan_ds = allan.allan_dataset(*args, **keywords, first_frame=rng.uniform(500, 3000, args[3].size))
     metrology, detector = metrology_product(rng)
@@ -469,8 +469,8 @@ def test_no_text_leaves_the_figure(rng):
 def test_procrustes_title_of_the_longest_mode_fits(rng):
     """The mode's title (its sigma and accuracy) is the widest text: it must fit the panel's width."""
     datasets = centroid_datasets(rng, modes=MODES)
-    rows, residuals = astrometry.mode_accuracies(datasets, positions=USED, trials=20)
-    fig = plotting.procrustes_figure(astrometry.residuals_dataset(datasets, rows, residuals=residuals))
+    rows, residuals = accuracies.mode_accuracies(datasets, positions=USED, trials=20)
+    fig = plotting.procrustes_figure(accuracies.residuals_dataset(datasets, rows, residuals=residuals))
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     for ax in fig.axes:

@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from dice_core import astrometry, simulation
+from dice_core import accuracies, simulation, superimposition
 
 PAPER = simulation.load_preset("config/presets/paper.yaml")
 
@@ -27,8 +27,8 @@ def stage(n_positions, tip_tilt_pv, *, seed=3, constant=False):
     poses[:, 5] = 1e-4 * rng.standard_normal(n_positions)
     pattern = simulation._nominal_pattern(cfg.stars)
     rows, cols = cfg.detector.shape
-    geometry = astrometry.PoseGeometry(distance=cfg.stars.distance, off_axis=np.radians(cfg.stars.off_axis_deg),
-                                       centre=((cols - 1) / 2, (rows - 1) / 2))
+    geometry = superimposition.PoseGeometry(distance=cfg.stars.distance, off_axis=np.radians(cfg.stars.off_axis_deg),
+                                            centre=((cols - 1) / 2, (rows - 1) / 2))
     directions = np.column_stack([(pattern[:, 0] - geometry.centre[0]) / geometry.distance
                                   + np.tan(geometry.off_axis), (pattern[:, 1] - geometry.centre[1]) / geometry.distance])
     return simulation.project_stars(pattern, poses, cfg=cfg), poses, directions, geometry
@@ -36,12 +36,12 @@ def stage(n_positions, tip_tilt_pv, *, seed=3, constant=False):
 
 def test_the_projection_is_the_simulators_and_its_jacobian_the_derivative():
     positions, poses, directions, geometry = stage(6, 5e-3)
-    np.testing.assert_allclose(astrometry.pose_project(directions, poses, geometry), positions, rtol=0, atol=1e-9)
-    _, jacobian = astrometry.pose_project(directions, poses, geometry, jacobian=True)
+    np.testing.assert_allclose(superimposition.pose_project(directions, poses, geometry), positions, rtol=0, atol=1e-9)
+    _, jacobian = superimposition.pose_project(directions, poses, geometry, jacobian=True)
     x0 = np.concatenate([directions.ravel(), poses.ravel()])
 
     def model(x):
-        return astrometry.pose_project(x[:10].reshape(5, 2), x[10:].reshape(-1, 6), geometry).ravel()
+        return superimposition.pose_project(x[:10].reshape(5, 2), x[10:].reshape(-1, 6), geometry).ravel()
 
     for k in range(x0.size):
         step = 1e-3 if k >= 10 and (k - 10) % 6 < 3 else 1e-7  # pixel, or rad and tangents
@@ -55,17 +55,17 @@ def test_the_projection_is_the_simulators_and_its_jacobian_the_derivative():
 def test_the_gauge_is_a_turn_of_the_bench_about_the_pinhole_and_the_constraints_fix_it():
     """Exactly 3 null directions (a rotation about the pinhole), and the fit's rows remove them."""
     _, poses, directions, geometry = stage(12, 5e-3)
-    _, jacobian = astrometry.pose_project(directions, poses, geometry, jacobian=True)
+    _, jacobian = superimposition.pose_project(directions, poses, geometry, jacobian=True)
     scaled = jacobian / np.linalg.norm(jacobian, axis=0)
     singular = np.linalg.svd(scaled, compute_uv=False)
     assert np.sum(singular < 1e-12 * singular[0]) == 3
     assert singular[-4] > 1e-11 * singular[0]  # the distance's near-gauge is not exact
     # a rotation of the whole bench about the pinhole leaves every position in place
-    rotation, _ = astrometry._axis_rotations(np.array([[2e-3, -1e-3, 5e-3]]))
+    rotation, _ = superimposition._axis_rotations(np.array([[2e-3, -1e-3, 5e-3]]))
     rotation = rotation[0]
     origin = np.array([geometry.distance * np.tan(geometry.off_axis), 0, geometry.distance]) + poses[:, :3]
     turned_d = np.column_stack([directions, np.ones(5)]) @ rotation.T
-    turned_r, _ = astrometry._axis_rotations(poses[:, 3:])
+    turned_r, _ = superimposition._axis_rotations(poses[:, 3:])
     turned_r = rotation @ turned_r
     moved = poses.copy()
     moved[:, :3] = origin @ rotation.T - (origin - poses[:, :3])  # the detector's centre turned too
@@ -73,16 +73,16 @@ def test_the_gauge_is_a_turn_of_the_bench_about_the_pinhole_and_the_constraints_
     moved[:, 4] = -np.arcsin(turned_r[:, 2, 0])
     moved[:, 3] = np.arctan2(turned_r[:, 2, 1], turned_r[:, 2, 2])
     moved[:, 5] = np.arctan2(turned_r[:, 1, 0], turned_r[:, 0, 0])
-    np.testing.assert_allclose(astrometry.pose_project(turned_d[:, :2] / turned_d[:, 2:], moved, geometry),
-                               astrometry.pose_project(directions, poses, geometry), rtol=0, atol=1e-8)
-    constraints, _ = astrometry._pose_constraints(5, 12)
+    np.testing.assert_allclose(superimposition.pose_project(turned_d[:, :2] / turned_d[:, 2:], moved, geometry),
+                               superimposition.pose_project(directions, poses, geometry), rtol=0, atol=1e-8)
+    constraints, _ = superimposition._pose_constraints(5, 12)
     stacked = np.vstack([scaled, constraints / np.linalg.norm(jacobian, axis=0)])
     assert np.linalg.matrix_rank(stacked, tol=1e-12 * np.linalg.norm(stacked, 2)) == stacked.shape[1]
 
 
 def test_the_pose_fit_recovers_the_simulators_poses_without_noise():
     positions, poses, directions, geometry = stage(33, 5e-3)
-    result = astrometry.pose(positions, geometry=geometry)
+    result = superimposition.pose(positions, geometry=geometry)
     assert result.rms < 1e-9
     # the field's direction is held where the stars' mean position points, off the truth by the stage's
     # mean translation (1.3e-3 pixel, 5e-8 in tangent here): tip and tilt follow it by 2e-8 rad
@@ -92,8 +92,8 @@ def test_the_pose_fit_recovers_the_simulators_poses_without_noise():
     np.testing.assert_allclose(result.poses[:, 5], poses[:, 5] - poses[:, 5].mean(), rtol=0, atol=1e-8)
     np.testing.assert_allclose(result.directions, directions, rtol=0, atol=1e-7)
     # Procrustes cannot absorb the tip-tilt's shear and projective terms; the homography nearly can
-    assert astrometry.procrustes(positions).rms > 1e-4
-    assert astrometry.projective(positions).rms < 0.1 * astrometry.procrustes(positions).rms
+    assert superimposition.procrustes(positions).rms > 1e-4
+    assert superimposition.projective(positions).rms < 0.1 * superimposition.procrustes(positions).rms
 
 
 def test_holding_the_near_gauges_at_a_wrong_bench_costs_only_second_order():
@@ -101,14 +101,14 @@ def test_holding_the_near_gauges_at_a_wrong_bench_costs_only_second_order():
     of centroid errors of 1e-4 pixel."""
     positions, _, _, geometry = stage(33, 5e-3)
     wrong = dataclasses.replace(geometry, off_axis=geometry.off_axis * 1.1, distance=geometry.distance * 1.02)
-    assert astrometry.pose(positions, geometry=wrong).rms < 5e-6
+    assert superimposition.pose(positions, geometry=wrong).rms < 5e-6
 
 
 def test_recovered_tip_and_tilt_agree_with_truth_within_their_bound_where_identifiable(rng):
     positions, poses, _, geometry = stage(33, 2e-2)
     positions = positions + 1e-4 * rng.standard_normal(positions.shape)
-    result = astrometry.pose(positions, geometry=geometry)
-    report = astrometry.pose_identifiability(result)
+    result = superimposition.pose(positions, geometry=geometry)
+    report = superimposition.pose_identifiability(result)
     assert report.all_identifiable, report.summary()
     tip, tilt, tip_bound, tilt_bound = report.tip_tilt()
     for fitted, true, bound in ((tip, poses[:, 3], tip_bound), (tilt, poses[:, 4], tilt_bound)):
@@ -126,10 +126,10 @@ def test_recovered_tip_and_tilt_agree_with_truth_within_their_bound_where_identi
 def test_an_unidentifiable_pose_is_said_and_no_accuracy_claimed(rng, case):
     positions, *_, geometry = (stage(33, 5e-3, constant=True) if case == "constant tip-tilt" else stage(3, 5e-3))
     positions = positions + 1e-4 * rng.standard_normal(positions.shape)
-    report = astrometry.pose_identifiability(astrometry.pose(positions, geometry=geometry))
+    report = superimposition.pose_identifiability(superimposition.pose(positions, geometry=geometry))
     assert not report.identifiable["tip"] and not report.identifiable["tilt"]
     assert "do not sample the tip" in report.summary()
-    with pytest.raises(astrometry.PoseUnidentifiable, match="no pose accuracy can be reported"):
+    with pytest.raises(superimposition.PoseUnidentifiable, match="no pose accuracy can be reported"):
         report.tip_tilt()
 
 
@@ -139,14 +139,14 @@ def test_homographies_leave_zero_residual_and_the_projective_factor(rng):
     h = np.column_stack([1 + 1e-3 * rng.standard_normal(n), 1e-3 * rng.standard_normal(n), rng.normal(0, 1, n),
                          1e-3 * rng.standard_normal(n), 1 + 1e-3 * rng.standard_normal(n), rng.normal(0, 1, n),
                          1e-6 * rng.standard_normal(n), 1e-6 * rng.standard_normal(n)])
-    configurations = astrometry._homography_apply(layout, h)[0]
-    result = astrometry.projective(configurations)
+    configurations = superimposition._homography_apply(layout, h)[0]
+    result = superimposition.projective(configurations)
     assert result.rms < 1e-10
     # 2SN coordinates, 8N homography and 2(S - 4) shape parameters: 2N - 2 degrees of freedom of 10N
-    factor, error = astrometry.correction_factor(result, trials=1000)
+    factor, error = accuracies.correction_factor(result, trials=1000)
     assert factor == pytest.approx(np.sqrt(10 * n / (2 * n - 2)), rel=0.03)
-    with pytest.raises(astrometry.AstrometryError, match="at least 5"):
-        astrometry.projective(configurations[:, :4])
+    with pytest.raises(superimposition.AstrometryError, match="at least 5"):
+        superimposition.projective(configurations[:, :4])
 
 
 @pytest.mark.parametrize("model", ["projective", "pose"])
@@ -155,9 +155,9 @@ def test_each_models_accuracy_recovers_injected_jitter(rng, model):
     estimates = []
     for _ in range(4):
         noisy = positions + 1e-4 * rng.standard_normal(positions.shape)
-        result = astrometry.accuracy(noisy, model=model, geometry=geometry, trials=300)
+        result = accuracies.accuracy(noisy, model=model, geometry=geometry, trials=300)
         estimates.append((result.accuracy - 1e-4) / result.error)
     assert abs(np.mean(estimates)) < 1.2  # unbiased within the bars: the model absorbs the tip-tilt
     assert np.max(np.abs(estimates)) < 3.5
-    with pytest.raises(astrometry.AstrometryError, match="unknown superimposition"):
-        astrometry.accuracy(positions, model="affine")
+    with pytest.raises(superimposition.AstrometryError, match="unknown superimposition"):
+        accuracies.accuracy(positions, model="affine")

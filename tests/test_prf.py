@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dice_core import fringes, prf, simulation
+from dice_core import fringe_fit, fringes, prf, simulation
 from dice_core.detector import PixelResponse
 from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
@@ -31,9 +31,9 @@ def metrology_products(manifest, truth):
     """Each baseline's metrology product, fitted with the true sensitivities as the flat."""
     products = {}
     for name, acquisition in manifest.baselines.items():
-        solution = fringes.fit_baseline(FrameStream(acquisition, manifest.detector), truth["bias"].values,
-                                        detector=manifest.detector, flat=truth["sensitivity"].values,
-                                        read_noise=truth["read_noise"].values, label=name)
+        solution = fringe_fit.fit_baseline(FrameStream(acquisition, manifest.detector), truth["bias"].values,
+                                           detector=manifest.detector, flat=truth["sensitivity"].values,
+                                           read_noise=truth["read_noise"].values, label=name)
         fibers = (f"{name}a", f"{name}b") if solution.two_source is not None else None
         products[name] = fringes.solution_dataset(solution, manifest.detector, fibers=fibers)
     return products

@@ -331,7 +331,7 @@ def test_accuracy_table_follows_the_contract(out):
 
 
 # 1-2 min on 2 cores, most of it Procrustes's dense fallback on ci's 3-4 alike configurations, run once per
-# model; the library's accuracy_tables with every model is in the CI set (tests/test_astrometry.py)
+# model; the library's accuracy_tables with every model is in the CI set (tests/test_accuracies.py)
 @pytest.mark.slow
 def test_every_configured_superimposition_has_its_rows_factors_and_figure(workdir, tmp_path):
     """astrometry.superimposition as a list: the table gains each model's rows with its own Monte Carlo
@@ -807,7 +807,7 @@ def test_default_preset_against_truth(tmp_path):
         assert max(pair_errors_over_floors(offsets, truth)) < 1.2, pair
     # the accuracy table: all four modes in both groupings, flat + metrology best, each calibration
     # helping, and each accuracy (p) consistent with the same Procrustes accuracy of its true errors
-    from dice_core import astrometry
+    from dice_core import accuracies
 
     table = read_accuracy_table(out / "tables" / "accuracy.csv")
     assert len(table) == 20  # two methods, five modes, two groupings
@@ -825,12 +825,12 @@ def test_default_preset_against_truth(tmp_path):
     # superimposition is linear in errors of 1e-4 pixel). The correction factors are for white errors;
     # applied to this smooth residual they give a number of its size, which is all the check needs.
     true_xy = np.stack([truth["star_x"].values, truth["star_y"].values], axis=-1)
-    geometry = astrometry.accuracy(true_xy, trials=500).accuracy
+    geometry = accuracies.accuracy(true_xy, trials=500).accuracy
     layout = true_xy[0]
     for mode in ("raw", "flat", "metrology", "flat+metrology"):
         ds = read_product(out / "centroids" / f"{mode}.nc")
         errors = np.stack([ds["x"].values - truth["star_x"].values, ds["y"].values - truth["star_y"].values], -1)
-        truth_based = np.hypot(astrometry.accuracy(layout + errors, trials=500).accuracy, geometry)
+        truth_based = np.hypot(accuracies.accuracy(layout + errors, trials=500).accuracy, geometry)
         row = rows[mode, "position"]
         assert abs(float(row["accuracy"]) - truth_based) < 3 * float(row["error"]), mode
 

@@ -1,7 +1,7 @@
 """Snakemake step of a split fringe fit: the metrology product from the state after the last pass."""
 
 import dice_core
-from dice_core import DatasetError, fringes, io
+from dice_core import DatasetError, fringe_fit, fringes, io
 from dice_core.geometry import BaselineGeometry, GeometryError
 from dice_core.manifest import load_manifest
 
@@ -14,12 +14,12 @@ def fit_finish(manifest_path, dark_path, prnu_paths, bad_pixel_paths, state_path
     geometry = None if manifest.geometry is None else BaselineGeometry.of_baseline(
         manifest.geometry, baseline, tip_sigma=options["tip_sigma"])
     state_product = io.read_product(state_path)
-    fringes.check_state_options(state_product, tolerance=options["tolerance"],
-                                max_passes=options["max_passes"], smooth_degree=options["smooth_degree"])
-    state = fringes.state_from_dataset(state_product)
+    fringe_fit.check_state_options(state_product, tolerance=options["tolerance"],
+                                   max_passes=options["max_passes"], smooth_degree=options["smooth_degree"])
+    state = fringe_fit.state_from_dataset(state_product)
     try:
-        solution = fringes.finish_fit(state, detector=manifest.detector, read_noise=dark["noise"].values,
-                                      geometry=geometry)
+        solution = fringe_fit.finish_fit(state, detector=manifest.detector, read_noise=dark["noise"].values,
+                                         geometry=geometry)
     except GeometryError as exc:  # the bench the manifest describes does not fit the fringes: name it
         raise DatasetError(manifest.path, f"metrology.geometry: {exc}") from exc
     product = fringes.metrology_product(solution, manifest.detector, baseline=baseline, geometry=geometry)

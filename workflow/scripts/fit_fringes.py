@@ -3,7 +3,7 @@
 import logging
 
 import dice_core
-from dice_core import DatasetError, calibration, fringes, io
+from dice_core import DatasetError, calibration, fringe_fit, fringes, io
 from dice_core.geometry import BaselineGeometry, GeometryError
 from dice_core.manifest import load_manifest
 
@@ -13,8 +13,8 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
     manifest = load_manifest(manifest_path)
     dark = io.read_product(dark_path)
     flat, bad_pixels = calibration.fringe_fit_calibrations(prnu_paths, bad_pixel_paths, label=f"baseline {baseline}")
-    stream = fringes.metrology_stream(manifest.baselines[baseline], manifest.detector,
-                                      chunk_frames=config["chunk_frames"])
+    stream = fringe_fit.metrology_stream(manifest.baselines[baseline], manifest.detector,
+                                         chunk_frames=config["chunk_frames"])
     options = config["metrology"]
     geometry = None if manifest.geometry is None else BaselineGeometry.of_baseline(
         manifest.geometry, baseline, tip_sigma=options["tip_sigma"])
@@ -24,11 +24,11 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
              f"spherical waves of fibers {' and '.join(geometry.fibers)}, nominal tips known to "
              f"{geometry.tip_sigma * 1e3:g} mm")
     try:
-        solution = fringes.fit_baseline(stream, dark["dark"].values, detector=manifest.detector, flat=flat,
-                                        read_noise=dark["noise"].values, tolerance=options["tolerance"],
-                                        max_passes=options["max_passes"], smooth_degree=options["smooth_degree"],
-                                        workers=workers, parts=options["parts"], geometry=geometry,
-                                        bad_pixels=bad_pixels, label=f"baseline {baseline}")
+        solution = fringe_fit.fit_baseline(stream, dark["dark"].values, detector=manifest.detector, flat=flat,
+                                           read_noise=dark["noise"].values, tolerance=options["tolerance"],
+                                           max_passes=options["max_passes"], smooth_degree=options["smooth_degree"],
+                                           workers=workers, parts=options["parts"], geometry=geometry,
+                                           bad_pixels=bad_pixels, label=f"baseline {baseline}")
     except GeometryError as exc:  # the bench the manifest describes does not fit the fringes: name it
         raise DatasetError(manifest.path, f"metrology.geometry: {exc}") from exc
     product = fringes.metrology_product(solution, manifest.detector, baseline=baseline, geometry=geometry)

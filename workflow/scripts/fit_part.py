@@ -3,20 +3,20 @@
 import xarray as xr
 
 import dice_core
-from dice_core import fringes, io
+from dice_core import fringe_fit, io
 from dice_core.manifest import load_manifest
 
 
 def fit_part(manifest_path, state_path, first_paths, baseline, part, output, config):
     manifest = load_manifest(manifest_path)
-    stream = fringes.metrology_stream(manifest.baselines[baseline], manifest.detector,
-                                      chunk_frames=config["chunk_frames"])
+    stream = fringe_fit.metrology_stream(manifest.baselines[baseline], manifest.detector,
+                                         chunk_frames=config["chunk_frames"])
     parts = config["metrology"]["parts"]
     with xr.open_dataset(state_path, engine="netcdf4") as state:  # read lazily: the projector only
-        fringes.check_state_options(state, tolerance=config["metrology"]["tolerance"],
-                                    max_passes=config["metrology"]["max_passes"],
-                                    smooth_degree=config["metrology"]["smooth_degree"])
-        product = fringes.part_dataset(stream, state, part=part, parts=parts)
+        fringe_fit.check_state_options(state, tolerance=config["metrology"]["tolerance"],
+                                       max_passes=config["metrology"]["max_passes"],
+                                       smooth_degree=config["metrology"]["smooth_degree"])
+        product = fringe_fit.part_dataset(stream, state, part=part, parts=parts)
     files = [] if product.attrs["fit_empty"] else [cube.path for cube in stream.split(parts)[part].cubes]
     # the files' checksums as pass 1's part recorded them: only pass 1 reads the files to hash them
     digests = {key: value for path in first_paths for key, value in io.input_digests(path).items()}

@@ -1,15 +1,15 @@
 """Snakemake step of a split fringe fit: one pass's parts summed in part order, the state after the pass."""
 
 import dice_core
-from dice_core import fringes, io
+from dice_core import fringe_fit, io
 
 
 def fit_reduce(state_path, part_paths, baseline, output, config):
     state = io.read_product(state_path)
     options = config["metrology"]
-    fringes.check_state_options(state, tolerance=options["tolerance"], max_passes=options["max_passes"],
-                                smooth_degree=options["smooth_degree"])
-    product = fringes.reduce_dataset(state, list(part_paths))
+    fringe_fit.check_state_options(state, tolerance=options["tolerance"], max_passes=options["max_passes"],
+                                   smooth_degree=options["smooth_degree"])
+    product = fringe_fit.reduce_dataset(state, list(part_paths))
     io.write_product(product, output, title=f"split fringe fit of baseline {baseline}: state after pass "
                                             f"{product.attrs['fit_n_pass']}",
                      config=config, inputs=[state_path, *part_paths])
