@@ -13,6 +13,8 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.superimposition` -- Procrustes, projective and pose superimpositions of the star pattern;
 - :mod:`dice_core.accuracies` -- barycentre residuals, corrected accuracies with error bars, the tables;
 - :mod:`dice_core.deprojection` -- x and y offsets from a pair of baselines;
+- :mod:`dice_core.geometry` -- spherical-wave fringes: the fiber tips' phase surface, their refinement, its modes;
+- :mod:`dice_core.prf` -- each pixel's PRF width from the fringe contrast;
 - :mod:`dice_core.detector` -- the pixel-response model (truncated hyper-Gaussian PRFs);
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;
 - :mod:`dice_core.polynomials` -- 2-D polynomial surfaces shared by the fits;
@@ -24,7 +26,14 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.reproduction` -- the paper's numbers beside ours;
 - :mod:`dice_core.overrides` -- dotted-key overrides of nested configurations (sweeps, benches, presets);
 - :mod:`dice_core.yamlfile` -- YAML files read strictly (a key given twice is an error);
+- :mod:`dice_core.settings` -- the workflow's configuration: its schema's choices, its checks, a step's share;
+- :mod:`dice_core.steps` -- the table of the workflow's steps: the settings each reads, the code it runs;
+- :mod:`dice_core.products` -- the catalogue of products: paths, variables with dims and units, writing steps;
+- :mod:`dice_core.planning` -- what a run makes of a dataset and a configuration: targets, skips, sweeps;
+- :mod:`dice_core.resources` -- memory and time each job needs, from the dataset's size;
 - :mod:`dice_core.preflight` -- what a workflow run checks before any job (paths, folders, disk).
+
+The last six describe the workflow (``workflow/``) without depending on it.
 """
 
 from importlib.metadata import PackageNotFoundError, version

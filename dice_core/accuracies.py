@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from dice_core.centroids import mode_needs
+from dice_core.centroids import MODES, mode_needs
 from dice_core.superimposition import (SUPERIMPOSITIONS, AstrometryError, PoseGeometry, check_configurations,
                                        pose_identifiability, superimpose, tangent_space)
 
@@ -194,7 +194,8 @@ def select_positions(ds, positions=None):
 
 
 #: The calibration modes of the paper's table (its cells: flat or not, metrology or not).
-_PAPER_MODES = ("raw", "flat", "metrology", "flat+metrology")
+# the paper's table: the modes that apply the flat, the pixel offsets, both or neither, and nothing else
+_PAPER_MODES = tuple(name for name, mode in MODES.items() if mode.needs <= {"flat", "offsets"})
 
 
 def mode_accuracies(datasets: dict, *, positions=None, groups: int = 3, trials: int = 2000, seed: int = 0,

@@ -221,7 +221,7 @@ class Plan:
 
     def extra_superimpositions(self) -> list[str]:
         """The superimpositions configured besides Procrustes (which always runs): projective, pose."""
-        from dice_core.astrometry import configured_superimpositions
+        from dice_core.superimposition import configured_superimpositions
 
         return configured_superimpositions(self.config["astrometry"]["superimposition"])[1:]
 

@@ -8,7 +8,7 @@ says ``x-dice-choices: <table>`` instead of listing them, and
 :func:`config_schema` fills the enum (and ``x-dice-default: <table>``, a
 default of every name) from the table: the names are listed once, in
 :data:`dice_core.centroids.MODES`, :data:`~dice_core.centroids.METHODS`,
-:data:`dice_core.astrometry.SUPERIMPOSITIONS` and :data:`dice_core.studies.STUDIES`
+:data:`dice_core.superimposition.SUPERIMPOSITIONS` and :data:`dice_core.studies.STUDIES`
 (with ``reduction``, the whole workflow per point).
 
 A step reads only its own settings (:func:`select`, from the step table
@@ -38,10 +38,10 @@ class SettingsError(ValueError):
 
 def choices() -> dict[str, tuple[str, ...]]:
     """The tables of names a configuration may choose from: {table: names}."""
-    from dice_core import astrometry, centroids, studies
+    from dice_core import centroids, studies, superimposition
 
     return {"modes": tuple(centroids.MODES), "methods": tuple(centroids.METHODS),
-            "superimpositions": tuple(astrometry.SUPERIMPOSITIONS), "studies": (*studies.STUDIES, "reduction")}
+            "superimpositions": tuple(superimposition.SUPERIMPOSITIONS), "studies": (*studies.STUDIES, "reduction")}
 
 
 def config_schema(path) -> dict:

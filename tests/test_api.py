@@ -3,6 +3,7 @@
 import importlib
 import inspect
 import pkgutil
+from pathlib import Path
 
 import dice_core
 
@@ -39,3 +40,15 @@ def test_options_after_the_first_two_arguments_are_keyword_only():
                          for p in inspect.signature(function).parameters.values()) > 2}
     assert positional - EXCEPTIONS == set()
     assert EXCEPTIONS - positional == set()  # an exception that no longer is one leaves the list
+
+
+def test_every_module_is_named_in_the_package_s_docstring_and_the_readme():
+    """The lists of modules are kept by hand: this keeps them complete."""
+    import dice_core
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    layout = next(line for line in readme.splitlines() if line.startswith("| `dice_core/` |"))
+    for module in sorted(Path(dice_core.__file__).parent.glob("*.py")):
+        if module.stem != "__init__":
+            assert f":mod:`dice_core.{module.stem}`" in dice_core.__doc__, module.stem
+            assert f"`{module.stem}`" in layout, module.stem

@@ -204,7 +204,7 @@ def test_a_results_folder_that_is_a_file_is_one_line_before_any_job(tmp_path):
     said = result.stdout + result.stderr
     lines = dice_lines(said)
     assert result.returncode == 1 and len(lines) == 1 and lines[0].startswith(
-        f"dice: cannot write in {repo / 'results'} (a file, not a folder), where this run writes results/sim-ci/"), said
+        f"dice: cannot write in {repo / 'results'} (a file, not a folder), where this run writes results/sim-ci"), said
     assert "Traceback" not in said
 
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from dice_core import astrometry, centroids, settings
+from dice_core import centroids, settings, superimposition
 
 from conftest import REPO
 
@@ -13,8 +13,8 @@ def test_the_schema_takes_its_choices_and_their_defaults_from_the_library_s_tabl
     centroid = SCHEMA["properties"]["centroids"]["properties"]
     assert centroid["modes"]["items"]["enum"] == list(centroids.MODES) == centroid["modes"]["default"]
     assert centroid["method"]["enum"] == list(centroids.METHODS) == centroid["methods"]["default"]
-    superimposition = SCHEMA["properties"]["astrometry"]["properties"]["superimposition"]["oneOf"]
-    assert superimposition[0]["enum"] == list(astrometry.SUPERIMPOSITIONS)
+    options = SCHEMA["properties"]["astrometry"]["properties"]["superimposition"]["oneOf"]
+    assert options[0]["enum"] == list(superimposition.SUPERIMPOSITIONS)
     config = settings.with_defaults({"dataset": "ci"}, SCHEMA)
     assert config["centroids"]["modes"] == list(centroids.MODES) and config["metrology"]["tolerance"] == 1e-7
     assert settings.problems(config, SCHEMA) == []
