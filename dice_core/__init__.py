@@ -29,11 +29,12 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.settings` -- the workflow's configuration: its schema's choices, its checks, a step's share;
 - :mod:`dice_core.steps` -- the table of the workflow's steps: the settings each reads, the code it runs;
 - :mod:`dice_core.products` -- the catalogue of products: paths, variables with dims and units, writing steps;
+- :mod:`dice_core.products_page` -- the generated part of docs/products.md, from the catalogue and the steps;
 - :mod:`dice_core.planning` -- what a run makes of a dataset and a configuration: targets, skips, sweeps;
 - :mod:`dice_core.resources` -- memory and time each job needs, from the dataset's size;
 - :mod:`dice_core.preflight` -- what a workflow run checks before any job (paths, folders, disk).
 
-The last six describe the workflow (``workflow/``) without depending on it.
+The last seven describe the workflow (``workflow/``) without depending on it.
 """
 
 from importlib.metadata import PackageNotFoundError, version

@@ -626,12 +626,20 @@ def first_chunk(chunks) -> Chunk:
             iterator.close()
 
 
+def _catalogued(path, roots):
+    """The catalogue's entry of a file written under the results folder of ``roots`` (the step's, from
+    :func:`provenance`), or None: a file written anywhere else is no product of the workflow."""
+    results = roots.get("results")
+    return products.match(path, root=results) if results else None
+
+
 def write_text(path, text: str):
     """Write a text file (a table) atomically: under a temporary name, then renamed. A CSV table of the
-    catalogue (:mod:`dice_core.products`) must have the columns its entry promises."""
+    catalogue (:mod:`dice_core.products`), written under the results folder of the enclosing
+    :func:`provenance`, must have the columns its entry promises."""
     if not isinstance(text, str):
         raise TypeError(f"{path}: text expected, got {type(text).__name__}")
-    found = products.match(path)
+    found = _catalogued(path, (_PROVENANCE.get() or {}).get("roots") or {})
     if found is not None and found[0].kind == "csv":
         header = next(csv.reader([text.split("\n", 1)[0]]), [])
         absent = [column for column in found[0].columns if column not in header]
@@ -771,9 +779,9 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
     first of ``roots`` that holds it, whose name ``relative_to`` gives, and the
     SHA-256 of its bytes) and ``history``: the inputs' (and the dataset's own)
     history lines, once each, then this write's line, CF style. The file is written
-    through :func:`atomic_write`, so an existing product is never left half-written. A path that is an
-    instance of a product of the catalogue (:mod:`dice_core.products`) must hold the variables its entry
-    promises, on its dims and in its units.
+    through :func:`atomic_write`, so an existing product is never left half-written. A file written under
+    the results folder of ``roots`` that is an instance of a product of the catalogue
+    (:mod:`dice_core.products`) must hold the variables its entry promises, on its dims and in its units.
 
     ``code_version`` and ``roots`` default to those of the enclosing :func:`provenance` block.
     ``digests`` maps inputs (resolved paths, str) to their SHA-256 when already known
@@ -783,7 +791,7 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
     missing = [name for name, var in ds.data_vars.items() if "units" not in var.attrs]
     if missing:
         raise ValueError(f"{path}: variables without units: {missing}")
-    found = products.match(path)
+    found = _catalogued(path, roots if roots is not None else (_PROVENANCE.get() or {}).get("roots") or {})
     if found is not None and found[0].kind == "netcdf":
         problems = products.problems(ds, found[0])
         if problems:

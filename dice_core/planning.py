@@ -62,25 +62,24 @@ class Plan:
             self.skipped.append(message)
 
     def check_names(self) -> None:
-        """Refuse manifest names that would make two products one file: the paths of the catalogue's products
-        named by one flat, baseline or pair, for every name the manifest gives (a pair ``difference_P14``
-        beside ``P14`` would be both ``offsets_difference_P14.nc``'s pair and its difference's)."""
+        """Refuse manifest names that would make a product's path read as another product's: each path of the
+        catalogue's products named by one flat, baseline or pair, for every name the manifest gives, must be
+        its own entry's (:func:`dice_core.products.match`). A pair ``difference_P14`` beside ``P14`` would
+        make ``offsets_difference_P14.nc`` both pairs' (Snakemake's 12-line AmbiguousRuleException); alone,
+        its offsets would be read, and checked, as a difference."""
         m = self.manifest
         names = {"flat": ("flats key", list(m.flats)), "baseline": ("metrology.baselines key", list(m.baselines)),
                  "pair": ("metrology.pairs key", list(m.pairs))}
-        seen = {}
         for product in products.CATALOGUE.values():
             if len(product.wildcards) != 1 or product.wildcards[0] not in names:
                 continue
             key, values = names[product.wildcards[0]]
-            for value in values:
-                for template in product.files():
-                    path = template.format(**{product.wildcards[0]: value})
-                    if path in seen and seen[path][1] != value:
-                        other_key, other = seen[path]
-                        raise PlanningError(f"{m.path}: manifest {key} {value!r} and {other_key} {other!r} would "
-                                            f"both write {path}; rename one")
-                    seen[path] = (key, value)
+            for value, template in ((v, t) for v in values for t in product.files()):
+                path = template.format(**{product.wildcards[0]: value})
+                found = products.match(f"{self.dataset_root}/{path}", root=self.dataset_root)
+                if found is None or found[0].key != product.key:
+                    raise PlanningError(f"{m.path}: manifest {key} {value!r} would make {path} read as another "
+                                        "product's path; rename it")
 
     # ------------------------------------------------------------------ dark and flat field
 
@@ -336,6 +335,8 @@ def plan_sweep(name: str, spec: dict) -> Sweep:
     if spec["study"] != "reduction" and any(isinstance(v, (list, dict)) for p in points for v in p.values()):
         raise PlanningError(f"config sweeps.{name}: a parameter's value must be a number, a string or a boolean "
                             "(one folder per point; lists, e.g. of centroids.modes, only in a reduction sweep)")
+    if any(p[key] is None for p in points for key in keys):
+        raise PlanningError(f"config sweeps.{name}: a parameter's value is null, which names no folder")
     spelt = {key: _column_values([folder_value(p[key]) for p in points]) for key in keys}
     for key, values in spelt.items():
         bad = next((v for v in values if not re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9_.,+-]*", str(v))), None)

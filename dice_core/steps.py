@@ -27,11 +27,13 @@ for bit). :data:`PLANNING_KEYS` lists them, with why.
 from __future__ import annotations
 
 import ast
+import functools
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["Step", "STEPS", "PLANNING_KEYS", "step", "settings_keys", "code_hash", "dice_core_imports"]
+__all__ = ["Step", "STEPS", "PLANNING_KEYS", "DESCRIPTIVE", "step", "settings_keys", "code_hash", "code_modules",
+           "dice_core_imports"]
 
 
 @dataclass(frozen=True)
@@ -129,7 +131,8 @@ PLANNING_KEYS = {
     "simulation": "the preset's overrides: another dataset, named by their hash, in its own folder",
     "sweeps": "which sweeps and points exist; a point's own settings are its step's (sweeps.<name>.study, "
               "bench, options)",
-    "metrology.split": "how the fit runs, as one job or as many; its product is the single job's bit for bit",
+    "metrology.split": "how the fit runs, as one job or as many: its product is the single job's bit for bit, but "
+                       "another rule makes it, so switching re-runs the fits, and what follows, once",
 }
 
 
@@ -150,9 +153,14 @@ def settings_keys(name: str) -> tuple[str, ...]:
 
 
 
-def dice_core_imports(path) -> set[str]:
-    """Names a source file imports from dice_core, at its top or inside functions: its modules, and other
-    names (classes, functions), which :func:`code_hash` tells apart by looking for their files."""
+#: dice_core modules that describe the workflow rather than compute a product: what is made, where, with which
+#: settings, and how it is checked. A step's code hash does not follow them, so that declaring a new product or
+#: setting re-runs nothing it does not change (a product's path or settings changing re-run it by themselves).
+DESCRIPTIVE = frozenset({"products", "products_page", "steps", "settings", "planning", "preflight", "resources"})
+
+
+@functools.lru_cache(maxsize=None)
+def _imports(path: str, mtime_ns: int) -> frozenset:
     names = set()
     for node in ast.walk(ast.parse(Path(path).read_text())):
         if isinstance(node, ast.ImportFrom) and node.module == "dice_core":
@@ -161,25 +169,40 @@ def dice_core_imports(path) -> set[str]:
             names.add(node.module.split(".")[1])
         elif isinstance(node, ast.Import):
             names |= {alias.name.split(".")[1] for alias in node.names if alias.name.startswith("dice_core.")}
-    return names
+    return frozenset(names)
 
 
-def code_hash(scripts) -> str:
-    """Hash (16 hex digits) of the code that ``scripts`` run: their own bytes and those of every dice_core
-    module they import, followed through the modules' own imports (the package's ``__init__`` always counts).
-    A step's rule passes it as a parameter (Snakemake re-runs a job whose parameters changed), so that an edit
-    to a module re-runs the steps that use it, directly or through another module, and only those."""
+def dice_core_imports(path) -> set[str]:
+    """Names a source file imports from dice_core, at its top or inside functions: its modules, and other
+    names (classes, functions), which :func:`code_modules` tells apart by looking for their files. Read once
+    per version of the file (the workflow asks for every step's rule)."""
+    path = Path(path)
+    return set(_imports(str(path), path.stat().st_mtime_ns))
+
+
+def code_modules(scripts) -> set[str]:
+    """The dice_core modules ``scripts`` run: those they import, followed through the modules' own imports,
+    and the package's ``__init__``; not the modules of :data:`DESCRIPTIVE`."""
     package = Path(__file__).parent
-    scripts = [Path(script) for script in scripts]
     todo = ["__init__", *(name for script in scripts for name in sorted(dice_core_imports(script)))]
     closure = set()
     while todo:
         name = todo.pop()
-        if name in closure or not (package / f"{name}.py").is_file():  # a class or function, not a module
-            continue
+        if name in closure or name in DESCRIPTIVE or not (package / f"{name}.py").is_file():
+            continue  # a described module, or a class or function, not a module
         closure.add(name)
         todo += sorted(dice_core_imports(package / f"{name}.py"))
+    return closure
+
+
+def code_hash(scripts) -> str:
+    """Hash (16 hex digits) of the code that ``scripts`` run: their own bytes and those of
+    :func:`code_modules`. A step's rule passes it as a parameter (Snakemake re-runs a job whose parameters
+    changed), so that an edit to a module re-runs the steps that use it, directly or through another module,
+    and only those."""
+    package = Path(__file__).parent
+    scripts = [Path(script) for script in scripts]
     digest = hashlib.sha256()
-    for path in [*scripts, *(package / f"{name}.py" for name in sorted(closure))]:
+    for path in [*scripts, *(package / f"{name}.py" for name in sorted(code_modules(scripts)))]:
         digest.update(path.read_bytes())
     return digest.hexdigest()[:16]

@@ -73,8 +73,12 @@ def test_names_that_would_make_two_products_one_file_are_refused(section, name, 
     entries[name] = copy.deepcopy(entries[other])
     with pytest.raises(planning.PlanningError) as info:
         plan(layout).check_names()
-    assert f"'{name}'" in str(info.value) and f"'{other}'" in str(info.value) and "would both write" in str(info.value)
+    assert f"'{name}'" in str(info.value) and str(info.value).endswith("rename it")
     plan().check_names()
+    alone = dataset_layout(small_config())  # alone, a pair difference_P24 would be read as a difference
+    alone["metrology"]["pairs"] = {"difference_P24": alone["metrology"]["pairs"]["P24"]}
+    with pytest.raises(planning.PlanningError, match="'difference_P24' would make calibration/offsets_difference_P24"):
+        plan(alone).check_names()
 
 
 def test_sweep_points_are_folders_as_snakemake_s_paramspace_names_them():
@@ -112,6 +116,7 @@ def _raw_points(spec):
     ({"study": "offset_bias", "points": [{"a": 1}, {"b": 2}]}, "every point must set the same parameters"),
     ({"study": "offset_bias", "points": [{"x.a": 1, "y.a": 2}]}, "share a last name"),
     ({"study": "offset_bias", "parameter": "a", "values": [[1, 2]]}, "lists, e.g. of centroids.modes, only in a"),
+    ({"study": "offset_bias", "parameter": "a", "values": [1, None]}, "null, which names no folder"),
 ])
 def test_a_sweep_that_cannot_be_planned_is_one_line_naming_it(spec, expected):
     with pytest.raises(planning.PlanningError, match=f"^config sweeps.s.*{expected}"):

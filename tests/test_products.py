@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from dice_core import centroids, products, steps
+from dice_core import centroids, products, products_page, steps
 from dice_core.io import write_product, write_text
 
 from conftest import REPO
@@ -56,30 +56,46 @@ def dark_product(**changes):
 
 
 def test_io_refuses_a_product_that_breaks_its_entry_and_writes_one_that_keeps_it(tmp_path):
-    path = tmp_path / "results" / "bench" / "calibration" / "dark.nc"
-    write_product(dark_product(), path, title="dark")
-    for changes, expected in [({"noise": (None, None)}, "variable noise is missing"),
-                              ({"dark": ("1", ("row", "col"))}, "variable dark is in '1', the catalogue says 'adu'"),
-                              ({"dark": ("adu", ("col", "row"))}, "variable dark has dims")]:
-        with pytest.raises(ValueError, match=f"not what the catalogue's product dark promises: .*{expected}"):
-            write_product(dark_product(**changes), path, title="dark")
-    offsets = xr.Dataset({name: (("row", "col"), np.zeros((2, 3)), {"units": "pixel"})
-                          for name in ("dx", "dy", "dx_photon_noise_floor", "dy_photon_noise_floor")})
-    write_product(offsets, tmp_path / "calibration" / "offsets_P14.nc", title="offsets")  # without optional modes
-    with pytest.raises(ValueError, match="table accuracy_table promises: no column superimposition"):
-        write_text(tmp_path / "tables" / "accuracy.csv", "flat,metrology,grouping,accuracy,error,mode,method\n")
+    from dice_core.io import provenance
+
+    results = tmp_path / "results" / "bench"
+    with provenance(results=results):
+        path = results / "calibration" / "dark.nc"
+        write_product(dark_product(), path, title="dark")
+        for changes, expected in [({"noise": (None, None)}, "variable noise is missing"),
+                                  ({"dark": ("1", ("row", "col"))}, "variable dark is in '1', the catalogue says 'adu'"),
+                                  ({"dark": ("adu", ("col", "row"))}, "variable dark has dims")]:
+            with pytest.raises(ValueError, match=f"not what the catalogue's product dark promises: .*{expected}"):
+                write_product(dark_product(**changes), path, title="dark")
+        offsets = xr.Dataset({name: (("row", "col"), np.zeros((2, 3)), {"units": "pixel"})
+                              for name in ("dx", "dy", "dx_photon_noise_floor", "dy_photon_noise_floor")})
+        write_product(offsets, results / "calibration" / "offsets_P14.nc", title="offsets")  # no optional modes
+        with pytest.raises(ValueError, match="table accuracy_table promises: no column superimposition"):
+            write_text(results / "tables" / "accuracy.csv", "flat,metrology,grouping,accuracy,error,mode,method\n")
+        # a file of the same name outside the results folder is no product of the workflow
+        write_product(dark_product(noise=(None, None)), tmp_path / "mywork" / "calibration" / "dark.nc", title="x")
+    write_product(dark_product(noise=(None, None)), path, title="outside any step: not checked")
+
+
+def test_a_path_is_its_entry_relative_to_the_results_folder():
+    root = "results/sim-ci"
+    assert products.match("results/sim-ci/calibration/offsets_difference_P24.nc", root=root)[0].key == \
+        "offsets_difference"
+    assert products.match("results/sim-ci/stars/3.nc", root=root)[0].key == "stack"
+    assert products.match("mywork/stars/catalogue.nc", root=root) is None
+    assert products.match("results/sim-ci/raw/stars/3.nc", root=root) is None  # a raw file, not a stack
 
 
 def test_the_products_page_is_generated_from_the_catalogue():
-    """docs/products.md's generated part is the catalogue's: `python -m dice_core.products --write
+    """docs/products.md's generated part is the catalogue's: `python -m dice_core.products_page --write
     docs/products.md` after a change to dice_core/products.py."""
     page = (REPO / "docs" / "products.md").read_text()
-    generated = products.markdown(modes=centroids.mode_descriptions(), methods=centroids.method_descriptions())
-    assert generated in page, "docs/products.md is stale: run python -m dice_core.products --write docs/products.md"
+    generated = products_page.markdown(modes=centroids.mode_descriptions(), methods=centroids.method_descriptions())
+    assert generated in page, "docs/products.md is stale: run python -m dice_core.products_page --write docs/products.md"
     for product in products.CATALOGUE.values():
         assert f"`{product.files()[0]}`" in generated or f"results/sweeps/{product.files()[0]}" in generated
     for mode in centroids.MODES:
         assert f"- `{mode}`:" in generated
     with pytest.raises(ValueError, match="no generated part"):
-        products.replace_generated("# a page\n", generated)
-    assert products.replace_generated(page, generated) == page
+        products_page.replace_generated("# a page\n", generated)
+    assert products_page.replace_generated(page, generated) == page

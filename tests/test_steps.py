@@ -103,3 +103,19 @@ def test_modes_methods_and_studies_are_listed_once():
             assert not re.search(r'["\[]fourier["]?,\s*["]?gaussian', text), path
         if path.name != "studies.py":
             assert not re.search(r"offset_bias[\"']?,\s*[\"']?error_propagation[\"']?,\s*[\"']?star_accuracy", text), path
+
+
+def test_a_step_s_code_is_its_script_s_imports_and_not_the_workflow_s_description():
+    """Editing a module re-runs the steps that run it, and only those: the dark does not run the centroids, and
+    no step's code is the catalogue, the step table or the settings, which describe the workflow (an edit to
+    them, declaring a product or a setting, re-ran all 73 jobs of the ci preset)."""
+    def modules(name):
+        return steps.code_modules([SCRIPTS / f"{steps.step(n).script_name}.py"
+                                   for n in (name, *steps.step(name).stands_for)])
+
+    assert {"io", "calibration", "manifest"} <= modules("measure_dark")
+    for name in steps.STEPS:
+        assert not modules(name) & steps.DESCRIPTIVE, name
+    assert "centroids" not in modules("measure_dark") | modules("simulate_truth")
+    assert {"centroids", "stacks"} <= modules("measure_centroids")
+    assert {"fringe_fit"} <= modules("fit_finish") and modules("fit_part") <= modules("fit_finish")

@@ -15,10 +15,10 @@ def read_stacks(paths):
 
 def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pixel_paths, stack_paths, mode, output,
                       settings, method, prf_path=None):
-    """``settings``: the step's configuration (centroids.half_size...); ``method``: the centroid method, the
-    configured one or, for centroids/<method>/<mode>.nc, the path's."""
+    """``settings``: the step's configuration (centroids.half_size...), which the product records; ``method``:
+    the centroid method, the configured one or, for centroids/<method>/<mode>.nc, the path's (the product's
+    attribute ``method``)."""
     options = {**settings["centroids"], "method": method}
-    config = {**settings, "centroids": options}  # what the product records: the method it was made with
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
     use_flat, use_metrology = centroids.mode_corrections(mode)
@@ -51,7 +51,7 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pix
               *([prf_path] if use_widths else []),
               *bad_pixel_paths, *stack_paths]
     io.write_product(product, output, title=f"pseudo-star centroids of {manifest.name}, mode {mode}",
-                     config=config, inputs=inputs)
+                     config=settings, inputs=inputs)
 
 
 dice_core.run_logged(snakemake.log[0], measure_centroids, snakemake.input.manifest, snakemake.input.dark,

@@ -8,7 +8,7 @@ from dice_core import io, plotting
 
 def plot_star_accuracy(points, sweep, png, pdf):
     datasets = [io.read_product(p) for p in points]
-    values = [json.loads(ds.attrs["configuration"])["point"] for ds in datasets]
+    values = [json.loads(ds.attrs["point"]) for ds in datasets]
     plotting.save(plotting.star_accuracy_figure(datasets, values, title=f"sweep {sweep}"), png, pdf=pdf)
 
 

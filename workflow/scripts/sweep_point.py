@@ -10,7 +10,7 @@ def sweep_point(output, study, parameters, bench, options, sweep, config):
     ds = studies.run_point(study, parameters, bench=bench, options=options, workdir=Path(output).parent)
     ds.attrs["sweep"] = sweep
     io.write_product(ds, output, title=f"sweep {sweep}, study {study}, point {parameters}",
-                     config={**config, "point": parameters})
+                     config=config)  # the point's parameters: the attribute "point" (studies.sweep_dataset)
 
 
 spec = snakemake.params.settings["sweeps"][snakemake.wildcards.sweep]

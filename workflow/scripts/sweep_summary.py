@@ -12,7 +12,7 @@ def sweep_summary(points, output):
     rows, columns = [], []
     for path in points:
         ds = io.read_product(path)
-        point = json.loads(ds.attrs["configuration"])["point"]
+        point = json.loads(ds.attrs["point"])
         row = dict(point)
         for name, var in ds.data_vars.items():
             if var.ndim == 0:
