@@ -193,10 +193,13 @@ def allan_figure(ds, *, title):
     blocks (blue), each group fitted as a whole; the pixels' rms with groups
     as means of their batch fits, the paper's way (grey, with its limit); white
     noise of matched single-batch scatter (dotted); the photon-noise limits
-    from the fits' own errors (dashed) and the paper's formula (dash-dotted);
-    and, where the product holds ``photon_limit_pixel_first_frame``, the
-    paper's red line: the pixels' limit from the noise measured on the first
-    frame (:func:`dice_core.allan.first_frame_limit`).
+    from the fits' own errors (dashed: the batches' and groups' own floors)
+    and the paper's formula (dash-dotted); where the product holds
+    ``photon_limit_pixel_global``, the global solution's floor scaled to each
+    group (thin grey line); and, where it holds
+    ``photon_limit_pixel_first_frame``, the paper's red line: the pixels'
+    limit from the noise measured on the first frame
+    (:func:`dice_core.allan.first_frame_limit`).
     """
     fig, ax = plt.subplots(figsize=(8, 7.5), layout="constrained")
     n = ds["n_frames"].values
@@ -219,6 +222,9 @@ def allan_figure(ds, *, title):
         ax.loglog(n, ds[f"photon_limit_{kind}"].values, color=colour, ls="--", lw=1, label=f"photon limit, {kind}s")
         ax.loglog(n, ds[f"photon_limit_{kind}_paper"].values, color=colour, ls="-.", lw=0.8, alpha=0.7,
                   label=f"paper's photon limit, {kind}s")
+    if "photon_limit_pixel_global" in ds:
+        ax.loglog(n, ds["photon_limit_pixel_global"].values, color="0.3", lw=0.8, zorder=1.4,
+                  label="global solution's floor scaled to the group, pixels")
     if "photon_limit_pixel_first_frame" in ds:
         noise = f", {float(ds['first_frame_noise']):.3g} adu rms" if "first_frame_noise" in ds else ""
         # under the other curves (zorder), so that the paper's dash-dotted limit it nearly equals shows on it
@@ -232,8 +238,8 @@ def allan_figure(ds, *, title):
         lambda value, _: f"{value:g}" if round(value / 10.0 ** np.floor(np.log10(value)))
         in _labelled_mantissas(np.log10(ax.get_xlim()[1] / ax.get_xlim()[0])) else ""))
     ax.set_ylabel("deviation of projected offsets [pixel]")
-    ax.set_title(f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (one fringe period) "
-                 f"on average", fontsize=9)
+    ax.set_title(f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (any that many "
+                 f"frames sweep a fringe period); each fits the pixels' phases alone", fontsize=9)
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
     fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=2)  # off the curves
     fig.suptitle(title, fontsize=11)
