@@ -807,22 +807,25 @@ def reproduction_pdf(path, pages, *, title: str, summary_lines=()):
 
 
 def prf_widths_figure(ds, detector, *, title="PRF widths from the fringe contrast"):
-    """Width maps (relative to the assumed kernel's width) and their 1-sigma errors along x and y.
+    """Width maps (relative to their mean width) and their 1-sigma pixel-scale errors along x and y.
 
     ``ds`` is a ``calibration/prf.nc`` dataset; top row: width - mean_width in
-    1e-3 pixel; bottom row: error_width in 1e-3 pixel. A direction without
-    a baseline stays blank.
+    1e-3 pixel, the mean with its error in the title; bottom row:
+    error_width_pixel (photon noise and the kernel shape's uncertainty in the
+    deviations' scale) in 1e-3 pixel. A direction without a baseline stays
+    blank.
     """
-    mean = float(ds["mean_width"])
     fig, axes = plt.subplots(2, 2, figsize=(11.2, 9.2), constrained_layout=True)
     for j, axis in enumerate("xy"):
-        width, error = ds[f"width_{axis}"].values, ds[f"error_width_{axis}"].values
+        mean, mean_error = float(ds[f"mean_width_{axis}"]), float(ds[f"error_mean_width_{axis}"])
+        width, error = ds[f"width_{axis}"].values, ds[f"error_width_pixel_{axis}"].values
         spread = float(np.sqrt(np.nanmean((width - mean) ** 2))) if np.isfinite(width).any() else float("nan")
         err = float(np.sqrt(np.nanmean(error**2))) if np.isfinite(error).any() else float("nan")
         _show_map(axes[0, j], fig, width - mean, detector, scale=1e3, units="width - mean [1e-3 pixel]",
-                  symmetric=True, title=f"width along {axis} minus {mean:.4f} pixel, rms {spread:.2e} pixel")
+                  symmetric=True, title=f"width along {axis} minus its mean ({mean:.4f} pixel +- {mean_error:.4f} pixel); "
+                                        f"rms {spread:.2e} pixel")
         _show_map(axes[1, j], fig, error, detector, scale=1e3, units="1-sigma error [1e-3 pixel]", symmetric=False,
-                  title=f"its photon-noise error, rms {err:.2e} pixel")
+                  title=f"its error (photon noise, kernel shape), mean aside, rms {err:.2e} pixel")
     chi2 = float(ds["chi2"])
     fig.suptitle(f"{title} ({', '.join(map(str, ds['baseline'].values))}; chi2/dof between baselines "
                  f"{chi2:.2f})", fontsize=11)

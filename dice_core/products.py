@@ -147,10 +147,22 @@ _PRODUCTS = [
     Product("prf", "calibration/prf.nc", "prf_widths", "netcdf", stable=True, stage="metrology",
             meaning="each pixel's PRF width from the fringe contrast of every baseline (docs/centroids.md, "
                     "\"PRF widths\")",
-            variables=(_V("width_x", RC, "pixel", "PRF standard deviation along x"),
+            variables=(_V("width_x", RC, "pixel", "PRF standard deviation along x: the mean width plus the pixel's "
+                                                "pixel-scale deviation (smooth variations are not measured)"),
                        _V("width_y", RC, "pixel", "PRF standard deviation along y"),
-                       _V("error_width_x", RC, "pixel", "1-sigma error of width_x"),
-                       _V("error_width_y", RC, "pixel", "1-sigma error of width_y"))),
+                       _V("error_width_x", RC, "pixel", "1-sigma error of width_x: photon noise and the kernel "
+                                                      "shape's uncertainty, which scales the deviations and sets "
+                                                      "the mean"),
+                       _V("error_width_y", RC, "pixel", "1-sigma error of width_y"),
+                       _V("error_width_pixel_x", RC, "pixel", "1-sigma error of width_x minus its mean over the map"),
+                       _V("error_width_pixel_y", RC, "pixel", "1-sigma error of width_y minus its mean over the map"),
+                       _V("variance_deviation_x", RC, "pixel2", "PRF variance along x minus the mean one, pixel-scale "
+                                                              "part: what the contrast measures, what the width "
+                                                              "mode's centroids use"),
+                       _V("variance_deviation_y", RC, "pixel2", "the same along y"),
+                       _V("mean_width_x", "", "pixel", "mean PRF standard deviation along x over the kernels the "
+                                                     "two periods allow, with its error error_mean_width_x"),
+                       _V("mean_width_y", "", "pixel", "the same along y, error error_mean_width_y"))),
     Product("offsets", "calibration/offsets_{pair}.nc", "deproject_offsets", "netcdf", stable=True,
             stage="metrology", meaning="x and y pixel offsets from a pair of baselines",
             variables=(_V("dx", RC, "pixel", "pixel offset along x (columns)"),
