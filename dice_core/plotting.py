@@ -382,13 +382,27 @@ def _star_style(s, central):
     return ("black", f"star {s} (central)") if s == central else (f"C{s}", f"star {s}")
 
 
+def _removal_line(ds, mode) -> str:
+    """A pose product's line for a mode's panel: what the pose removes of Procrustes's tip-tilt excess and the
+    noise-limited bound (:func:`dice_core.accuracies.pose_removal`); empty elsewhere."""
+    if "removal_bound" not in ds or not np.isfinite(float(ds["removal_bound"].sel(mode=mode))):
+        return ""
+    bound = float(ds["removal_bound"].sel(mode=mode))
+    return (f"\nProcrustes's tip-tilt excess {float(ds['tip_tilt_excess'].sel(mode=mode)):.1e} pixel: removed "
+            f"{100 * float(ds['removal_measured'].sel(mode=mode)):.0f}%, noise-limited bound {100 * bound:.0f}%"
+            + ("; no gain the data can show" if bound < float(ds.attrs.get("removal_bound_low", 0.5)) else ""))
+
+
 def procrustes_figure(ds, *, title="Procrustes residuals"):
     """Residuals of every star (x plain, y dotted) against the position, one panel per mode (pixel).
 
     The dashed lines are +-sigma, sigma the rms of the residuals shown (over
     the positions, stars and both axes: the paper's dotted lines); the title
     gives sigma and the mode's corrected accuracy (sigma corrected for what
-    the superimposition absorbs). The central star is black.
+    the superimposition absorbs). The central star is black. A pose product
+    adds, per mode, what the pose removes of Procrustes's tip-tilt excess
+    and the noise-limited bound its Fisher information allows
+    (:func:`dice_core.accuracies.pose_removal`).
     """
     modes = list(ds["mode"].values)
     fig, axes = plt.subplots(len(modes), 1, figsize=(9, 2.9 * len(modes)), sharex=True, squeeze=False,
@@ -407,7 +421,7 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
             ax.axhline(sign * sigma, color="0.35", ls="--", lw=0.8, gid="sigma")
         ax.set_ylabel("residual [pixel]")
         ax.set_title(f"{mode}: dashed ±σ, σ = {sigma:.2e} pixel (rms of these residuals)\ncorrected accuracy "
-                     f"{accuracy:.2e} pixel; x plain, y dotted", fontsize=9)  # two lines: the longest mode fits
+                     f"{accuracy:.2e} pixel; x plain, y dotted{_removal_line(ds, mode)}", fontsize=9)  # the longest mode fits
     fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=5)  # off the data
     axes[-1, 0].set_xlabel("position index")
     _integer_ticks(axes[-1, 0].xaxis)

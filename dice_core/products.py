@@ -210,8 +210,15 @@ _PRODUCTS = [
                        _V("accuracy", "mode", "pixel", "accuracy over positions"))),
     Product("model_residuals", "tables/{model}_residuals.nc", "accuracy_table", "netcdf", stage="astrometry",
             meaning="the residuals of another superimposition of astrometry.superimposition (projective, pose: "
-                    "with the pose's tip and tilt where the data identify them)",
-            variables=(_V("residual", "mode position star axis", "pixel", "residual after the superimposition"),)),
+                    "with the pose's tip and tilt where the data identify them, and what it removes of "
+                    "Procrustes's tip-tilt excess beside the noise-limited bound)",
+            variables=(_V("residual", "mode position star axis", "pixel", "residual after the superimposition"),
+                       _V("removal_measured", "mode", "1", "pose: share of Procrustes's tip-tilt excess its accuracy "
+                                                          "removes", optional=True),
+                       _V("removal_bound", "mode", "1", "pose: the noise-limited share its Fisher information allows",
+                          optional=True),
+                       _V("tip_tilt_excess", "mode", "pixel", "pose: Procrustes's tip-tilt excess from the fitted tip "
+                                                            "and tilt", optional=True))),
     # ------------------------------------------------------------------ the paper's simulations and comparison
     Product("sweep_point", "{sweep}/{point}/point.nc", "sweep_point", "netcdf", base="sweeps", stage="sweeps",
             meaning="one point of a configured simulation study (config sweeps)"),
