@@ -459,35 +459,34 @@ def prf_dataset(maps: WidthMaps) -> xr.Dataset:
     names = sorted(maps.baselines)
     members = maps.family.members
     data = {}
+    maps_of_axis = (  # name, WidthMaps attribute, units, long_name; each with {axis}
+        ("width", "width", "pixel", "PRF standard deviation along {axis}: the mean width plus the pixel's "
+                                    "pixel-scale deviation (smooth variations not measured)"),
+        ("error_width", "error_width", "pixel", "1-sigma error of width_{axis}: photon noise and the uncertainty of "
+                                                "the kernel's shape (mean and scale)"),
+        ("error_width_pixel", "error_width_pixel", "pixel", "1-sigma error of width_{axis} minus its mean over the "
+                                                            "map: photon noise and the shape's uncertainty in the "
+                                                            "deviations' scale"),
+        ("photon_error_width", "photon_error_width", "pixel", "1-sigma photon-noise error of width_{axis} (its part "
+                                                              "of the errors above)"),
+        ("variance_deviation", "variance", "pixel2", "PRF variance along {axis} minus the mean one, pixel-scale part "
+                                                     "(what the contrast measures; the centroid correction's)"))
+    scalars_of_axis = (  # name, WidthMaps dict attribute, units, long_name
+        ("mean_width", "mean_width", "pixel", "mean PRF standard deviation along {axis}, over the family's kernels "
+                                              "the two periods allow"),
+        ("error_mean_width", "error_mean_width", "pixel", "1-sigma error of mean_width_{axis}"),
+        ("error_deviation_scale", "error_scale", "1", "relative 1-sigma error of the scale of width_{axis} minus its "
+                                                      "mean, from the kernel's shape"))
     for axis in "xy":
-        data.update({
-            f"width_{axis}": (rc, getattr(maps, f"width_{axis}"), {
-                "units": "pixel", "long_name": f"PRF standard deviation along {axis}: the mean width plus the "
-                                               "pixel's pixel-scale deviation (smooth variations not measured)"}),
-            f"error_width_{axis}": (rc, getattr(maps, f"error_width_{axis}"), {
-                "units": "pixel", "long_name": f"1-sigma error of width_{axis}: photon noise and the uncertainty "
-                                               "of the kernel's shape (mean and scale)"}),
-            f"error_width_pixel_{axis}": (rc, getattr(maps, f"error_width_pixel_{axis}"), {
-                "units": "pixel", "long_name": f"1-sigma error of width_{axis} minus its mean over the map: photon "
-                                               "noise and the shape's uncertainty in the deviations' scale"}),
-            f"photon_error_width_{axis}": (rc, getattr(maps, f"photon_error_width_{axis}"), {
-                "units": "pixel", "long_name": f"1-sigma photon-noise error of width_{axis} (its part of the "
-                                               "errors above)"}),
-            f"variance_deviation_{axis}": (rc, getattr(maps, f"variance_{axis}"), {
-                "units": "pixel2", "long_name": f"PRF variance along {axis} minus the mean one, pixel-scale part "
-                                                "(what the contrast measures; the centroid correction's)"}),
-            f"mean_width_{axis}": ((), maps.mean_width.get(axis, np.nan), {
-                "units": "pixel", "long_name": f"mean PRF standard deviation along {axis}, over the family's "
-                                               "kernels the two periods allow"}),
-            f"error_mean_width_{axis}": ((), maps.error_mean_width.get(axis, np.nan), {
-                "units": "pixel", "long_name": f"1-sigma error of mean_width_{axis}"}),
-            f"error_deviation_scale_{axis}": ((), maps.error_scale.get(axis, np.nan), {
-                "units": "1", "long_name": f"relative 1-sigma error of the scale of width_{axis} minus its mean, "
-                                           "from the kernel's shape"}),
-            f"kernel_posterior_{axis}": (("kernel",), maps.posterior.get(axis, {}).get(
-                "weights", np.full(len(members), np.nan)), {
-                "units": "1", "long_name": f"posterior weight of each kernel of the family along {axis}"}),
-        })
+        for name, attribute, units, what in maps_of_axis:
+            data[f"{name}_{axis}"] = (rc, getattr(maps, f"{attribute}_{axis}"),
+                                      {"units": units, "long_name": what.format(axis=axis)})
+        for name, attribute, units, what in scalars_of_axis:
+            data[f"{name}_{axis}"] = ((), getattr(maps, attribute).get(axis, np.nan),
+                                      {"units": units, "long_name": what.format(axis=axis)})
+        data[f"kernel_posterior_{axis}"] = (("kernel",), maps.posterior.get(axis, {}).get(
+            "weights", np.full(len(members), np.nan)), {
+            "units": "1", "long_name": f"posterior weight of each kernel of the family along {axis}"})
     data.update({
         "kernel_order": (("kernel",), [m.order for m in members], {"units": "1", "long_name": "kernel order"}),
         "kernel_sigma": (("kernel",), [m.sigma for m in members], {"units": "pixel", "long_name": "kernel scale"}),
