@@ -6,13 +6,20 @@ the stage's tip-tilt walks at 0, 5e-3 (the paper's) and 2e-2 rad peak to valley.
 centroids, then each model's corrected accuracy over positions; excess^2 = accuracy(tilted)^2 -
 accuracy(untilted)^2, and the share of Procrustes's excess variance each model removes. With
 --photon-noise, the bench's photon and read noise are on (the paper's regime, where the excess is small
-against the other errors); without, only what perfect calibrations leave (PRF width spread) remains. Run by
-hand (about a minute per configuration on 2 cores):
+against the other errors); without, only what perfect calibrations leave (PRF width spread) remains. For each
+tilted twin it also prints the share of Procrustes's excess the pose removes beside the share the true tip and
+tilt remove and the noise-limited bound of the pose's Fisher information (issue 27;
+dice_core.studies.tip_tilt_removals). --off-axis-deg sets the bench's field, --pose-off-axis-deg the pose's
+nominal one where it is not the bench's, --frames the frames per position. Run by hand (about a minute per
+configuration on 2 cores):
 
     python benchmarks/tip_tilt_models.py --positions 33 [--photon-noise] [--seeds 3]
+    python benchmarks/tip_tilt_models.py --positions 60 --photon-noise --frames 240 --amplitudes 8e-3 \
+        --off-axis-deg 0 --pose-off-axis-deg 2     # the issue's twins on an on-axis bench, the presets' nominal
 """
 
 import argparse
+import dataclasses
 import logging
 
 import numpy as np
@@ -30,19 +37,26 @@ def main():
     parser.add_argument("--seeds", type=int, default=1, help="twin pairs with seeds 20150926, +1, ...")
     parser.add_argument("--amplitudes", type=float, nargs="+", default=[5e-3, 2e-2])
     parser.add_argument("--trials", type=int, default=1000)
+    parser.add_argument("--frames", type=int, default=16, help="frames per position")
+    parser.add_argument("--off-axis-deg", type=float, default=2.0, help="the bench's field, degrees off axis")
+    parser.add_argument("--pose-off-axis-deg", type=float, default=None, help="the pose's nominal (the bench's)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
     noise = {"detector.photon_noise": True, "detector.read_noise": 4.0} if args.photon_noise else {}
     excess = {(a, m): [] for a in args.amplitudes for m in MODELS}
     for seed in range(20150926, 20150926 + args.seeds):
-        accuracies = {}
+        found, centroids = {}, {}  # not 'accuracies': the module's name
         for amplitude in [0.0, *args.amplitudes]:
             settings = studies.apply_overrides(studies.STAR_ACCURACY_BENCH, {
-                "seed": seed, "stars.positions": args.positions, "stars.tip_tilt_pv": amplitude, **noise})
+                "seed": seed, "stars.positions": args.positions, "stars.tip_tilt_pv": amplitude,
+                "stars.frames": args.frames, "stars.off_axis_deg": args.off_axis_deg, **noise})
             configurations, truth, geometry = flat_metrology_centroids(settings)
+            if args.pose_off_axis_deg is not None:
+                geometry = dataclasses.replace(geometry, off_axis=np.radians(args.pose_off_axis_deg))
+            centroids[amplitude] = (configurations, truth)
             for model in MODELS:
                 result = accuracies.accuracy(configurations, model=model, geometry=geometry, trials=args.trials)
-                accuracies[amplitude, model] = result
+                found[amplitude, model] = result
                 line = (f"seed {seed} tip-tilt {amplitude:.0e} rad PV  {model:10s} accuracy {result.accuracy:.3e} "
                         f"+- {result.error:.1e} pixel (rms residual {result.rms_residual:.3e}, factor {result.factor:.3f})")
                 if model == "pose" and amplitude > 0:
@@ -56,8 +70,15 @@ def main():
                 print(line, flush=True)
         for amplitude in args.amplitudes:
             for model in MODELS:
-                excess[amplitude, model].append(accuracies[amplitude, model].accuracy ** 2
-                                                - accuracies[0.0, model].accuracy ** 2)
+                excess[amplitude, model].append(found[amplitude, model].accuracy ** 2
+                                                - found[0.0, model].accuracy ** 2)
+            (tilted, truth), (untilted, _) = centroids[amplitude], centroids[0.0]
+            removals = studies.tip_tilt_removals(
+                [found[a, "procrustes"] for a in (amplitude, 0.0)], [found[a, "pose"] for a in (amplitude, 0.0)],
+                tilted=tilted, untilted=untilted, true_tip_tilt=truth["stage_rotation"].values[:, :2],
+                trials=args.trials)
+            print(f"seed {seed} tip-tilt {amplitude:.0e} rad PV: " + ", ".join(
+                f"{name} {value:.3f}" for name, (value, _) in removals.items()), flush=True)
     print(f"\nexcess variance of flat+metrology over positions ({args.positions} positions, photon noise "
           f"{'on' if args.photon_noise else 'off'}, {args.seeds} twin pair(s)), pixel^2:")
     for amplitude in args.amplitudes:

@@ -32,8 +32,9 @@ import numpy as np
 import xarray as xr
 
 from dice_core.centroids import MODES, mode_needs
+from dice_core.parallel import one_blas_thread
 from dice_core.superimposition import (SUPERIMPOSITIONS, AstrometryError, PoseGeometry, check_configurations,
-                                       pose_identifiability, superimpose, tangent_space)
+                                       pose_identifiability, superimpose, tangent_space, tip_tilt_removal)
 
 __all__ = [
     "barycentre_residuals",
@@ -50,6 +51,9 @@ __all__ = [
     "CSV_COLUMNS",
     "accuracy_csv",
     "residuals_dataset",
+    "REMOVAL_BOUND_LOW",
+    "pose_removal",
+    "removal_notes",
 ]
 
 
@@ -137,6 +141,7 @@ def _corrected(residuals, factors):
     return np.sqrt(np.mean(per_star**2, axis=-1)), per_star
 
 
+@one_blas_thread  # SVDs of a few hundred columns: 10x slower with the default threads on busy cores
 def accuracy(configurations, *, model: str = "procrustes", geometry=None, trials: int = 2000,
              seed: int = 0) -> Accuracy:
     """Differential astrometric accuracy of the configurations: corrected rms residual of a superimposition.
@@ -301,21 +306,60 @@ def accuracy_tables(datasets, methods, *, models=("procrustes",), positions=None
             raise AstrometryError(f"unknown superimposition {model!r}: one of {', '.join(SUPERIMPOSITIONS)}")
     rows, tables, products, reports = [], [], {}, {}
     for method in present:
+        procrustes = {}
         for model in models:
             model_rows, model_residuals, results = _mode_accuracies(
                 by_method[method], positions=positions, groups=groups, trials=trials, seed=0, model=model,
                 geometry=geometry)
             rows += model_rows
-            tables.append(f"% centroid method: {method}, superimposition: {model}\n" + latex_table(model_rows))
-            identifiability = {}
+            identifiability, removals = {}, {}
+            if model == "procrustes":  # the first (configured_superimpositions)
+                procrustes = results
             if model == "pose":
                 for mode, result in results.items():
                     identifiability[mode] = pose_identifiability(result.result, sigma=result.accuracy)
                     reports[f"{method} {mode}"] = identifiability[mode].summary()
+                    if mode in procrustes:
+                        removals[mode] = pose_removal(procrustes[mode], result)
+            tables.append(f"% centroid method: {method}, superimposition: {model}\n"
+                          + latex_table(model_rows, notes=removal_notes(removals)))
             if method == present[0]:
                 products[model] = residuals_dataset(by_method[method], model_rows, residuals=model_residuals,
-                                                    identifiability=identifiability)
+                                                    identifiability=identifiability, removals=removals)
     return AccuracyTables(rows, "\n".join(tables), products, reports)
+
+
+#: Below this noise-limited bound the tables say that the data cannot show the pose's gain over Procrustes.
+REMOVAL_BOUND_LOW = 0.5
+
+
+def pose_removal(procrustes: Accuracy, pose: Accuracy) -> dict:
+    """What the pose removes of Procrustes's tip-tilt excess on one data set, beside what the data allow.
+
+    From the pose's fitted tip and tilt and its Fisher information
+    (:func:`dice_core.superimposition.tip_tilt_removal`): ``excess``, the
+    tip-tilt excess Procrustes's accuracy carries (pixel, in quadrature);
+    ``bound``, the noise-limited share of it the data allow to remove;
+    ``snr``; and ``measured``, the share the pose's accuracy removes,
+    (accuracy_procrustes^2 - accuracy_pose^2) / excess^2 (NaN without an
+    excess). Without an untilted twin, the removal with the true tip and
+    tilt given is a simulation's only (:func:`dice_core.studies.tip_tilt_removals`).
+    """
+    found = tip_tilt_removal(pose.result, procrustes.result, sigma=pose.accuracy, factor=procrustes.factor)
+    measured = (procrustes.accuracy**2 - pose.accuracy**2) / found.excess**2 if found.excess > 0 else float("nan")
+    return {"excess": found.excess, "bound": found.bound, "snr": found.snr, "measured": float(measured)}
+
+
+def removal_notes(removals: dict) -> list:
+    """One line per mode of :func:`pose_removal`'s numbers, for the table's notes (none without)."""
+    notes = []
+    for mode, r in removals.items():
+        line = (f"{mode}: Procrustes's tip-tilt excess {r['excess']:.1e} pixel, removed {100 * r['measured']:.0f}% "
+                f"(noise-limited bound {100 * r['bound']:.0f}%, the tip-tilt at {r['snr']:.1f} sigma)")
+        if r["bound"] < REMOVAL_BOUND_LOW:
+            line += "; no gain over Procrustes the data can show"
+        notes.append(line)
+    return notes
 
 
 def _latex_value(value, error):
@@ -323,11 +367,12 @@ def _latex_value(value, error):
     return rf"${value / 10**exponent:.2f}\pm{error / 10**exponent:.2f}\e{{{exponent}}}$"
 
 
-def latex_table(rows) -> str:
+def latex_table(rows, *, notes=()) -> str:
     """The accuracies laid out as the paper's table of calibrations: metrology in rows, flat in columns.
 
     Modes that add a calibration beyond the paper's two (``flat+metrology+width``) get a row of their own
-    under the flat column, after the paper's rows.
+    under the flat column, after the paper's rows. ``notes`` (lines of text) follow, each a row across the
+    table's columns (the pose's tip-tilt removal: :func:`removal_notes`).
     """
     cell = {(r["metrology"], r["flat"], r["grouping"]): r for r in rows if r["mode"] in _PAPER_MODES}
     extra = {}
@@ -352,7 +397,9 @@ def latex_table(rows) -> str:
             cells.reverse()
         label = "Metrology + widths" if mode == "flat+metrology+width" else mode.replace("_", r"\_")
         lines.append(f"{label} & {cells[0]} & {cells[1]} " + r"\\")
-    lines += [r"\hline", r"\end{tabular}", ""]
+    lines.append(r"\hline")
+    lines += [r"\multicolumn{3}{l}{\footnotesize " + note.replace("%", r"\%") + r"} \\" for note in notes]
+    lines += [r"\end{tabular}", ""]
     return "\n".join(lines)
 
 
@@ -381,7 +428,7 @@ def _complete_barycentre_residuals(configurations):
     return out
 
 
-def residuals_dataset(datasets: dict, rows, *, residuals: dict, identifiability=None) -> xr.Dataset:
+def residuals_dataset(datasets: dict, rows, *, residuals: dict, identifiability=None, removals=None) -> xr.Dataset:
     """A superimposition's residuals over the selected positions and barycentre residuals over all, per mode.
 
     ``datasets``, ``rows`` and ``residuals`` are one method's and one
@@ -393,7 +440,9 @@ def residuals_dataset(datasets: dict, rows, *, residuals: dict, identifiability=
     ``identifiability`` (mode -> :class:`~dice_core.superimposition.PoseIdentifiability`), the fitted
     tip and tilt and their Cramer-Rao bounds where the data support them
     (NaN where not: no pose accuracy is claimed), and each mode's report in
-    the attributes.
+    the attributes. With ``removals`` (mode -> :func:`pose_removal`), what
+    the pose removes of Procrustes's tip-tilt excess and its noise-limited
+    bound, per mode (NaN for a mode without).
     """
     modes = list(residuals)
     accuracy_p = {r["mode"]: r["accuracy"] for r in rows if r["grouping"] == "position"}
@@ -432,4 +481,15 @@ def residuals_dataset(datasets: dict, rows, *, residuals: dict, identifiability=
                                   f"of the {name} from the data alone; NaN where not identifiable"})
         for mode, report in identifiability.items():
             ds.attrs[f"identifiability {mode}"] = report.summary()
+    for name, key, units, what in (
+            ("tip_tilt_excess", "excess", "pixel", "Procrustes's tip-tilt excess from the pose's fitted tip and tilt, "
+                                                   "in quadrature"),
+            ("removal_measured", "measured", "1", "share of that excess the pose's accuracy removes"),
+            ("removal_bound", "bound", "1", "noise-limited share the pose's Fisher information allows"),
+            ("tip_tilt_snr", "snr", "1", "that excess over its noise part")):
+        if removals:
+            ds[name] = (("mode",), [removals.get(m, {}).get(key, np.nan) for m in modes],
+                        {"units": units, "long_name": what})
+    if removals:  # below it the figure says the data cannot show a gain, as the table does
+        ds.attrs["removal_bound_low"] = REMOVAL_BOUND_LOW
     return ds

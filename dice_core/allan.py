@@ -1,12 +1,16 @@
 """Allan deviations of projected pixel offsets (paper: section "Allan deviations").
 
-The metrology acquisition is cut into consecutive *batches*, each just long
-enough for every pixel to see a full fringe period (the unwrapped fringe
-phase spans 2 pi within the batch). Each batch gives one map of projected
-offsets: the temporal sine fit of appendix B on the batch's frames alone, with
-the frame factors of the global solution (B(t), A(t), phi(t)) held fixed.
-Batches are then averaged in groups of m consecutive batches, for a
-logarithmic set of m from 1 to half the number of batches, and two statistics
+The metrology acquisition is cut into consecutive *batches* of one length,
+the shortest such that any run of that many frames sweeps a full fringe
+period (the unwrapped fringe phase spans 2 pi), so that every pixel sees a
+full period in every batch. Each batch gives one map of projected offsets:
+each pixel's phase fitted to the batch's frames alone, with the frame
+factors of the global solution (B(t), A(t), phi(t)) and the pixel's iota and
+alpha held fixed. (Batches of unequal length, or refitting iota in each,
+put the single-batch deviation up to 1.3x above the floor scaled to a batch:
+docs/metrology.md, "Batches of one length".) Groups of m consecutive
+batches, for a logarithmic set of m from 1 to half the number of batches,
+are fitted as a whole (and, the paper's way, averaged), and two statistics
 are formed per pixel:
 
 - the deviation between group means, the paper's definition: the standard
@@ -39,6 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 from scipy import sparse
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
 from dice_core.fringes import frame_moments, photon_floor
 from dice_core.io import first_chunk
@@ -71,8 +76,8 @@ class AllanError(ValueError):
     """An acquisition that cannot give an Allan deviation (too few frames for two batches...)."""
 
 
-def fringe_batches(phase, *, span: float = 2 * np.pi) -> np.ndarray:
-    """Consecutive batches of frames, each the shortest whose unwrapped phase spans ``span``.
+def fringe_batches(phase, *, span: float = 2 * np.pi, equal_length: bool = True) -> np.ndarray:
+    """Consecutive batches of frames, each of which sweeps ``span`` of fringe phase.
 
     Parameters
     ----------
@@ -80,8 +85,14 @@ def fringe_batches(phase, *, span: float = 2 * np.pi) -> np.ndarray:
         Fringe phase phi(t), rad (wrapped or not; unwrapped here, so that
         consecutive frames must differ by less than pi).
     span : float
-        Phase range a batch must cover, rad: 2 pi makes every pixel see one
-        full fringe period whatever its own phase.
+        Phase range a batch must cover, rad: 2 pi makes every pixel see at
+        least one full fringe period whatever its own phase.
+    equal_length : bool
+        True (the Allan step's): every batch has the same length L, the
+        shortest such that *any* L consecutive frames sweep ``span``; batches
+        tile the frames from the first. False: each batch is the shortest run
+        from the previous one's end that sweeps ``span`` (the lengths then
+        follow the sweep's speed).
 
     Returns
     -------
@@ -93,8 +104,46 @@ def fringe_batches(phase, *, span: float = 2 * np.pi) -> np.ndarray:
     ------
     AllanError
         Fewer than two complete batches.
+
+    Notes
+    -----
+    Why equal lengths: a batch's offset error goes as 1/sqrt(its frames), so
+    the deviation between batches of lengths N_b is that of batches of the
+    mean length times sqrt(mean(1/N_b) mean(N_b)) (Jensen), while a group of
+    many batches averages the lengths out. On the simulator's exponential
+    sweeps the shortest runs range over 43-343 frames and that factor is 1.29
+    for one batch per group, about 1 for large groups: a curve steeper than
+    N^-1/2 (docs/metrology.md, "Batches of one length").
     """
     unwrapped = np.unwrap(np.asarray(phase, dtype=float))
+    if not equal_length:
+        return _shortest_runs(unwrapped, span)
+    n = unwrapped.size
+
+    def sweeps(length):  # does every run of ``length`` frames sweep ``span``? (monotone in length)
+        lo = length // 2  # the filters centre their window: output i covers [i - lo, i - lo + length)
+        top = maximum_filter1d(unwrapped, length)[lo:n - length + lo + 1]
+        bottom = minimum_filter1d(unwrapped, length)[lo:n - length + lo + 1]
+        return bool(np.all(top - bottom >= span))
+
+    if n < 2 or not sweeps(n):
+        raise AllanError(f"{n} frames hold no batch of a full fringe period; at least two are needed for an "
+                         "Allan deviation")
+    shortest, longest = 1, n  # sweeps(longest) holds, sweeps(shortest) does not (a single frame spans 0)
+    while longest - shortest > 1:
+        middle = (shortest + longest) // 2
+        shortest, longest = (shortest, middle) if sweeps(middle) else (middle, longest)
+    count = n // longest
+    if count < 2:
+        raise AllanError(f"{n} frames hold {count} batch(es) of {longest} frames (the shortest length over "
+                         "which any run of frames sweeps a full fringe period); at least two are needed for an "
+                         "Allan deviation")
+    starts = np.arange(count) * longest
+    return np.column_stack([starts, starts + longest])
+
+
+def _shortest_runs(unwrapped, span):
+    """:func:`fringe_batches` with ``equal_length=False``: the shortest runs, one after the other."""
     edges = []
     start, window = 0, 1024
     while start < unwrapped.size:
@@ -117,13 +166,19 @@ def fringe_batches(phase, *, span: float = 2 * np.pi) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _BatchFit:
-    """What turns a batch's sums F'X into its offsets (see :func:`batch_offsets`)."""
+    """What turns a batch's sums F'X into its offsets (see :func:`batch_offsets`).
+
+    With ``iota`` and ``alpha`` (the global solution's), a batch fits each
+    pixel's phase alone; without, appendix B's three linear terms.
+    """
 
     idx: np.ndarray  # flat indices of the fitted pixels
     level: np.ndarray  # (reference - dark) at those pixels, adu
     reference_phase: np.ndarray  # rad
     design: np.ndarray  # affine design over the pixels
     k_norm: float  # rad/pixel
+    iota: np.ndarray = None  # (pixel,) relative intensity, held fixed: the phase-only fit
+    alpha: np.ndarray = None  # (pixel,) relative fringe amplitude, held fixed
     basis: np.ndarray = None  # orthonormal columns spanning ``design``: the affine part removed by a projection
     rotation: np.ndarray = None  # exp(-i reference_phase)
 
@@ -137,22 +192,52 @@ class _BatchFit:
         """F'I (3, pixel of idx) of frames with factors F (frame, 3) and sums F'X: the level folded back in."""
         return FtX + np.outer(F.sum(axis=0), self.level)
 
+    def phases_of_sums(self, FtF, FtI):
+        """Each pixel's fitted phase as a unit complex number exp(i theta) (pixel,), 0 for a pixel without
+        signal, from the normal equations F'F (3, 3), F'I (3, pixel)."""
+        if self.alpha is not None:
+            return np.exp(1j * _phase_only(FtF, FtI, self.iota, self.alpha))
+        G = np.linalg.inv(FtF) @ FtI  # a 3x3 inverse: a fraction of the cost of solve() for 5600 pixels
+        turned = G[2] + 1j * G[1]
+        size = np.abs(turned)
+        return np.where(size > 0, turned / np.where(size > 0, size, 1.0), 0.0)
+
     def offsets_of_sums(self, FtF, FtI):
         """Projected offsets (pixel,) of the least-squares fit with normal equations F'F (3, 3), F'I (3, pixel)."""
-        G = np.linalg.inv(FtF) @ FtI  # a 3x3 inverse: a fraction of the cost of solve() for 5600 pixels
-        # theta - reference as unit complex numbers, (G2 + i G1) / |G| exp(-i reference), wrapped about
-        # their circular mean: the difference is the constant phase the gauge leaves free plus the
-        # batch's small offset changes, and that constant may be near pi (wrapped_about_mean, cheaper)
-        turned = (G[2] + 1j * G[1]) * self.rotation
-        size = np.abs(turned)
-        turned = np.where(size > 0, turned / np.where(size > 0, size, 1.0), 0.0)  # a pixel without signal: 0
+        # theta - reference as unit complex numbers, wrapped about their circular mean: the difference is
+        # the constant phase the gauge leaves free plus the batch's small offset changes, and that
+        # constant may be near pi (wrapped_about_mean, cheaper)
+        turned = self.phases_of_sums(FtF, FtI) * self.rotation
         centre = np.mean(turned)
         delta = np.angle(turned * np.conj(centre / np.abs(centre)))
         return (delta - self.basis @ (self.basis.T @ delta)) / self.k_norm
 
-    def offsets(self, F, FtX):
-        """Projected offsets (pixel,) of a batch with frame factors F (frame, 3) and sums F'X (3, pixel of idx)."""
-        return self.offsets_of_sums(F.T @ F, self.normal_sums(F, FtX))
+
+def _phase_only(FtF, FtI, iota, alpha, *, steps: int = 2):
+    """Each pixel's phase theta (pixel,), rad, fitted alone: the least squares of
+    I - B iota = A alpha sin(theta + phi) over the frames, iota and alpha given.
+
+    The start is the fit of the two fringe terms (alpha sin theta, alpha cos
+    theta) with iota fixed, a linear fit whose phase is within the noise of
+    the optimum; Newton steps on theta with alpha fixed converge
+    quadratically from there (two take a 1e-3 rad start to 1e-12 rad).
+    With v = (sin theta, cos theta), g = dv/dtheta, M the 2x2 F'F of the
+    fringe terms and s = F'(I - B iota) over them, the cost is
+    -2 alpha v.s + alpha^2 v'Mv.
+    """
+    s = FtI[1:] - np.outer(FtF[1:, 0], iota)  # (2, pixel), adu^2
+    M = FtF[1:, 1:]
+    a, b = np.linalg.solve(M, s)
+    theta = np.arctan2(a, b)
+    for _ in range(steps):
+        v = np.stack([np.sin(theta), np.cos(theta)])
+        g = np.stack([v[1], -v[0]])
+        Mv, Mg = M @ v, M @ g
+        gradient = -np.sum(g * s, axis=0) + alpha * np.sum(g * Mv, axis=0)
+        curvature = np.sum(v * s, axis=0) + alpha * (np.sum(g * Mg, axis=0) - np.sum(v * Mv, axis=0))
+        step = gradient / np.where(curvature != 0, curvature, np.inf)
+        theta = theta - np.where(np.isfinite(step), step, 0.0)
+    return theta
 
 
 def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
@@ -194,16 +279,27 @@ def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
 
 @one_blas_thread
 def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows, cols, *,
-                  reference=None, workers: int = 1, return_sums: bool = False, label="baseline"):
+                  pixel_factors=None, reference=None, workers: int = 1, return_sums: bool = False,
+                  label="baseline"):
     """Projected offsets of every pixel in every batch, in one pass over the frames.
 
     For each batch b, with the frame factors F_t = (B, A cos phi, A sin phi)(t)
-    of the global solution, the pixel factors are G_b = (F_b'F_b)^-1 F_b' I_b
-    (the temporal sine fit of appendix B), the batch phase
-    theta_b = atan2(G_b1, G_b2), and the offsets its difference to
-    ``reference_phase``, wrapped about its circular mean (the constant phase
-    the gauge leaves free), divided by |K|, with their affine part removed (as
-    every offset map is defined).
+    of the global solution, each pixel's batch phase theta_b is fitted to the
+    batch's frames I_b: with ``pixel_factors``, theta_b alone, the pixel's
+    iota and alpha held at the global solution's (least squares of
+    I - B iota = A alpha sin(theta + phi)); without, appendix B's temporal
+    sine fit G_b = (F_b'F_b)^-1 F_b' I_b, theta_b = atan2(G_b1, G_b2). The
+    offsets are theta_b's difference to ``reference_phase``, wrapped about
+    its circular mean (the constant phase the gauge leaves free), divided by
+    |K|, with their affine part removed (as every offset map is defined).
+
+    Fitting the phase alone is what a batch can do best: iota and alpha are
+    constant in the model and known sqrt(batches) times better from all the
+    frames, while a batch whose phases do not cover the circle evenly (any
+    batch of an irregular sweep but whole periods of a uniform one) mixes
+    its own iota into its phase. On the simulator's sweeps, with batches of
+    one length, the three-term fit's error is 1.07-1.22x the uniform
+    sqrt(N/2) floor, the phase's alone 1.01-1.05x (docs/metrology.md).
 
     Parameters
     ----------
@@ -224,6 +320,9 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
         Mean wavevector, rad/pixel.
     rows, cols : ndarray (pixel,)
         Pixels to fit.
+    pixel_factors : ndarray (pixel, 3), optional
+        (iota, alpha sin theta, alpha cos theta) of the global solution: given,
+        each batch fits the phase alone with that iota and alpha.
     reference : ndarray (row, col), optional
         Frame subtracted from the chunks by the reader, adu.
     workers : int
@@ -248,7 +347,7 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     fit = _BatchFit(idx=idx, level=(centre - np.ravel(dark))[idx],  # X - d = (X - r) + (r - d)
                     reference_phase=np.asarray(reference_phase, float),
                     design=polynomial_design(cols.astype(float), rows.astype(float), degree=1),
-                    k_norm=float(np.hypot(*k)))
+                    k_norm=float(np.hypot(*k)), **_held(pixel_factors))
     batches = np.asarray(batches)
     lanes = chunks.split(LANES) if hasattr(chunks, "split") else [chunks]
     with lane_executor(workers, len(lanes)) as executor:
@@ -284,23 +383,35 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     return (out, kept) if return_sums else out
 
 
-def batch_floors(frame_factors, batches, *, pixel_factors, gain, read_noise, k_norm) -> np.ndarray:
+def _held(pixel_factors):
+    """The iota and alpha a phase-only :class:`_BatchFit` holds, from pixel factors (pixel, 3); none without."""
+    if pixel_factors is None:
+        return {}
+    pixel_factors = np.asarray(pixel_factors, float)
+    return {"iota": pixel_factors[:, 0], "alpha": np.hypot(pixel_factors[:, 1], pixel_factors[:, 2])}
+
+
+def batch_floors(frame_factors, batches, *, pixel_factors, gain, read_noise, k_norm,
+                 phase_only: bool = True) -> np.ndarray:
     """1-sigma photon-noise error of each batch's offset of each pixel, pixel (batch, pixel).
 
-    The exact error of the unweighted temporal fit on the batch's own frames
+    The exact error of the unweighted fit on the batch's own frames
     (:func:`dice_core.fringes.photon_floor`, from the third moments of the
-    batch's frame factors): unlike :func:`photon_limit`, it knows how unevenly
-    a short batch of an irregular sweep samples the phase.
+    batch's frame factors), of the phase alone (``phase_only``, as
+    :func:`batch_offsets` with pixel factors) or of the three linear terms:
+    unlike :func:`photon_limit`, it knows how unevenly a batch of an
+    irregular sweep samples the phase.
     """
     out = np.empty((len(batches), pixel_factors.shape[0]))
     for b, (start, stop) in enumerate(batches):
         FtF, third = frame_moments(frame_factors[start:stop])
-        out[b] = photon_floor(pixel_factors, FtF, third=third, gain=gain, read_noise=read_noise, k_norm=k_norm)
+        out[b] = photon_floor(pixel_factors, FtF, third=third, gain=gain, read_noise=read_noise, k_norm=k_norm,
+                              phase_only=phase_only)
     return out
 
 
 def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes, *, pixel_factors, gain,
-               read_noise, good, weights):
+               read_noise, good, weights, phase_only: bool = True):
     """Deviations and photon-noise limits of consecutive groups of batches, each group fitted as a whole.
 
     A group's normal equations are the sums of its batches' (F'F and F'I from
@@ -322,7 +433,8 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
     sizes : sequence of int
         Batches per group (:func:`group_sizes`).
     pixel_factors : ndarray (pixel, 3)
-        (iota, alpha sin theta, alpha cos theta) of the global solution, for the floors.
+        (iota, alpha sin theta, alpha cos theta) of the global solution: the floors', and with
+        ``phase_only`` the iota and alpha each group's phase is fitted with.
     gain : float
         e-/adu.
     read_noise : ndarray (pixel,)
@@ -331,6 +443,9 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
         Pixels with an offset in every batch.
     weights : ndarray (pixel, block)
         Block averages (:func:`block_weights`).
+    phase_only : bool
+        Fit each group's phases alone (as :func:`batch_offsets` with pixel
+        factors); False: the three linear terms.
 
     Returns
     -------
@@ -346,7 +461,7 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
     """
     fit = _BatchFit(idx=None, level=None, reference_phase=np.asarray(reference_phase, float),
                     design=polynomial_design(np.asarray(cols, float), np.asarray(rows, float), degree=1),
-                    k_norm=float(np.hypot(*k)))
+                    k_norm=float(np.hypot(*k)), **(_held(pixel_factors) if phase_only else {}))
     moments = [frame_moments(frame_factors[start:stop]) for start, stop in batches]
     # running sums of the small moments: a group's are two differences. The F'I are summed group by
     # group instead (a running sum would hold another float64 copy of them all).
@@ -363,7 +478,8 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
             FtF = cum_FtF[hi] - cum_FtF[lo]
             group_offsets[g, good] = fit.offsets_of_sums(FtF, sums[lo:hi].sum(axis=0, dtype=np.float64))[good]
             variance[g, good] = photon_floor(pixel_factors, FtF, third=cum_third[hi] - cum_third[lo], gain=gain,
-                                             read_noise=read_noise, k_norm=fit.k_norm)[good] ** 2
+                                             read_noise=read_noise, k_norm=fit.k_norm,
+                                             phase_only=phase_only)[good] ** 2
         blocks = group_offsets @ weights
         out["deviation"].append(np.where(good, _deviation_of_means(group_offsets), np.nan))
         out["allan"].append(np.where(good, _allan_of_means(group_offsets), np.nan))
@@ -514,9 +630,7 @@ class AllanStatistics:
     photon_limit_pixel_paper, photon_limit_block_paper : ndarray (size,)
         The paper's formula (:func:`photon_limit`).
     slope : float
-        Log-log slope of ``deviation_mean`` against ``n_frames``.
-    slope_over_even_groups : bool
-        Whether ``slope`` is taken over the groups of 4 batches or more only.
+        Log-log slope of ``deviation_mean`` against ``n_frames``, over every group size.
     sample_pixel : ndarray (sample,)
         Pixels (indices into ``rows``, ``cols``) whose curves ``sample_deviation`` (size, sample) holds.
     batch_start, batch_frames : ndarray (batch,)
@@ -528,6 +642,8 @@ class AllanStatistics:
     photon_limit_pixel_first_frame : ndarray (size,), optional
         With a first frame: the limit from the noise measured on it, and ``first_frame_noise`` (adu).
     first_frame_noise : float, optional
+    photon_limit_pixel_global : ndarray (size,), optional
+        With the global solution's floors: their rms scaled to each group's frames, sqrt(N_total / N).
     """
 
     group_size: np.ndarray
@@ -547,7 +663,6 @@ class AllanStatistics:
     photon_limit_pixel_paper: np.ndarray
     photon_limit_block_paper: np.ndarray
     slope: float
-    slope_over_even_groups: bool
     sample_pixel: np.ndarray
     sample_deviation: np.ndarray
     batch_start: np.ndarray
@@ -558,11 +673,12 @@ class AllanStatistics:
     slope_batch_means: float | None = None
     photon_limit_pixel_first_frame: np.ndarray | None = None
     first_frame_noise: float | None = None
+    photon_limit_pixel_global: np.ndarray | None = None
 
 
 def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, amplitude, iota, alpha, read_noise, k,
                      block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None,
-                     first_frame=None) -> AllanStatistics:
+                     first_frame=None, global_floor=None) -> AllanStatistics:
     """Deviations, their white-noise references and photon-noise limits from the batch offsets (arrays only).
 
     Parameters are those of :func:`allan_dataset`, with the detector's
@@ -619,14 +735,12 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
         first["photon_limit_pixel_first_frame"], first["first_frame_noise"] = first_frame_limit(
             n_frames, pixels[0], amplitude=amplitude, alpha=pixels[1], gain=gain, read_noise=pixels[2], k_norm=k_norm)
 
-    def log_slope(values, use=None):
-        use = np.ones(len(sizes), bool) if use is None else use
-        return float(np.polyfit(np.log(n_frames[use]), np.log(values[use]), 1)[0]) if use.sum() > 1 else np.nan
+    def log_slope(values):
+        return float(np.polyfit(np.log(n_frames), np.log(values), 1)[0]) if len(sizes) > 1 else np.nan
 
-    # A group fitted as a whole samples the phase evenly once it holds a few periods: from 4 batches on
-    # its deviation falls as N^-1/2 (slope -0.5 for white noise); below, the uneven one-period batches
-    # of an exponential sweep make it steeper.
-    even = sizes >= 4 if groups is not None and np.sum(sizes >= 4) > 1 else None
+    if global_floor is not None:  # the whole acquisition's floors (pixel,) and its frames
+        floor, total = global_floor
+        first["photon_limit_pixel_global"] = np.sqrt(np.mean(floor[good] ** 2) * total / n_frames)
     mean = _mean_variance_root(per_pixel)
     if batch_means:
         batch_means["slope_batch_means"] = log_slope(batch_means["deviation_mean_batch_means"])
@@ -641,7 +755,7 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
         photon_limit_pixel=limit_pixel, photon_limit_block=limit_block,
         photon_limit_pixel_paper=np.sqrt(np.sum(paper**2, axis=1) / good.sum()),
         photon_limit_block_paper=np.sqrt(np.mean(paper**2 @ weights**2, axis=1)),
-        slope=log_slope(mean, even), slope_over_even_groups=even is not None,
+        slope=log_slope(mean),
         sample_pixel=sample, sample_deviation=per_pixel[:, sample],
         batch_start=batches[:, 0], batch_frames=batches[:, 1] - batches[:, 0], batch_offset=offsets,
         **batch_means, **first)
@@ -649,7 +763,7 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
 
 def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, amplitude, iota, alpha, read_noise,
                   k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None,
-                  first_frame=None) -> xr.Dataset:
+                  first_frame=None, global_floor=None) -> xr.Dataset:
     """The ``allan/<baseline>.nc`` product from the batch offsets.
 
     The statistics are :func:`allan_statistics`'s; this adds the maps, units
@@ -688,6 +802,12 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         adu: given, the limit from the noise measured on it
         (:func:`first_frame_limit`) is added as
         ``photon_limit_pixel_first_frame``, with ``first_frame_noise``.
+    global_floor : (ndarray (pixel,), int), optional
+        The global solution's photon_noise_floor at ``rows``, ``cols`` (pixel)
+        and the frames it was fitted on: given, their rms scaled to each
+        group, sqrt(frames / n_frames), is added as
+        ``photon_limit_pixel_global`` (the reference every group's deviation
+        should meet: docs/metrology.md).
 
     Returns
     -------
@@ -702,12 +822,13 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         and lengths. With ``groups``, also ``deviation_mean_batch_means``,
         ``photon_limit_pixel_batch_means`` (the groups as means of batch fits).
         With ``first_frame``, also ``photon_limit_pixel_first_frame``
-        (n_frames) and ``first_frame_noise`` (scalar, adu).
+        (n_frames) and ``first_frame_noise`` (scalar, adu). With
+        ``global_floor``, ``photon_limit_pixel_global`` (n_frames).
     """
     statistics = allan_statistics(offsets, floors, batches, rows, cols, gain=detector.gain, level=level,
                                   amplitude=amplitude, iota=iota, alpha=alpha, read_noise=read_noise, k=k,
                                   block=block, seed=seed, n_sample_pixels=n_sample_pixels, groups=groups,
-                                  first_frame=first_frame)
+                                  first_frame=first_frame, global_floor=global_floor)
     return statistics_dataset(statistics, rows, cols, detector.shape, block=block)
 
 
@@ -743,8 +864,9 @@ def _allan_variables(statistics: AllanStatistics, block: int) -> dict:
                                                        "pixels"),
         "first_frame_noise": ((), "adu", "noise of one frame from the first frame's signal f (minus dark), "
                                          "sqrt(f/g+sr^2), rms over pixels"),
-        "slope": ((), "1", "log-log slope of deviation_mean against n_frames" + (
-            ", over groups of 4 batches or more" if statistics.slope_over_even_groups else "")),
+        "photon_limit_pixel_global": (n, "pixel", "the global solution's photon_noise_floor scaled to the group, "
+                                                  "rms over pixels times sqrt(frames of the solution / n_frames)"),
+        "slope": ((), "1", "log-log slope of deviation_mean against n_frames"),
         "slope_batch_means": ((), "1", "log-log slope of deviation_mean_batch_means against n_frames"),
         "sample_pixel": (("sample",), "1", "index of pixels drawn in the figure"),
         "sample_deviation": (("n_frames", "sample"), "pixel", "deviation of the sample pixels"),
@@ -813,8 +935,9 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
     if stream.n_frames != phase.size:
         raise AllanError(f"{label}: the acquisition has {stream.n_frames} frames, its solution {phase.size}")
     batches = fringe_batches(phase)
-    log.info("%s: %d batches of %.0f frames on average (one fringe period each), %d frames left over",
-             label, len(batches), np.mean(batches[:, 1] - batches[:, 0]), phase.size - batches[-1, 1])
+    log.info("%s: %d batches of %d frames (any %d frames sweep a fringe period), %d frames left over",
+             label, len(batches), batches[0, 1] - batches[0, 0], batches[0, 1] - batches[0, 0],
+             phase.size - batches[-1, 1])
     offsets_map = metrology["projected_offset"].values
     rows, cols = np.nonzero(np.isfinite(offsets_map))
     k = np.array([float(metrology["kx"]), float(metrology["ky"])])
@@ -828,12 +951,13 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
     reference = head.frames.mean(axis=0)
     first_frame = (head.frames[0].astype(np.float64) - np.nan_to_num(dark["dark"].values))[rows, cols]
     del head
+    iota, alpha = metrology["iota"].values[rows, cols], metrology["alpha"].values[rows, cols]
+    pixel_factors = np.column_stack([iota, alpha * np.sin(reference_phase), alpha * np.cos(reference_phase)])
     offsets, sums = batch_offsets(stream.centred(reference), batches, frame_factors,
                                   np.nan_to_num(dark["dark"].values), reference_phase, k, rows, cols,
-                                  reference=reference, workers=workers, return_sums=True, label=label)
-    iota, alpha = metrology["iota"].values[rows, cols], metrology["alpha"].values[rows, cols]
+                                  pixel_factors=pixel_factors, reference=reference, workers=workers,
+                                  return_sums=True, label=label)
     read_noise = np.nan_to_num(dark["noise"].values[rows, cols])
-    pixel_factors = np.column_stack([iota, alpha * np.sin(reference_phase), alpha * np.cos(reference_phase)])
     floors = batch_floors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
                           read_noise=read_noise, k_norm=np.hypot(*k))
     sizes = group_sizes(len(batches))
@@ -842,7 +966,11 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
                         pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise, good=good,
                         weights=block_weights(rows, cols, good=good, block=block))
     del sums  # the groups are reduced: only the batch offsets go on
+    global_floor = None
+    if "photon_noise_floor" in metrology:  # the whole acquisition's floor, for the curves' reference
+        global_floor = (metrology["photon_noise_floor"].values[rows, cols], phase.size)
     log.info("%s: %d group sizes fitted as a whole, from %d to %d batches", label, len(sizes), sizes[0], sizes[-1])
     return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),
                          amplitude=float(np.mean(amplitude)), iota=iota, alpha=alpha, read_noise=read_noise, k=k,
-                         block=block, groups=groups, first_frame=first_frame)
+                         block=block, groups=groups, first_frame=first_frame,
+                         global_floor=global_floor)

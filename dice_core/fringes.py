@@ -311,7 +311,7 @@ def frame_moments(F):
     return F.T @ F, third
 
 
-def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm):
+def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bool = False):
     """Per-pixel 1-sigma offset error from photon and read noise for the unweighted temporal fit.
 
     Sample variance (adu^2) of pixel p at frame t: F_t.G_p / g + sigma_r^2; so
@@ -319,12 +319,21 @@ def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm):
     M_k = sum_t F_tk F_t F_t'. Then theta = atan2(g2, g3) and
     delta = theta / |K| propagate it linearly: var(theta) = u' [...] u with
     u = (F'F)^-1 d theta / dG, formed without the per-pixel 3x3 covariances.
+
+    With ``phase_only``, the error of a fit of the pixel's phase alone, its
+    iota and alpha known (:func:`dice_core.allan.batch_offsets`): the model's
+    derivative along theta is J = dG/dtheta = (0, alpha cos theta,
+    -alpha sin theta), the linearised estimate theta_hat - theta =
+    J'F'n / (J'F'F J), so u = J / (J'F'F J).
     """
-    inv = np.linalg.inv(FtF)
     a, b = G_phys[:, 1], G_phys[:, 2]  # alpha sin theta, alpha cos theta
-    r2 = a**2 + b**2
-    gradient = np.column_stack([np.zeros_like(a), b / r2, -a / r2])  # d theta / d G
-    u = gradient @ inv  # (F'F)^-1 is symmetric
+    if phase_only:
+        J = np.column_stack([np.zeros_like(a), b, -a])
+        u = J / np.einsum("pi,ij,pj->p", J, FtF, J)[:, None]
+    else:
+        r2 = a**2 + b**2
+        gradient = np.column_stack([np.zeros_like(a), b / r2, -a / r2])  # d theta / d G
+        u = gradient @ np.linalg.inv(FtF)  # (F'F)^-1 is symmetric
     outer = (u[:, :, None] * u[:, None, :]).reshape(-1, 9)
     photon = np.sum(G_phys / gain * (outer @ third.reshape(3, 9).T), axis=1)  # sum_k G_pk/g u'M_k u
     read = np.asarray(read_noise) ** 2 * (outer @ FtF.ravel())

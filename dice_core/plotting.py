@@ -193,10 +193,13 @@ def allan_figure(ds, *, title):
     blocks (blue), each group fitted as a whole; the pixels' rms with groups
     as means of their batch fits, the paper's way (grey, with its limit); white
     noise of matched single-batch scatter (dotted); the photon-noise limits
-    from the fits' own errors (dashed) and the paper's formula (dash-dotted);
-    and, where the product holds ``photon_limit_pixel_first_frame``, the
-    paper's red line: the pixels' limit from the noise measured on the first
-    frame (:func:`dice_core.allan.first_frame_limit`).
+    from the fits' own errors (dashed: the batches' and groups' own floors)
+    and the paper's formula (dash-dotted); where the product holds
+    ``photon_limit_pixel_global``, the global solution's floor scaled to each
+    group (thin grey line); and, where it holds
+    ``photon_limit_pixel_first_frame``, the paper's red line: the pixels'
+    limit from the noise measured on the first frame
+    (:func:`dice_core.allan.first_frame_limit`).
     """
     fig, ax = plt.subplots(figsize=(8, 7.5), layout="constrained")
     n = ds["n_frames"].values
@@ -219,6 +222,9 @@ def allan_figure(ds, *, title):
         ax.loglog(n, ds[f"photon_limit_{kind}"].values, color=colour, ls="--", lw=1, label=f"photon limit, {kind}s")
         ax.loglog(n, ds[f"photon_limit_{kind}_paper"].values, color=colour, ls="-.", lw=0.8, alpha=0.7,
                   label=f"paper's photon limit, {kind}s")
+    if "photon_limit_pixel_global" in ds:
+        ax.loglog(n, ds["photon_limit_pixel_global"].values, color="0.3", lw=0.8, zorder=1.4,
+                  label="global solution's floor scaled to the group, pixels")
     if "photon_limit_pixel_first_frame" in ds:
         noise = f", {float(ds['first_frame_noise']):.3g} adu rms" if "first_frame_noise" in ds else ""
         # under the other curves (zorder), so that the paper's dash-dotted limit it nearly equals shows on it
@@ -232,8 +238,8 @@ def allan_figure(ds, *, title):
         lambda value, _: f"{value:g}" if round(value / 10.0 ** np.floor(np.log10(value)))
         in _labelled_mantissas(np.log10(ax.get_xlim()[1] / ax.get_xlim()[0])) else ""))
     ax.set_ylabel("deviation of projected offsets [pixel]")
-    ax.set_title(f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (one fringe period) "
-                 f"on average", fontsize=9)
+    ax.set_title(f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (any that many "
+                 f"frames sweep a fringe period); each fits the pixels' phases alone", fontsize=9)
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
     fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=2)  # off the curves
     fig.suptitle(title, fontsize=11)
@@ -376,13 +382,27 @@ def _star_style(s, central):
     return ("black", f"star {s} (central)") if s == central else (f"C{s}", f"star {s}")
 
 
+def _removal_line(ds, mode) -> str:
+    """A pose product's line for a mode's panel: what the pose removes of Procrustes's tip-tilt excess and the
+    noise-limited bound (:func:`dice_core.accuracies.pose_removal`); empty elsewhere."""
+    if "removal_bound" not in ds or not np.isfinite(float(ds["removal_bound"].sel(mode=mode))):
+        return ""
+    bound = float(ds["removal_bound"].sel(mode=mode))
+    return (f"\nProcrustes's tip-tilt excess {float(ds['tip_tilt_excess'].sel(mode=mode)):.1e} pixel: removed "
+            f"{100 * float(ds['removal_measured'].sel(mode=mode)):.0f}%, noise-limited bound {100 * bound:.0f}%"
+            + ("; no gain the data can show" if bound < float(ds.attrs.get("removal_bound_low", 0.5)) else ""))
+
+
 def procrustes_figure(ds, *, title="Procrustes residuals"):
     """Residuals of every star (x plain, y dotted) against the position, one panel per mode (pixel).
 
     The dashed lines are +-sigma, sigma the rms of the residuals shown (over
     the positions, stars and both axes: the paper's dotted lines); the title
     gives sigma and the mode's corrected accuracy (sigma corrected for what
-    the superimposition absorbs). The central star is black.
+    the superimposition absorbs). The central star is black. A pose product
+    adds, per mode, what the pose removes of Procrustes's tip-tilt excess
+    and the noise-limited bound its Fisher information allows
+    (:func:`dice_core.accuracies.pose_removal`).
     """
     modes = list(ds["mode"].values)
     fig, axes = plt.subplots(len(modes), 1, figsize=(9, 2.9 * len(modes)), sharex=True, squeeze=False,
@@ -401,7 +421,7 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
             ax.axhline(sign * sigma, color="0.35", ls="--", lw=0.8, gid="sigma")
         ax.set_ylabel("residual [pixel]")
         ax.set_title(f"{mode}: dashed ±σ, σ = {sigma:.2e} pixel (rms of these residuals)\ncorrected accuracy "
-                     f"{accuracy:.2e} pixel; x plain, y dotted", fontsize=9)  # two lines: the longest mode fits
+                     f"{accuracy:.2e} pixel; x plain, y dotted{_removal_line(ds, mode)}", fontsize=9)  # the longest mode fits
     fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=5)  # off the data
     axes[-1, 0].set_xlabel("position index")
     _integer_ticks(axes[-1, 0].xaxis)
@@ -801,22 +821,25 @@ def reproduction_pdf(path, pages, *, title: str, summary_lines=()):
 
 
 def prf_widths_figure(ds, detector, *, title="PRF widths from the fringe contrast"):
-    """Width maps (relative to the assumed kernel's width) and their 1-sigma errors along x and y.
+    """Width maps (relative to their mean width) and their 1-sigma pixel-scale errors along x and y.
 
     ``ds`` is a ``calibration/prf.nc`` dataset; top row: width - mean_width in
-    1e-3 pixel; bottom row: error_width in 1e-3 pixel. A direction without
-    a baseline stays blank.
+    1e-3 pixel, the mean with its error in the title; bottom row:
+    error_width_pixel (photon noise and the kernel shape's uncertainty in the
+    deviations' scale) in 1e-3 pixel. A direction without a baseline stays
+    blank.
     """
-    mean = float(ds["mean_width"])
     fig, axes = plt.subplots(2, 2, figsize=(11.2, 9.2), constrained_layout=True)
     for j, axis in enumerate("xy"):
-        width, error = ds[f"width_{axis}"].values, ds[f"error_width_{axis}"].values
+        mean, mean_error = float(ds[f"mean_width_{axis}"]), float(ds[f"error_mean_width_{axis}"])
+        width, error = ds[f"width_{axis}"].values, ds[f"error_width_pixel_{axis}"].values
         spread = float(np.sqrt(np.nanmean((width - mean) ** 2))) if np.isfinite(width).any() else float("nan")
         err = float(np.sqrt(np.nanmean(error**2))) if np.isfinite(error).any() else float("nan")
         _show_map(axes[0, j], fig, width - mean, detector, scale=1e3, units="width - mean [1e-3 pixel]",
-                  symmetric=True, title=f"width along {axis} minus {mean:.4f} pixel, rms {spread:.2e} pixel")
+                  symmetric=True, title=f"width along {axis} minus its mean ({mean:.4f} pixel +- {mean_error:.4f} pixel); "
+                                        f"rms {spread:.2e} pixel")
         _show_map(axes[1, j], fig, error, detector, scale=1e3, units="1-sigma error [1e-3 pixel]", symmetric=False,
-                  title=f"its photon-noise error, rms {err:.2e} pixel")
+                  title=f"its error (photon noise, kernel shape), mean aside, rms {err:.2e} pixel")
     chi2 = float(ds["chi2"])
     fig.suptitle(f"{title} ({', '.join(map(str, ds['baseline'].values))}; chi2/dof between baselines "
                  f"{chi2:.2f})", fontsize=11)

@@ -147,10 +147,22 @@ _PRODUCTS = [
     Product("prf", "calibration/prf.nc", "prf_widths", "netcdf", stable=True, stage="metrology",
             meaning="each pixel's PRF width from the fringe contrast of every baseline (docs/centroids.md, "
                     "\"PRF widths\")",
-            variables=(_V("width_x", RC, "pixel", "PRF standard deviation along x"),
+            variables=(_V("width_x", RC, "pixel", "PRF standard deviation along x: the mean width plus the pixel's "
+                                                "pixel-scale deviation (smooth variations are not measured)"),
                        _V("width_y", RC, "pixel", "PRF standard deviation along y"),
-                       _V("error_width_x", RC, "pixel", "1-sigma error of width_x"),
-                       _V("error_width_y", RC, "pixel", "1-sigma error of width_y"))),
+                       _V("error_width_x", RC, "pixel", "1-sigma error of width_x: photon noise and the kernel "
+                                                      "shape's uncertainty, which scales the deviations and sets "
+                                                      "the mean"),
+                       _V("error_width_y", RC, "pixel", "1-sigma error of width_y"),
+                       _V("error_width_pixel_x", RC, "pixel", "1-sigma error of width_x minus its mean over the map"),
+                       _V("error_width_pixel_y", RC, "pixel", "1-sigma error of width_y minus its mean over the map"),
+                       _V("variance_deviation_x", RC, "pixel2", "PRF variance along x minus the mean one, pixel-scale "
+                                                              "part: what the contrast measures, what the width "
+                                                              "mode's centroids use"),
+                       _V("variance_deviation_y", RC, "pixel2", "the same along y"),
+                       _V("mean_width_x", "", "pixel", "mean PRF standard deviation along x over the kernels the "
+                                                     "two periods allow, with its error error_mean_width_x"),
+                       _V("mean_width_y", "", "pixel", "the same along y, error error_mean_width_y"))),
     Product("offsets", "calibration/offsets_{pair}.nc", "deproject_offsets", "netcdf", stable=True,
             stage="metrology", meaning="x and y pixel offsets from a pair of baselines",
             variables=(_V("dx", RC, "pixel", "pixel offset along x (columns)"),
@@ -198,8 +210,15 @@ _PRODUCTS = [
                        _V("accuracy", "mode", "pixel", "accuracy over positions"))),
     Product("model_residuals", "tables/{model}_residuals.nc", "accuracy_table", "netcdf", stage="astrometry",
             meaning="the residuals of another superimposition of astrometry.superimposition (projective, pose: "
-                    "with the pose's tip and tilt where the data identify them)",
-            variables=(_V("residual", "mode position star axis", "pixel", "residual after the superimposition"),)),
+                    "with the pose's tip and tilt where the data identify them, and what it removes of "
+                    "Procrustes's tip-tilt excess beside the noise-limited bound)",
+            variables=(_V("residual", "mode position star axis", "pixel", "residual after the superimposition"),
+                       _V("removal_measured", "mode", "1", "pose: share of Procrustes's tip-tilt excess its accuracy "
+                                                          "removes", optional=True),
+                       _V("removal_bound", "mode", "1", "pose: the noise-limited share its Fisher information allows",
+                          optional=True),
+                       _V("tip_tilt_excess", "mode", "pixel", "pose: Procrustes's tip-tilt excess from the fitted tip "
+                                                            "and tilt", optional=True))),
     # ------------------------------------------------------------------ the paper's simulations and comparison
     Product("sweep_point", "{sweep}/{point}/point.nc", "sweep_point", "netcdf", base="sweeps", stage="sweeps",
             meaning="one point of a configured simulation study (config sweeps)"),

@@ -419,7 +419,7 @@ def flat_metrology_centroids(settings: dict, *, method: str = "gaussian", half_s
 
 
 def tip_tilt(settings: dict, *, models=("procrustes", "projective", "pose"), trials: int = 1000,
-             method: str = "gaussian") -> xr.Dataset:
+             method: str = "gaussian", pose_off_axis_deg: float | None = None) -> xr.Dataset:
     """Each superimposition's flat+metrology accuracy under the bench's tip-tilt, its excess, the pose's bounds.
 
     The bench (:data:`TIP_TILT_BENCH` with a point's overrides) is simulated
@@ -429,18 +429,24 @@ def tip_tilt(settings: dict, *, models=("procrustes", "projective", "pose"), tri
     For the pose model also its identifiability (:func:`dice_core.superimposition.pose_identifiability`):
     the tip and tilt SNR, whether identifiable (1/0), their rms Cramer-Rao
     bounds from the data alone and with the field's direction known, and the
-    rms of fitted minus true tip and tilt (rad).
+    rms of fitted minus true tip and tilt (rad); and what it removes of
+    Procrustes's excess (:func:`tip_tilt_removals`). ``pose_off_axis_deg``:
+    the pose's nominal off-axis angle, degrees, where it is not the bench's
+    (the simulated one unless set).
     """
     from dice_core import accuracies, superimposition
 
     twin = apply_overrides(settings, {"stars.tip_tilt_pv": 0.0})
     configurations, truth, geometry = flat_metrology_centroids(settings, method=method)
     untilted, *_ = flat_metrology_centroids(twin, method=method)
+    if pose_off_axis_deg is not None:
+        geometry = dataclasses.replace(geometry, off_axis=np.radians(pose_off_axis_deg))
     ds = xr.Dataset(coords={"model": list(models)})
-    accuracy, error, excess = [], [], []
+    accuracy, error, excess, results = [], [], [], {}
     for model in models:
         result = accuracies.accuracy(configurations, model=model, geometry=geometry, trials=trials)
         reference = accuracies.accuracy(untilted, model=model, geometry=geometry, trials=trials)
+        results[model] = (result, reference)
         accuracy.append(result.accuracy)
         error.append(result.error)
         excess.append(result.accuracy**2 - reference.accuracy**2)
@@ -465,8 +471,65 @@ def tip_tilt(settings: dict, *, models=("procrustes", "projective", "pose"), tri
     ds["error"] = (("model",), error, {"units": "pixel", "long_name": "its 1-sigma Monte Carlo error"})
     ds["excess_variance"] = (("model",), excess, {"units": "pixel^2", "long_name": "accuracy^2 minus the untilted "
                                                   "twin's accuracy^2"})
-    ds.attrs.update({"method": method, "positions": configurations.shape[0]})
+    if "pose" in results and "procrustes" in results:
+        removals = tip_tilt_removals(results["procrustes"], results["pose"], tilted=configurations, untilted=untilted,
+                                     true_tip_tilt=truth["stage_rotation"].values[:, :2], trials=trials)
+        for name, (value, what) in removals.items():
+            ds[name] = ((), value, {"units": "1", "long_name": what})
+    ds.attrs.update({"method": method, "positions": configurations.shape[0],
+                     "pose_off_axis_deg": float(np.degrees(geometry.off_axis))})
     return ds
+
+
+def tip_tilt_removals(procrustes, pose, *, tilted, untilted, true_tip_tilt, trials: int = 1000) -> dict:
+    """What the pose removes of Procrustes's tip-tilt excess on twins, beside what the data allow (issue 27).
+
+    Parameters
+    ----------
+    procrustes, pose : (Accuracy, Accuracy)
+        Each model's accuracies of the tilted twin and of the untilted one
+        (:func:`dice_core.accuracies.accuracy`).
+    tilted, untilted : ndarray (position, star, 2)
+        The twins' centroids, pixel: the tilted minus the untilted is the tip-tilt's true signature (the
+        twins share their noise).
+    true_tip_tilt : ndarray (position, 2)
+        The simulated tip and tilt, rad.
+
+    Returns
+    -------
+    dict
+        Name -> (value, meaning): ``pose_removal``, the measured share,
+        1 - pose excess / Procrustes excess; ``pose_removal_true_tip_tilt``,
+        the share removed when the true tip and tilt are given (the tilted
+        twin corrected by the pose model's signature of them, with the pose's
+        other fitted parameters, then Procrustes); ``pose_removal_bound``,
+        the noise-limited bound from the pose's Fisher information on the
+        twins' true signature, and ``pose_removal_bound_data`` from the data
+        alone (:func:`dice_core.superimposition.tip_tilt_removal`);
+        ``pose_tip_tilt_snr``; ``pose_removal_over_bound``.
+    """
+    from dice_core import accuracies, superimposition
+
+    (p_tilted, p_untilted), (q_tilted, q_untilted) = procrustes, pose
+    excess = p_tilted.accuracy**2 - p_untilted.accuracy**2
+    measured = 1 - (q_tilted.accuracy**2 - q_untilted.accuracy**2) / excess
+    given = tilted - superimposition.tip_tilt_signature(q_tilted.result, true_tip_tilt)
+    oracle = 1 - (accuracies.accuracy(given, model="procrustes", trials=trials).accuracy**2
+                  - p_untilted.accuracy**2) / excess
+    options = dict(sigma=q_tilted.accuracy, factor=p_tilted.factor)
+    exact = superimposition.tip_tilt_removal(q_tilted.result, p_tilted.result, signature=tilted - untilted, **options)
+    data = superimposition.tip_tilt_removal(q_tilted.result, p_tilted.result, **options)
+    return {"pose_removal": (measured, "share of Procrustes's tip-tilt excess the pose removes, measured on the "
+                                       "twins"),
+            "pose_removal_true_tip_tilt": (oracle, "share removed with the true tip and tilt given (the pose "
+                                                   "model's signature of them subtracted, then Procrustes)"),
+            "pose_removal_bound": (exact.bound, "noise-limited share from the pose's Fisher information, the twins' "
+                                                "true signature"),
+            "pose_removal_bound_data": (data.bound, "noise-limited share from the pose's Fisher information, the "
+                                                    "data alone"),
+            "pose_tip_tilt_snr": (exact.snr, "the tip-tilt signature Procrustes leaves over its noise part"),
+            "pose_removal_over_bound": (measured / exact.bound if exact.bound > 0 else np.nan,
+                                        "measured share over the noise-limited bound")}
 
 
 # --------------------------------------------------------------------------- sweeps

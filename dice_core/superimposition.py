@@ -37,6 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from dice_core.parallel import one_blas_thread
+
 __all__ = [
     "AstrometryError",
     "check_configurations",
@@ -57,6 +59,9 @@ __all__ = [
     "PoseUnidentifiable",
     "PoseIdentifiability",
     "pose_identifiability",
+    "tip_tilt_signature",
+    "TipTiltRemoval",
+    "tip_tilt_removal",
 ]
 
 
@@ -923,6 +928,7 @@ def _constrained_covariance(jacobian, constraints, sigma):
     return covariance, values, vectors, z, int(np.sum(~keep))
 
 
+@one_blas_thread  # its SVDs, like accuracies.accuracy's
 def pose_identifiability(result: PoseResult, *, sigma: float | None = None, snr_min: float = 3.0,
                          weak: int = 3) -> PoseIdentifiability:
     """Fisher information of the pose fit on the actual data: what 5 stars constrain, and how well.
@@ -1005,3 +1011,95 @@ def pose_identifiability(result: PoseResult, *, sigma: float | None = None, snr_
                            f"direction known)")
     return PoseIdentifiability(float(sigma), crlb, crlb_nominal, crlb_known, snr, inflation, described, deficient,
                                identifiable, reasons, result.poses[:, 3].copy(), result.poses[:, 4].copy())
+
+
+# ----- how much of Procrustes's tip-tilt excess the data allow to remove
+
+def tip_tilt_signature(result: PoseResult, tip_tilt=None) -> np.ndarray:
+    """What the tip and tilt move the stars by: the pose model's positions with them minus without (tip and
+    tilt zero, everything else as fitted), pixel (position, star, 2). ``tip_tilt`` (position, 2), rad:
+    those instead of the fitted ones (e.g. a simulation's true ones, their mean removed as the fit's is)."""
+    poses = result.poses.copy()
+    if tip_tilt is not None:
+        poses[:, 3:5] = np.asarray(tip_tilt, float) - np.mean(tip_tilt, axis=0)
+    flat = poses.copy()
+    flat[:, 3:5] = 0.0
+    return (pose_project(result.directions, poses, result.geometry)
+            - pose_project(result.directions, flat, result.geometry))
+
+
+@dataclass
+class TipTiltRemoval:
+    """What the data allow of removing Procrustes's tip-tilt excess (:func:`tip_tilt_removal`).
+
+    Attributes
+    ----------
+    signal : float
+        The tip-tilt signature's part that Procrustes leaves, sum of squares over the coordinates, pixel^2
+        (from the fitted tip and tilt, less its expected noise part, or from a signature given).
+    noise : float
+        The part of it that the tip and tilt's Fisher uncertainty makes, in expectation, pixel^2.
+    bound : float
+        signal / (signal + noise): the share of the excess an estimate of the tip and tilt at their
+        Cramer-Rao bounds can remove, the most a superimposition can remove from these data (0 without
+        signal).
+    snr : float
+        sqrt(signal / noise).
+    excess : float
+        Procrustes's tip-tilt excess the signal makes, factor sqrt(signal / coordinates), pixel: what its
+        corrected accuracy carries of the tip-tilt, in quadrature.
+    """
+
+    signal: float
+    noise: float
+    bound: float
+    snr: float
+    excess: float
+
+
+@one_blas_thread
+def tip_tilt_removal(pose_result: PoseResult, procrustes_result: ProcrustesResult, *, sigma: float,
+                     factor: float = 1.0, signature=None) -> TipTiltRemoval:
+    """The noise-limited share of Procrustes's tip-tilt excess that the pose's Fisher information allows.
+
+    The tip and tilt move the stars by a signature s (:func:`tip_tilt_signature`); Procrustes absorbs its
+    part in its own tangent space P and leaves S = |(I - P) s|^2. An estimate of the tip and tilt with
+    covariance C (the pose's Fisher information J'J / sigma^2 under the fit's constraints, the star
+    directions and the other pose parameters fitted alongside) leaves of it, in expectation,
+    N = trace((I - P) J_w C_ww J_w' (I - P)), J_w the tip and tilt columns of J. The best estimate at
+    that precision (a Wiener one) removes S / (S + N) of the excess: the noise-limited bound. From the
+    data alone S is the fitted tip-tilt's, less N (its expected noise part); with ``signature`` (a
+    simulation's: the tilted twin minus the untilted) it is that one's.
+
+    Parameters
+    ----------
+    pose_result : PoseResult
+    procrustes_result : ProcrustesResult
+        Procrustes on the same configurations.
+    sigma : float
+        Centroid error per coordinate, pixel (the pose's corrected accuracy).
+    factor : float
+        Procrustes's global correction factor, for ``excess``.
+    signature : ndarray (position, star, 2), optional
+        The true tip-tilt signature, pixel.
+    """
+    n_pos, n_star = pose_result.residuals.shape[:2]
+    basis = tangent_space(procrustes_result)
+
+    def outside(values):
+        return values - basis @ (basis.T @ values)
+
+    jacobian = pose_result.jacobian()
+    rows, _ = _pose_constraints(n_star, n_pos, pose_result.field)
+    covariance = _constrained_covariance(jacobian, rows, sigma)[0]
+    angles = np.array([2 * n_star + 6 * p + k for p in range(n_pos) for k in (3, 4)])
+    leaving = outside(jacobian[:, angles])
+    noise = float(np.sum((leaving @ covariance[np.ix_(angles, angles)]) * leaving))
+    if signature is None:
+        signal = max(float(np.sum(outside(tip_tilt_signature(pose_result).ravel()) ** 2)) - noise, 0.0)
+    else:
+        signal = float(np.sum(outside(np.asarray(signature, float).ravel()) ** 2))
+    bound = signal / (signal + noise) if signal + noise > 0 else 0.0
+    snr = float(np.sqrt(signal / noise)) if noise > 0 else float("inf")
+    return TipTiltRemoval(signal, noise, bound, snr, float(factor * np.sqrt(signal / pose_result.residuals.size)))
+

@@ -418,11 +418,14 @@ def offset_bias_datasets(rng, side=12):
 
 
 def prf_product(rng, detector, side=12):
-    """A calibration/prf.nc-like dataset: widths of 0.2064 +- 2e-3 pixel with errors of 3e-4 pixel."""
+    """A calibration/prf.nc-like dataset: widths of 0.2064 +- 2e-3 pixel (mean known to 4e-3) with pixel-scale
+    errors of 3e-4 pixel."""
     maps = {f"{kind}_{axis}": (("row", "col"), scale * rng.standard_normal((side, side)) + offset)
-            for axis in "xy" for kind, scale, offset in (("width", 2e-3, 0.2064), ("error_width", 1e-5, 3e-4))}
-    return xr.Dataset({**maps, "mean_width": ((), 0.2064), "chi2": ((), 0.99)},
-                      coords={"baseline": ["H1H4", "V2V4"]})
+            for axis in "xy" for kind, scale, offset in (("width", 2e-3, 0.2064), ("error_width", 1e-5, 4e-3),
+                                                         ("error_width_pixel", 1e-5, 3e-4))}
+    means = {f"{name}_{axis}": ((), value) for axis in "xy" for name, value in (("mean_width", 0.2064),
+                                                                               ("error_mean_width", 4e-3))}
+    return xr.Dataset({**maps, **means, "chi2": ((), 0.99)}, coords={"baseline": ["H1H4", "V2V4"]})
 
 
 def test_prf_and_offset_bias_numbers_carry_their_units(rng):

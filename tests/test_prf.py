@@ -39,14 +39,42 @@ def metrology_products(manifest, truth):
     return products
 
 
-def error_over_sigma(maps, truth, axis):
-    """rms over the mapped pixels of (width - truth) / error, the truth's smooth part taken as the maps'."""
-    width, error = getattr(maps, f"width_{axis}"), getattr(maps, f"error_width_{axis}")
+def against_truth(maps, truth, axis):
+    """The maps of one axis against the truth, the smooth part of both (the visibility's, which the contrast
+    cannot see) and their means taken out, over the mapped pixels:
+
+    - ``scale``: the least-squares factor of the map's deviations on the truth's, and ``scale_sigmas``, its
+      distance from 1 in the stated error of the deviations' scale (the kernel shape's);
+    - ``photon``: rms of (map - scale x truth) / photon_error_width: the photon noise, the scale fitted;
+    - ``pixel``: rms of (map - truth) / error_width_pixel: what the errors of the pixel-scale part cover;
+    - ``mean``: (mean width - the truth's mean) / error_mean_width;
+    - ``n``: the pixels.
+    """
+    width = getattr(maps, f"width_{axis}")
     ok = np.isfinite(width)
     rows, cols = np.nonzero(ok)
-    true = np.sqrt(maps.shape.width**2 + prf.pixel_scale(truth[f"width_{axis}"].values[ok] ** 2, cols, rows,
-                                                         degree=maps.smooth_degree))
-    return float(np.sqrt(np.mean(((width[ok] - true) / error[ok]) ** 2))), ok.sum()
+    mapped = prf.pixel_scale(width[ok], cols, rows, degree=maps.smooth_degree)
+    true = prf.pixel_scale(truth[f"width_{axis}"].values[ok], cols, rows, degree=maps.smooth_degree)
+    scale = float(mapped @ true / (true @ true))
+    photon, pixel = (getattr(maps, f"{name}_{axis}")[ok] for name in ("photon_error_width", "error_width_pixel"))
+    return {"scale": scale, "scale_sigmas": (scale - 1) / maps.error_scale[axis] if maps.error_scale[axis] else np.inf,
+            "photon": float(np.sqrt(np.mean(((mapped - scale * true) / photon) ** 2))),
+            "pixel": float(np.sqrt(np.mean(((mapped - true) / pixel) ** 2))),
+            "mean": (maps.mean_width[axis] - float(truth[f"width_{axis}"].values[ok].mean()))
+            / maps.error_mean_width[axis] if maps.error_mean_width[axis] else np.inf, "n": int(ok.sum())}
+
+
+def assert_true_to_the_widths(maps, truth, axis):
+    """Each part of the maps within its stated error of the truth (:func:`against_truth`): the scale of the
+    deviations and the mean, each one number shared by every pixel, within 3 of their errors; what is left
+    of each pixel, within 0.8-1.2 of its photon error. (The total over error_width_pixel is not a test: its
+    shape part is one draw for the whole map, so its rms over pixels is that draw's size in its sigma, 1.8
+    in one of the four draws of the default bench, docs/centroids.md.)"""
+    found = against_truth(maps, truth, axis)
+    assert abs(found["scale_sigmas"]) < 3, found
+    assert 0.8 < found["photon"] < 1.2, found
+    assert abs(found["mean"]) < 3, found
+    return found
 
 
 def test_log_transfer_slope_is_minus_half_k_squared_for_a_gaussian_and_larger_for_the_flat_top():
@@ -85,12 +113,35 @@ def test_width_maps_agree_with_truth_within_their_errors(symmetric, axis):
     manifest, truth, products = symmetric
     maps = prf.width_maps(products, gain=manifest.detector.gain, read_noise=truth["read_noise"].values,
                           science=manifest.detector.science_mask())
-    ratio, n = error_over_sigma(maps, truth, axis)
-    assert n > 1000
-    assert 0.8 < ratio < 1.2, ratio  # measured 0.95-1.05
+    assert assert_true_to_the_widths(maps, truth, axis)["n"] > 1000
     spread = float(np.std(truth[f"width_{axis}"].values))
-    assert np.sqrt(np.nanmean(getattr(maps, f"error_width_{axis}") ** 2)) < 0.1 * spread  # far below the 1% spread
+    # the pixel-scale errors far below the 1% spread; the mean's error (the kernel's shape) much larger
+    assert np.sqrt(np.nanmean(getattr(maps, f"error_width_pixel_{axis}") ** 2)) < 0.1 * spread
     assert 0.7 < maps.chi2 < 1.3  # the two periods agree
+
+
+def test_width_maps_are_true_on_prfs_of_another_shape(tmp_path):
+    """Issue 27, held out: PRFs the presets never use, truncated hyper-Gaussians of order 3 and sigma 0.40
+    (width 0.256 pixel, where the presets' kernel is 0.206), asymmetric (slopes of rms 0.05 per pixel), a
+    1.5% spread; the family of kernels left at its default. Before the fix (the maps built on the assumed
+    kernel) their pixel-to-pixel variations were 1.31-1.32x the truth's, 4.2-4.3x their errors, and their
+    mean 0.206 against 0.256. Measured since: the variations 0.98-0.99x (the scale's stated error 1.9-2.3%),
+    the mean 0.258-0.261 +- 0.004-0.005, the photon part 1.04x its error, the pixel-scale part 0.99-1.06x
+    (7 s on 2 shared cores)."""
+    manifest, truth = simulate(tmp_path, detector={"prf_order": 3.0, "prf_sigma": 0.40, "prf_slope_rms": 0.05,
+                                                   "prf_width_spread": 0.015})
+    maps = prf.width_maps(metrology_products(manifest, truth), gain=manifest.detector.gain,
+                          read_noise=truth["read_noise"].values, science=manifest.detector.science_mask())
+    for axis in "xy":
+        width, error = getattr(maps, f"width_{axis}"), getattr(maps, f"error_width_{axis}")
+        ok = np.isfinite(width)
+        rows, cols = np.nonzero(ok)
+        true = truth[f"width_{axis}"].values[ok]
+        mapped, true_part = (prf.pixel_scale(v, cols, rows, degree=maps.smooth_degree) for v in (width[ok], true))
+        assert 0.93 < np.std(mapped) / np.std(true_part) < 1.07, axis  # the pixel-to-pixel variations
+        assert np.sqrt(np.mean(((mapped - true_part) / error[ok]) ** 2)) < 1.2, axis  # the errors cover them
+        assert abs(width[ok].mean() - true.mean()) < 3 * np.sqrt(np.mean(error[ok] ** 2)), axis  # and the mean
+        assert_true_to_the_widths(maps, truth, axis)
 
 
 def test_one_period_per_direction_gives_the_widths_too_but_noisier(symmetric):
@@ -99,9 +150,13 @@ def test_one_period_per_direction_gives_the_widths_too_but_noisier(symmetric):
     both = prf.width_maps(products, **kwargs)
     short = prf.width_maps({k: products[k] for k in ("H1H4", "V1V4")}, **kwargs)
     assert np.isnan(short.chi2)
-    assert np.nanmean(short.error_width_x) > 1.05 * np.nanmean(both.error_width_x)
-    ratio, _ = error_over_sigma(short, truth, "x")
-    assert ratio < 1.3
+    # the variance's photon error, 2 w sigma_w (a width's depends on the kernels the data allow)
+    variance_error = [np.nanmean(m.photon_error_width_x * m.width_x) for m in (short, both)]
+    assert variance_error[0] > 1.05 * variance_error[1]
+    # one period says nothing of the shape: the family's whole spread is in the errors
+    assert short.error_mean_width["x"] > 2 * both.error_mean_width["x"]
+    assert np.nanmean(short.error_width_pixel_x) > 1.5 * np.nanmean(both.error_width_pixel_x)
+    assert_true_to_the_widths(short, truth, "x")
 
 
 def test_a_missing_direction_is_left_nan_and_no_baseline_is_an_error(symmetric):
@@ -115,10 +170,17 @@ def test_a_missing_direction_is_left_nan_and_no_baseline_is_an_error(symmetric):
 def test_the_product_holds_the_contract_variables_with_units(symmetric):
     manifest, truth, products = symmetric
     ds = prf.prf_dataset(prf.width_maps(products, gain=manifest.detector.gain, science=manifest.detector.science_mask()))
-    for name in ("width_x", "width_y", "error_width_x", "error_width_y"):
-        assert ds[name].dims == ("row", "col") and ds[name].attrs["units"] == "pixel"
+    for name in ("width_x", "width_y", "error_width_x", "error_width_y", "error_width_pixel_x",
+                 "error_width_pixel_y", "variance_deviation_x", "variance_deviation_y"):
+        assert ds[name].dims == ("row", "col") and ds[name].attrs["units"] in ("pixel", "pixel2")
         assert np.all(np.isnan(ds[name].values[0]))  # outside the science area
     assert all("units" in ds[v].attrs for v in ds.data_vars)
+    for axis in "xy":  # the width is the mean plus the deviation, the variance's pixel-scale part
+        assert float(ds[f"kernel_posterior_{axis}"].sum()) == pytest.approx(1.0)
+        assert float(ds[f"mean_width_{axis}"]) == pytest.approx(float(ds[f"kernel_posterior_{axis}"]
+                                                                      @ ds["kernel_width"]), rel=1e-12)
+        variance = ds[f"width_{axis}"] ** 2 - ds[f"mean_width_{axis}"] ** 2
+        np.testing.assert_allclose(variance.values, ds[f"variance_deviation_{axis}"].values, rtol=0, atol=2e-5)
 
 
 def test_an_asymmetric_prf_changes_the_widths_only_at_second_order_in_its_slope(tmp_path):
@@ -128,8 +190,7 @@ def test_an_asymmetric_prf_changes_the_widths_only_at_second_order_in_its_slope(
     maps = prf.width_maps(metrology_products(manifest, truth), gain=manifest.detector.gain,
                           read_noise=truth["read_noise"].values, science=manifest.detector.science_mask())
     for axis in "xy":
-        ratio, _ = error_over_sigma(maps, truth, axis)
-        assert ratio < 1.2, (axis, ratio)  # 1.02 on 80x84 at 4000 frames
+        assert_true_to_the_widths(maps, truth, axis)
 
 
 @pytest.mark.slow
@@ -140,5 +201,4 @@ def test_default_detector_and_bench_width_maps_within_their_errors(tmp_path):
     maps = prf.width_maps(metrology_products(manifest, truth), gain=manifest.detector.gain,
                           read_noise=truth["read_noise"].values, science=manifest.detector.science_mask())
     for axis in "xy":
-        ratio, n = error_over_sigma(maps, truth, axis)
-        assert n > 5000 and ratio < 1.2, (axis, ratio)
+        assert assert_true_to_the_widths(maps, truth, axis)["n"] > 5000

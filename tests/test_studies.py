@@ -187,3 +187,6 @@ def test_tip_tilt_study_pose_and_projective_remove_the_excess_procrustes_cannot(
         assert float(ds[f"pose_{angle}_error"]) < 3 * float(ds[f"pose_{angle}_crlb_nominal_field"])
         assert float(ds[f"pose_{angle}_error"]) < 3 * bound
     assert ds["excess_variance"].attrs["units"] == "pixel^2"
+    # what the pose removes, beside what the true tip and tilt and the noise-limited bound allow (issue 27)
+    assert float(ds["pose_removal_true_tip_tilt"]) > 0.99
+    assert float(ds["pose_removal"]) >= 0.9 * float(ds["pose_removal_bound"]) > 0

@@ -30,10 +30,9 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pix
         offsets = io.read_product(offsets_path)
         dx, dy = offsets["dx"].values, offsets["dy"].values
     variance_x = variance_y = None
-    if use_widths:  # each pixel's PRF variance minus the assumed kernel's (NaN where not measured: none)
+    if use_widths:  # each pixel's PRF variance minus the mean one (NaN where not measured: none)
         widths = io.read_product(prf_path)
-        variance_x, variance_y = (widths[f"width_{axis}"].values ** 2 - float(widths["mean_width"]) ** 2
-                                  for axis in "xy")
+        variance_x, variance_y = (widths[f"variance_deviation_{axis}"].values for axis in "xy")
     # dead, hot and column defects are left out or refuse a star; dust pixels are the flat's to correct
     bad_pixels = io.read_product(bad_pixel_paths[0])["bad_pixel"].values if bad_pixel_paths else None
     positions = [p.index for p in manifest.positions]

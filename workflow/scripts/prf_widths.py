@@ -16,11 +16,11 @@ def prf_widths(manifest_path, dark_path, metrology_paths, output, config):
         product = io.read_product(path)
         products[product.attrs["baseline"]] = product
     options = config["prf"]
-    shape = prf.PrfShape(order=options["order"], half_width=options["half_width"], sigma=options["sigma"])
-    log.info("PRF widths from %d baseline(s) (%s); assumed kernel: order %g, half-width %g pixel, sigma %g pixel "
-             "(width %.4f pixel)", len(products), ", ".join(sorted(products)), shape.order, shape.half_width,
-             shape.sigma, shape.width)
-    maps = prf.width_maps(products, gain=manifest.detector.gain, read_noise=dark["noise"].values, shape=shape,
+    family = prf.PrfFamily(order=options["order"], sigma=options["sigma"], half_width=options["half_width"])
+    log.info("PRF widths from %d baseline(s) (%s); kernels: orders %g-%g, sigmas %g-%g pixel, half-widths "
+             "%g-%g pixel (%d in the grid)", len(products), ", ".join(sorted(products)), *family.order,
+             *family.sigma, *family.half_width, len(family.members))
+    maps = prf.width_maps(products, gain=manifest.detector.gain, read_noise=dark["noise"].values, shape=family,
                           smooth_degree=config["metrology"]["smooth_degree"],
                           science=manifest.detector.science_mask(), log=log)
     product = prf.prf_dataset(maps)
