@@ -52,7 +52,9 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["StraySource", "coherence", "place_sources", "fringe_terms", "component_phase", "component_design",
-           "fit_amplitudes", "quadratic_frequency", "canonical", "reference_pixel"]
+           "fit_amplitudes", "quadratic_frequency", "canonical", "reference_pixel", "FALSE_ALARM", "MAX_CHIRP",
+           "Component", "Diagnosis", "diagnose", "component_model", "tangent_modes", "diagnose_map",
+           "diagnosis_variables", "stray_light_dataset", "summary_line"]
 
 log = logging.getLogger(__name__)
 
@@ -209,3 +211,365 @@ def canonical(frequency, chirp, phase):
     if f[0] < 0 or (f[0] == 0 and f[1] < 0):
         return -f, -chirp, float(np.angle(np.exp(-1j * phase)))
     return f, chirp, float(np.angle(np.exp(1j * phase)))
+
+
+# --------------------------------------------------------------------------- diagnosis
+
+#: False-alarm probability per map of the detection threshold: the chance that a map without stray light
+#: (white offsets and photon noise) shows a component.
+FALSE_ALARM = 1e-3
+
+#: Largest |chirp| searched, cycles/pixel^2: a vane edge 0.2 m above the detector, the fibers 0.6 m away
+#: (pitch^2 / wavelength (1/0.2 - 1/0.6) = 3.0e-3 for 24 um pixels at 633 nm).
+MAX_CHIRP = 3.0e-3
+
+#: Zero-padding of the spectrum along each axis (the power between Fourier bins, a quarter bin apart at most).
+PAD = 2
+
+
+@dataclass
+class Component:
+    """One stray-light component of a map (module docstring's model), with its 1-sigma errors."""
+
+    frequency: np.ndarray        # (2,) cycles/pixel, x then y
+    chirp: float                 # cycles/pixel^2
+    amplitude: float             # pixel (the map's units)
+    phase: float                 # rad, at the reference pixel
+    frequency_error: np.ndarray  # (2,)
+    chirp_error: float
+    amplitude_error: float
+    phase_error: float
+    significance: float          # peak power of its dechirped spectrum over the white level, when found
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose`. Pixel arrays run over the pixels given to it."""
+
+    reference: tuple             # r0 (x, y), pixel
+    frequency_x: np.ndarray      # (nx,) cycles/pixel, increasing
+    frequency_y: np.ndarray      # (ny,)
+    power: np.ndarray            # (ny, nx): the map's power spectrum over the white level
+    white_level: float           # variance per pixel of the map without its components (units^2)
+    threshold: float             # detection threshold, in units of the white level
+    false_alarm: float           # its false-alarm probability per map
+    trials: int                  # independent spectral cells and chirps the threshold counts
+    components: list             # Component, strongest first
+    model: np.ndarray            # (pixel,) the components' sum
+    modes: np.ndarray            # (mode, pixel): what fitting them takes from a map, 5 a component, unit rms
+
+
+def _spectrum(values, x, y, shape, chirp, reference):
+    """|FFT|^2 / N (zero-padded PAD times) of ``values`` at pixels x, y of a (rows, cols) box, dechirped by
+    ``chirp``: each spectral cell's power is that of the best sinusoid of its frequency with that chirp."""
+    grid = np.zeros((PAD * shape[0], PAD * shape[1]), complex)
+    u, v = x - reference[0], y - reference[1]
+    grid[(y - y.min()).astype(int), (x - x.min()).astype(int)] = values * np.exp(-1j * np.pi * chirp * (u * u + v * v))
+    return np.abs(np.fft.fft2(grid)) ** 2 / values.size
+
+
+def _half_plane(ny, nx):
+    """Cells of a (ny, nx) FFT grid with f_x > 0, or f_x = 0 and f_y > 0 (one of each conjugate pair, no zero)."""
+    fy, fx = np.fft.fftfreq(ny)[:, None], np.fft.fftfreq(nx)[None, :]
+    return (fx > 0) | ((fx == 0) & (fy > 0))
+
+
+def _residual(values, x, y, components, reference, basis):
+    """``values`` minus their least-squares fit by the components' sinusoids (amplitudes free) and ``basis``
+    ((mode, pixel), orthonormal rows of unit norm); and the components' fitted (cos, -sin) coefficients."""
+    design = component_design(x, y, [c[0] for c in components], [c[1] for c in components], reference)
+    values = values - basis.T @ (basis @ values)
+    design = design - (design @ basis.T) @ basis
+    if not len(design):
+        return values, np.zeros(0)
+    coef = np.linalg.lstsq(design @ design.T, design @ values, rcond=None)[0]
+    return values - design.T @ coef, coef
+
+
+def _refine(values, x, y, found, reference, basis, iterations: int = 20):
+    """Frequencies and chirps of ``found`` [(f, g)] refined jointly by damped Gauss-Newton on the full model,
+    the amplitudes and ``basis`` solved linearly at every step (variable projection, Kaufman's Jacobian)."""
+    params = np.array([[*f, g] for f, g in found], float)
+    u, v = x - reference[0], y - reference[1]
+    r2 = 0.5 * (u * u + v * v)
+
+    def evaluate(p):
+        return _residual(values, x, y, [(q[:2], q[2]) for q in p], reference, basis)
+
+    residual, coef = evaluate(params)
+    cost, damping = float(residual @ residual), 1e-3
+    for _ in range(iterations):
+        columns = []
+        for i, (fx, fy, g) in enumerate(params):
+            phase = component_phase(x, y, (fx, fy), g, reference)
+            # d/dtheta of c cos(theta) - s sin(theta) is -(c sin(theta) + s cos(theta))
+            d = -(coef[2 * i] * np.sin(phase) + coef[2 * i + 1] * np.cos(phase)) * 2 * np.pi
+            columns += [d * u, d * v, d * r2]
+        jac = np.array(columns)
+        linear = component_design(x, y, [q[:2] for q in params], params[:, 2], reference)
+        linear = linear - (linear @ basis.T) @ basis  # basis: orthonormal rows
+        jac = jac - (jac @ basis.T) @ basis
+        jac = jac - np.linalg.solve(linear @ linear.T, linear @ jac.T).T @ linear
+        normal, rhs = jac @ jac.T, jac @ residual
+        while True:
+            step = np.linalg.solve(normal + damping * np.diag(np.diag(normal)), rhs)
+            trial = params + step.reshape(params.shape)
+            new_residual, new_coef = evaluate(trial)
+            new_cost = float(new_residual @ new_residual)
+            if new_cost <= cost or damping > 1e6:
+                break
+            damping *= 10
+        if new_cost > cost:
+            break
+        params, residual, coef, damping = trial, new_residual, new_coef, max(damping / 10, 1e-6)
+        converged = cost - new_cost < 1e-10 * cost
+        cost = new_cost
+        if converged:
+            break
+    return [(q[:2].copy(), float(q[2])) for q in params]
+
+
+def _tangents(x, y, comp, reference):
+    """The directions a component moves a map along when its 5 parameters move: (5, pixel)."""
+    f, g, a, phi = comp
+    u, v = x - reference[0], y - reference[1]
+    phase = component_phase(x, y, f, g, reference) + phi
+    c, s = np.cos(phase), np.sin(phase)
+    return np.array([c, s, u * s, v * s, 0.5 * (u * u + v * v) * s])
+
+
+def _errors(values, x, y, comps, reference, basis, white_level):
+    """1-sigma errors (f_x, f_y, g, a, phi per component) from the linearised least squares with the white
+    level as the noise: the Jacobian of the model in these parameters, the basis fitted beside them."""
+    columns = []
+    for f, g, a, phi in comps:
+        u, v = x - reference[0], y - reference[1]
+        phase = component_phase(x, y, f, g, reference) + phi
+        c, s = np.cos(phase), np.sin(phase)
+        columns += [-a * 2 * np.pi * u * s, -a * 2 * np.pi * v * s, -a * np.pi * (u * u + v * v) * s, c, -a * s]
+    jac = np.vstack([np.array(columns), basis]).T
+    covariance = white_level * np.linalg.pinv(jac.T @ jac)
+    return np.sqrt(np.diag(covariance))[:5 * len(comps)].reshape(len(comps), 5)
+
+
+def diagnose(values, x, y, *, against=None, false_alarm: float = FALSE_ALARM, max_components: int = 6,
+             max_chirp: float = MAX_CHIRP) -> Diagnosis:
+    """Coherent stray-light components of an offset map: its spectrum against the white level, those above.
+
+    Parameters
+    ----------
+    values : ndarray (pixel,)
+        A map of offsets (pixel; or any map), finite, at pixel coordinates ``x``, ``y`` (col, row).
+    against : ndarray (mode, pixel), optional
+        Fields the map was made orthogonal to (its affine part, a baseline's unobservable modes), fitted
+        beside the components; the affine part is always.
+    false_alarm : float
+        Probability that a map of white noise shows a component (per map).
+    max_components : int
+        At most this many components.
+    max_chirp : float
+        Largest |chirp| searched, cycles/pixel^2.
+
+    Returns
+    -------
+    Diagnosis
+
+    Notes
+    -----
+    Without stray light, an offset map is white: the pixels' own offsets (about 1e-3 pixel) plus photon
+    noise, variance sigma^2, whose power spectrum |sum_p v_p exp(-2 pi i f.r_p)|^2 / N is exponential with
+    mean sigma^2 in every Fourier cell. sigma^2 is the median of the spectrum over ln 2, robust to a few
+    peaks. A component is a peak of the spectrum dechirped by one of the chirps of a grid (steps that move
+    the edge's phase by 1 rad at most, up to ``max_chirp``). Over the M cells of one half-plane of the
+    spectrum, zero-padded PAD times along each axis, and the C chirps, the largest of PAD^2 M C exponential
+    variables exceeds t = -ln(1 - (1 - alpha)^(1 / (PAD^2 M C))) with probability alpha, the cells treated
+    as independent: the padded cells and neighbouring chirps are correlated, so the false-alarm probability
+    is at most ``false_alarm``. Each peak above t is fitted with its frequency and chirp refined by least
+    squares, jointly with the earlier ones, the amplitudes and ``against``; the spectrum of what is left is
+    searched again. The errors are those of the linearised fit with the white level as the noise.
+    """
+    values, x, y = (np.asarray(v, float) for v in (values, x, y))
+    if values.size < 16 or not np.all(np.isfinite(values)):
+        raise ValueError("diagnose needs at least 16 finite values")
+    reference = reference_pixel(x, y)
+    from dice_core.geometry import orthonormal_modes
+
+    basis = orthonormal_modes(np.vstack([np.array([np.ones_like(x), x, y]), np.zeros((0, x.size)) if against is None
+                                         else np.asarray(against, float)])) / np.sqrt(x.size)
+    shape = (int(y.max() - y.min()) + 1, int(x.max() - x.min()) + 1)
+    ny, nx = PAD * shape[0], PAD * shape[1]
+    half = _half_plane(ny, nx)
+    half_extent = 0.5 * np.hypot(*shape)
+    step = 1.0 / (np.pi * half_extent**2)  # a chirp step moves the phase at the box's corner by 1 rad
+    chirps = np.arange(-np.floor(max_chirp / step), np.floor(max_chirp / step) + 1) * step
+    cells = int(np.count_nonzero(_half_plane(*shape)))
+    trials = PAD**2 * cells * chirps.size
+    threshold = float(-np.log1p(-(1 - false_alarm) ** (1 / trials)))
+    fx, fy = np.fft.fftfreq(nx), np.fft.fftfreq(ny)
+    residual, _ = _residual(values, x, y, [], reference, basis)
+    plain = _spectrum(residual, x, y, shape, 0.0, reference)
+    found, significance = [], []
+    while len(found) < max_components:
+        white = float(np.median(_spectrum(residual, x, y, shape, 0.0, reference)[::PAD, ::PAD][_half_plane(*shape)])
+                      / np.log(2))
+        best = (0.0, None)
+        for g in chirps:
+            power = np.where(half, _spectrum(residual, x, y, shape, g, reference), 0.0) / white
+            i = np.unravel_index(np.argmax(power), power.shape)
+            if power[i] > best[0]:
+                best = (float(power[i]), (np.array([fx[i[1]], fy[i[0]]]), float(g)))
+        if best[0] <= threshold:
+            break
+        found = _refine(values, x, y, [*found, best[1]], reference, basis)
+        significance.append(best[0])
+        residual, _ = _residual(values, x, y, found, reference, basis)
+    residual, coef = _residual(values, x, y, found, reference, basis)
+    white_level = float(np.sum(residual**2) / max(values.size - basis.shape[0] - 5 * len(found), 1))
+    basis = basis * np.sqrt(x.size)  # unit rms, for the errors' Jacobian and the modes
+    comps = []
+    for i, (f, g) in enumerate(found):
+        c, s = coef[2 * i], coef[2 * i + 1]
+        f, g, phi = canonical(f, g, float(np.arctan2(s, c)))
+        comps.append((f, g, float(np.hypot(c, s)), phi))
+    errors = _errors(values, x, y, comps, reference, basis, white_level) if comps else np.zeros((0, 5))
+    components = [Component(f, g, a, phi, e[:2], float(e[2]), float(e[3]), float(e[4]), sig)
+                  for (f, g, a, phi), e, sig in zip(comps, errors, significance)]
+    order = np.argsort([-c.amplitude for c in components])
+    components = [components[i] for i in order]
+    model = component_model(x, y, components, reference)
+    modes = tangent_modes(x, y, components, reference, against=basis)
+    power = np.fft.fftshift(plain / white_level)
+    return Diagnosis(reference, np.fft.fftshift(fx), np.fft.fftshift(fy), power, white_level, threshold,
+                     false_alarm, trials, components, model, modes)
+
+
+def component_model(x, y, components, reference) -> np.ndarray:
+    """The sum of ``components`` (:class:`Component`) at pixel coordinates x, y."""
+    out = np.zeros(np.size(x))
+    for c in components:
+        out += c.amplitude * np.cos(component_phase(x, y, c.frequency, c.chirp, reference) + c.phase)
+    return out
+
+
+def tangent_modes(x, y, components, reference, *, against=None) -> np.ndarray:
+    """What fitting ``components`` takes from a map: the span of each one's 5 parameter directions (cos,
+    sin, and the frequencies' and chirp's, at its fitted phase), orthonormal (unit rms) and orthogonal to
+    ``against``; (mode, pixel). A map's part along them cannot be told from the components."""
+    from dice_core.geometry import orthonormal_modes
+
+    if not components:
+        return np.zeros((0, np.size(x)))
+    fields = np.vstack([_tangents(np.asarray(x, float), np.asarray(y, float),
+                                  (c.frequency, c.chirp, c.amplitude, c.phase), reference) for c in components])
+    return orthonormal_modes(fields, against=against)
+
+
+# --------------------------------------------------------------------------- products
+
+def diagnose_map(values, *, modes=None, false_alarm: float = FALSE_ALARM):
+    """:func:`diagnose` of a (row, col) map over its finite pixels, ``modes`` (mode, row, col) the fields it
+    was made orthogonal to; returns (diagnosis, rows, cols) of those pixels."""
+    values = np.asarray(values, float)
+    good = np.isfinite(values)
+    rows, cols = np.nonzero(good)
+    against = None if modes is None or not len(modes) else np.asarray(modes)[:, good]
+    return diagnose(values[good], cols.astype(float), rows.astype(float), against=against,
+                    false_alarm=false_alarm), rows, cols
+
+
+def diagnosis_variables(diagnosis: Diagnosis, rows, cols, shape, *, prefix: str = "", k_norm=None,
+                        modes: bool = True) -> dict:
+    """The variables a product holds of a :class:`Diagnosis` of a map (row, col) of ``shape``: its power map,
+    white level, threshold, components (dim ``<prefix>component``), their sum (``<prefix>offset_error``) and,
+    given the local |K| (row, col, rad/pixel), the phase error they make (``<prefix>phase_error``); with
+    ``modes``, what removing them takes (``<prefix>stray_mode``, unit rms)."""
+    p, comps = prefix, diagnosis.components
+    component = (f"{p}component",)
+
+    def as_map(values):
+        out = np.full(shape, np.nan)
+        out[rows, cols] = values
+        return out
+
+    def column(name, units, meaning, values):
+        return {f"{p}component_{name}": (component, np.array(values, float).reshape(len(comps)),
+                                         {"units": units, "long_name": meaning})}
+
+    offset = as_map(diagnosis.model)
+    out = {
+        f"{p}power": (("frequency_y", "frequency_x"), diagnosis.power,
+                      {"units": "1", "long_name": "power spectrum of the map over its white level"}),
+        f"{p}white_level": ((), diagnosis.white_level,
+                            {"units": "pixel2", "long_name": "variance per pixel of the map without its components "
+                                                              "(pixel offsets and photon noise)"}),
+        f"{p}threshold": ((), diagnosis.threshold,
+                          {"units": "1", "long_name": "detection threshold over the white level"}),
+        f"{p}false_alarm": ((), diagnosis.false_alarm,
+                            {"units": "1", "long_name": "probability that a map without stray light shows a "
+                                                        "component (at most)"}),
+        f"{p}n_components": ((), len(comps), {"units": "1", "long_name": "components found"}),
+        f"{p}offset_error": (("row", "col"), offset, {"units": "pixel", "long_name": "the components' sum"}),
+        **column("frequency_x", "1/pixel", "spatial frequency along x (aliased into [-1/2, 1/2), f_x >= 0)",
+                 [c.frequency[0] for c in comps]),
+        **column("frequency_y", "1/pixel", "spatial frequency along y", [c.frequency[1] for c in comps]),
+        **column("chirp", "1/pixel2", "chirp g: the frequency grows by g per pixel from the reference pixel",
+                 [c.chirp for c in comps]),
+        **column("amplitude", "pixel", "amplitude in the map", [c.amplitude for c in comps]),
+        **column("phase", "rad", "phase at the reference pixel", [c.phase for c in comps]),
+        **column("frequency_x_error", "1/pixel", "1-sigma error", [c.frequency_error[0] for c in comps]),
+        **column("frequency_y_error", "1/pixel", "1-sigma error", [c.frequency_error[1] for c in comps]),
+        **column("chirp_error", "1/pixel2", "1-sigma error", [c.chirp_error for c in comps]),
+        **column("amplitude_error", "pixel", "1-sigma error", [c.amplitude_error for c in comps]),
+        **column("phase_error", "rad", "1-sigma error", [c.phase_error for c in comps]),
+        **column("significance", "1", "peak power of its dechirped spectrum over the white level",
+                 [c.significance for c in comps]),
+    }
+    if k_norm is not None:
+        out[f"{p}phase_error"] = (("row", "col"), offset * k_norm,
+                                  {"units": "rad", "long_name": "phase error the components make (the sum times the "
+                                                                "local |K|), in the fitted phase's sense"})
+    if modes:
+        stack = np.full((len(diagnosis.modes), *shape), np.nan)
+        stack[:, rows, cols] = diagnosis.modes
+        out[f"{p}stray_mode"] = ((f"{p}stray_mode", "row", "col"), stack,
+                                 {"units": "1", "long_name": "what fitting the components takes from the map: 5 "
+                                                             "directions each, orthonormal (unit rms), orthogonal "
+                                                             "to the affine part and the map's own modes"})
+    return out
+
+
+def stray_light_dataset(metrology, *, false_alarm: float = FALSE_ALARM, baseline: str = "baseline"):
+    """The ``calibration/stray_light_<baseline>.nc`` product of a ``metrology/<baseline>.nc`` dataset: the
+    diagnosis (:func:`diagnose`) of its projected offsets, fitted beside its unobservable modes."""
+    import xarray as xr
+
+    offsets = metrology["projected_offset"].values
+    modes = metrology["unobservable_offset"].values if "unobservable_offset" in metrology else None
+    diagnosis, rows, cols = diagnose_map(offsets, modes=modes, false_alarm=false_alarm)
+    if "kx_local" in metrology:
+        k_norm = np.hypot(metrology["kx_local"].values, metrology["ky_local"].values)
+    else:
+        k_norm = np.full(offsets.shape, float(np.hypot(metrology["kx"], metrology["ky"])))
+    variables = diagnosis_variables(diagnosis, rows, cols, offsets.shape, k_norm=k_norm)
+    product = xr.Dataset(variables, coords={
+        "row": metrology["row"].values, "col": metrology["col"].values,
+        "frequency_x": ("frequency_x", diagnosis.frequency_x, {"units": "1/pixel", "long_name": "spatial frequency"}),
+        "frequency_y": ("frequency_y", diagnosis.frequency_y, {"units": "1/pixel", "long_name": "spatial frequency"}),
+    })
+    product.attrs.update({"baseline": baseline, "reference_pixel": list(diagnosis.reference),
+                          "component_model": "a cos(2 pi (f.(r - r0) + g |r - r0|^2 / 2) + phi), r = (col, row), "
+                                             "r0 = reference_pixel (x, y)"})
+    log.info("%s", summary_line(diagnosis, baseline))
+    return product
+
+
+def summary_line(diagnosis: Diagnosis, what: str) -> str:
+    """One line saying what a diagnosis found in ``what``."""
+    if not diagnosis.components:
+        return (f"{what}: no coherent stray light (no spectral peak above {diagnosis.threshold:.1f} x the white "
+                f"level, false-alarm rate {diagnosis.false_alarm:g})")
+    found = "; ".join(f"f = ({c.frequency[0]:+.4f}, {c.frequency[1]:+.4f}) cycles/pixel, amplitude "
+                      f"{c.amplitude:.2e} pixel ({c.significance:.0f} x white)" for c in diagnosis.components)
+    return (f"{what}: coherent stray light, {len(diagnosis.components)} component(s) above {diagnosis.threshold:.1f} "
+            f"x the white level (false-alarm rate {diagnosis.false_alarm:g}): {found}; their rms "
+            f"{float(np.sqrt(np.mean(diagnosis.model ** 2))):.2e} pixel")

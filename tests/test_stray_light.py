@@ -211,3 +211,99 @@ def test_stray_sources_the_bench_cannot_have_are_refused(change, message):
         values["stray_light"]["sources"] = [dict(VANES[0], **{key: value})]
     with pytest.raises(ValueError, match=message):
         simulation.SimulationConfig.from_dict(values)
+
+
+# --------------------------------------------------------------------------- slice (b): the diagnosis
+
+def matched(found, truth, baseline):
+    """Each true source of ``baseline`` (index) with the found component nearest in frequency."""
+    sources = np.flatnonzero(truth["stray_source_baseline"].values == baseline)
+    true_f = np.column_stack([truth["stray_frequency_x"].values, truth["stray_frequency_y"].values])
+    pairs = []
+    for i in sources:
+        distance = np.hypot(found["component_frequency_x"].values - true_f[i, 0],
+                            found["component_frequency_y"].values - true_f[i, 1])
+        pairs.append((i, int(np.argmin(distance))))
+    return pairs
+
+
+def test_the_components_found_are_the_true_sources_within_their_errors(stray):
+    """Every baseline's two sources are found, and only they; each one's frequency within 3 sigma of the truth's
+    (the stated errors: the linearised fit's, with the white level of the pixel offsets as noise), its chirp
+    within 4 sigma and its amplitude within 4 sigma (the truth's is fitted at the pixels' true centres)."""
+    manifest, truth, products = stray
+    for baseline, (_, product) in products.items():
+        found = stray_light.stray_light_dataset(product, baseline=baseline)
+        assert int(found["n_components"]) == 2, baseline
+        pairs = matched(found, truth, baseline)
+        assert sorted(j for _, j in pairs) == [0, 1], baseline
+        for i, j in pairs:
+            for axis in "xy":
+                pull = ((float(found[f"component_frequency_{axis}"][j]) - float(truth[f"stray_frequency_{axis}"][i]))
+                        / float(found[f"component_frequency_{axis}_error"][j]))
+                assert abs(pull) < 3, (baseline, axis, pull)
+            for name, truth_name in (("chirp", "stray_chirp"), ("amplitude", "stray_amplitude")):
+                pull = ((float(found[f"component_{name}"][j]) - float(truth[truth_name][i]))
+                        / float(found[f"component_{name}_error"][j]))
+                assert abs(pull) < 4, (baseline, name, pull)
+        # the white level is the pixel offsets' (1e-3 pixel rms) with the photon noise
+        expected = 1e-3**2 + float(product["photon_noise_floor_rms"]) ** 2
+        assert float(found["white_level"]) == pytest.approx(expected, rel=0.1)
+        assert found["phase_error"].shape == product["projected_offset"].shape
+
+
+@pytest.mark.slow  # 21 s on 2 shared cores: 20 small benches simulated and fitted
+def test_stray_free_small_benches_flag_no_more_than_1_map_in_20(tmp_path):
+    """20 seeds of a small spherical bench (40x44 pixels, 2 baselines of 300 frames), no stray light: at most
+    one of their 40 baseline maps shows a component (the threshold's false-alarm rate is 1e-3 a map)."""
+    from conftest import small_config
+
+    flagged = 0
+    for seed in range(20):
+        cfg = small_config(seed=100 + seed, frames_per_file=1000, metrology={
+            "frames": 300, "sweep_frames": 100, "spherical": True,
+            "baselines": {b: BASELINES[b] for b in ("H1H4", "V1V4")}, "pairs": {"P14": ["H1H4", "V1V4"]}})
+        _, _, products = fit_all(cfg, tmp_path / str(seed))
+        flagged += sum(int(stray_light.stray_light_dataset(p)["n_components"]) > 0 for _, p in products.values())
+    assert flagged <= 2  # 1 in 20 of the 40 maps
+
+
+def test_the_threshold_s_false_alarm_rate_holds_on_white_maps():
+    """White maps of the ci preset's science area (37x39 pixels) at a false-alarm rate of 0.3: the cells and
+    chirps counted as independent make the threshold conservative, so at most 30% are flagged (and not none,
+    which would say the threshold is far too high); the threshold is that of the count of trials."""
+    rng = np.random.default_rng(25)
+    rows, cols = np.mgrid[2:39, 4:43]
+    x, y = cols.ravel().astype(float), rows.ravel().astype(float)
+    flagged = []
+    for _ in range(40):
+        d = stray_light.diagnose(1e-3 * rng.standard_normal(x.size), x, y, false_alarm=0.3, max_components=1)
+        flagged.append(len(d.components))
+        assert d.threshold == pytest.approx(-np.log1p(-(0.7 ** (1 / d.trials))))
+        assert d.white_level == pytest.approx(1e-6, rel=0.1)
+    assert 0 < sum(flagged) <= 0.3 * 40 + 2 * np.sqrt(40 * 0.3 * 0.7)
+
+
+def test_a_component_of_known_parameters_is_recovered_within_its_errors():
+    """A chirped sinusoid in white noise: frequency, chirp, amplitude and phase within 3 sigma; the stated
+    errors are the scatter's (the frequency's pull over 25 noise draws, 50 values, has unit rms to 35%)."""
+    rng = np.random.default_rng(7)
+    rows, cols = np.mgrid[2:39, 4:43]
+    x, y = cols.ravel().astype(float), rows.ravel().astype(float)
+    f, g, a, phi = np.array([0.3124, -0.2071]), 1.5e-3, 4e-4, 1.1
+    pulls = []
+    for _ in range(25):
+        values = (a * np.cos(stray_light.component_phase(x, y, f, g, (23, 20)) + phi)
+                  + 1e-3 * rng.standard_normal(x.size))
+        d = stray_light.diagnose(values, x, y)
+        assert len(d.components) == 1 and d.reference == (23, 20)
+        c = d.components[0]
+        pulls.append((c.frequency - f) / c.frequency_error)
+        assert abs(c.chirp - g) < 3 * c.chirp_error and abs(c.amplitude - a) < 3 * c.amplitude_error
+        assert abs(np.angle(np.exp(1j * (c.phase - phi)))) < 3 * c.phase_error
+    assert 0.65 < np.sqrt(np.mean(np.square(pulls))) < 1.35
+
+
+def test_diagnose_refuses_maps_it_cannot_read():
+    with pytest.raises(ValueError, match="at least 16 finite"):
+        stray_light.diagnose(np.array([1.0, np.nan] * 10), np.arange(20.0), np.zeros(20))
