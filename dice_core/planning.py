@@ -138,6 +138,7 @@ class Plan:
             targets += [self.path("metrology", baseline=baseline), *self.figure("figure_metrology", baseline=baseline),
                         self.path("allan", baseline=baseline), *self.figure("figure_allan", baseline=baseline)]
         targets += [self.path("prf"), *self.figure("figure_prf")]
+        targets += self.stray_light_products(figures=True)
         pairs = list(self.manifest.pairs)
         for pair in pairs:
             targets += [self.path("offsets", pair=pair), *self.figure("figure_offsets", pair=pair)]
@@ -147,6 +148,24 @@ class Plan:
         if not pairs:
             self.skip("deprojection", "the dataset names no pair of baselines")
         return targets
+
+    def stray_light_products(self, *, figures: bool = False) -> list[str]:
+        """Each baseline's stray-light product (and figure), unless metrology.stray_light is off."""
+        if self.config["metrology"]["stray_light"] == "off":
+            self.skip("stray-light diagnosis", "config metrology.stray_light is off")
+            return []
+        out = []
+        for baseline in self.manifest.baselines:
+            out += [self.path("stray_light", baseline=baseline),
+                    *(self.figure("figure_stray_light", baseline=baseline) if figures else [])]
+        return out
+
+    def stray_light_removed(self, pair: str) -> list[str]:
+        """The stray-light products of a pair's two baselines if their components are removed from its offsets
+        (metrology.stray_light: remove), else nothing."""
+        if self.config["metrology"]["stray_light"] != "remove":
+            return []
+        return [self.path("stray_light", baseline=b) for b in self.manifest.pairs[pair]]
 
     # ------------------------------------------------------------------ pseudo stars and astrometry
 
@@ -275,6 +294,7 @@ class Plan:
             inputs["accuracy"] = self.path("accuracy_table")
         if self.metrology_unavailable() is None:
             inputs["allan"] = [self.path("allan", baseline=baseline) for baseline in self.manifest.baselines]
+            inputs["stray_light"] = self.stray_light_products()
         return inputs
 
 

@@ -23,7 +23,7 @@ from dice_core.manifest import Detector  # noqa: E402
 __all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure",
            "barycentre_figure", "offset_bias_figure", "paper_comparison_figure", "error_propagation_figure",
            "star_accuracy_figure", "tip_tilt_sweep_figure", "reduction_sweep_figure", "parameter_axis",
-           "PARAMETER_AXES", "reproduction_pdf", "save"]
+           "PARAMETER_AXES", "reproduction_pdf", "save", "stray_light_figure"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -876,4 +876,42 @@ def tip_tilt_sweep_figure(datasets, *, title="Tip-tilt: what each superimpositio
         ax.set_xlabel("stage tip-tilt amplitude [rad peak to valley]")
         ax.grid(True, which="both", alpha=0.3)
     fig.suptitle(f"{title} ({datasets[0].attrs.get('method', '')} centroids)", fontsize=10)
+    return fig
+
+
+def stray_light_figure(ds, detector, *, title, prefix: str = ""):
+    """A map's stray-light diagnosis (a ``calibration/stray_light_<baseline>.nc`` dataset, or an offsets
+    difference's ``ddx_``/``ddy_`` part with ``prefix``): the power spectrum over the white level (log scale)
+    with the components found circled at f and -f, and the phase error (or, without it, the offset error)
+    they make (1e-3 rad or 1e-3 pixel)."""
+    p = prefix
+    fig, axes = plt.subplots(1, 2, figsize=(11.6, 4.9), constrained_layout=True)
+    fx, fy = ds["frequency_x"].values, ds["frequency_y"].values
+    step = (fx[1] - fx[0], fy[1] - fy[0])
+    power = np.log10(np.maximum(ds[f"{p}power"].values, 1e-3))
+    im = axes[0].imshow(power, origin="lower", interpolation="nearest", cmap="magma", vmin=-1,
+                        vmax=max(np.log10(float(ds[f"{p}threshold"])) + 0.5, float(power.max())),
+                        extent=(fx[0] - step[0] / 2, fx[-1] + step[0] / 2, fy[0] - step[1] / 2, fy[-1] + step[1] / 2))
+    fig.colorbar(im, ax=axes[0], shrink=0.85).set_label("log10 power / white level")
+    n = int(ds[f"{p}n_components"])
+    for i in range(n):
+        f = np.array([float(ds[f"{p}component_frequency_x"][i]), float(ds[f"{p}component_frequency_y"][i])])
+        for sign in (1, -1):
+            axes[0].plot(*(sign * f), "o", mfc="none", mec="cyan", ms=14, mew=1.2)
+        axes[0].annotate(f"{i + 1}: {float(ds[f'{p}component_amplitude'][i]):.1e} px", f, xytext=(8, 8),
+                         textcoords="offset points", color="cyan", fontsize=8)
+    axes[0].set_xlabel("spatial frequency x [cycles/pixel]")
+    axes[0].set_ylabel("spatial frequency y [cycles/pixel]")
+    axes[0].set_title(f"spectrum of the offsets: {n} component(s) above {float(ds[f'{p}threshold']):.1f} x white\n"
+                      f"(false-alarm rate {float(ds[f'{p}false_alarm']):g}); white level "
+                      f"{np.sqrt(float(ds[f'{p}white_level'])):.1e} pixel rms", fontsize=8)
+    if f"{p}phase_error" in ds:
+        image, units, what = ds[f"{p}phase_error"].values, "phase error [1e-3 rad]", "phase error"
+    else:
+        image, units, what = ds[f"{p}offset_error"].values, "offset error [1e-3 pixel]", "offset error"
+    _show_map(axes[1], fig, image, detector, scale=1e3, symmetric=True, units=units,
+              title=f"{what} of the components: rms {np.sqrt(np.nanmean(image**2)):.2e} {units.split()[-1][5:-1]}"
+              if n else
+              "no component: no stray light seen")
+    fig.suptitle(title, fontsize=11)
     return fig

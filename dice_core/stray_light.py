@@ -54,7 +54,7 @@ import numpy as np
 __all__ = ["StraySource", "coherence", "place_sources", "fringe_terms", "component_phase", "component_design",
            "fit_amplitudes", "quadratic_frequency", "canonical", "reference_pixel", "FALSE_ALARM", "MAX_CHIRP",
            "Component", "Diagnosis", "diagnose", "component_model", "tangent_modes", "diagnose_map",
-           "diagnosis_variables", "stray_light_dataset", "summary_line"]
+           "diagnosis_variables", "stray_light_dataset", "summary_line", "fringe_harmonics", "EXCLUDE_BINS"]
 
 log = logging.getLogger(__name__)
 
@@ -226,6 +226,11 @@ MAX_CHIRP = 3.0e-3
 #: Zero-padding of the spectrum along each axis (the power between Fourier bins, a quarter bin apart at most).
 PAD = 2
 
+#: Half-width, in Fourier bins along each axis, of the spectral cells left out about each excluded frequency
+#: (a baseline's fringe frequency K / 2 pi and its harmonic 2K, where the gauge's residual mixing puts a ripple
+#: of the fit's own: docs/metrology.md).
+EXCLUDE_BINS = 2.0
+
 
 @dataclass
 class Component:
@@ -257,6 +262,7 @@ class Diagnosis:
     components: list             # Component, strongest first
     model: np.ndarray            # (pixel,) the components' sum
     modes: np.ndarray            # (mode, pixel): what fitting them takes from a map, 5 a component, unit rms
+    excluded: list               # the frequencies left out (cycles/pixel)
 
 
 def _spectrum(values, x, y, shape, chirp, reference):
@@ -352,7 +358,26 @@ def _errors(values, x, y, comps, reference, basis, white_level):
     return np.sqrt(np.diag(covariance))[:5 * len(comps)].reshape(len(comps), 5)
 
 
-def diagnose(values, x, y, *, against=None, false_alarm: float = FALSE_ALARM, max_components: int = 6,
+def fringe_harmonics(k) -> list:
+    """The frequencies (cycles/pixel) a diagnosis leaves out for a fringe of wavevector ``k`` (rad/pixel):
+    K / 2 pi and 2 K / 2 pi, where a wrong gauge (the residual mixing of the level with the fringe terms) puts
+    first and second harmonics of the fringe phase into the offsets, and photon noise a ripple of its own."""
+    f = np.asarray(k, float) / (2 * np.pi)
+    return [f, 2 * f]
+
+
+def _excluded(fx, fy, exclude, shape):
+    """Cells (fy, fx grid) within EXCLUDE_BINS Fourier bins of +-each excluded frequency, aliased."""
+    out = np.zeros((fy.size, fx.size), bool)
+    for f in exclude:
+        for sign in (1, -1):
+            dx = (fx[None, :] - sign * f[0] + 0.5) % 1.0 - 0.5
+            dy = (fy[:, None] - sign * f[1] + 0.5) % 1.0 - 0.5
+            out |= (np.abs(dx) <= EXCLUDE_BINS / shape[1]) & (np.abs(dy) <= EXCLUDE_BINS / shape[0])
+    return out
+
+
+def diagnose(values, x, y, *, against=None, exclude=(), false_alarm: float = FALSE_ALARM, max_components: int = 6,
              max_chirp: float = MAX_CHIRP) -> Diagnosis:
     """Coherent stray-light components of an offset map: its spectrum against the white level, those above.
 
@@ -363,6 +388,9 @@ def diagnose(values, x, y, *, against=None, false_alarm: float = FALSE_ALARM, ma
     against : ndarray (mode, pixel), optional
         Fields the map was made orthogonal to (its affine part, a baseline's unobservable modes), fitted
         beside the components; the affine part is always.
+    exclude : sequence of (float, float)
+        Frequencies (cycles/pixel) whose cells (EXCLUDE_BINS Fourier bins about them and their opposites,
+        aliased) are not searched: the fringes' own (:func:`fringe_harmonics`).
     false_alarm : float
         Probability that a map of white noise shows a component (per map).
     max_components : int
@@ -406,6 +434,7 @@ def diagnose(values, x, y, *, against=None, false_alarm: float = FALSE_ALARM, ma
     trials = PAD**2 * cells * chirps.size
     threshold = float(-np.log1p(-(1 - false_alarm) ** (1 / trials)))
     fx, fy = np.fft.fftfreq(nx), np.fft.fftfreq(ny)
+    half &= ~_excluded(fx, fy, exclude, shape)
     residual, _ = _residual(values, x, y, [], reference, basis)
     plain = _spectrum(residual, x, y, shape, 0.0, reference)
     found, significance = [], []
@@ -440,7 +469,7 @@ def diagnose(values, x, y, *, against=None, false_alarm: float = FALSE_ALARM, ma
     modes = tangent_modes(x, y, components, reference, against=basis)
     power = np.fft.fftshift(plain / white_level)
     return Diagnosis(reference, np.fft.fftshift(fx), np.fft.fftshift(fy), power, white_level, threshold,
-                     false_alarm, trials, components, model, modes)
+                     false_alarm, trials, components, model, modes, [np.asarray(f, float) for f in exclude])
 
 
 def component_model(x, y, components, reference) -> np.ndarray:
@@ -466,14 +495,14 @@ def tangent_modes(x, y, components, reference, *, against=None) -> np.ndarray:
 
 # --------------------------------------------------------------------------- products
 
-def diagnose_map(values, *, modes=None, false_alarm: float = FALSE_ALARM):
+def diagnose_map(values, *, modes=None, exclude=(), false_alarm: float = FALSE_ALARM):
     """:func:`diagnose` of a (row, col) map over its finite pixels, ``modes`` (mode, row, col) the fields it
     was made orthogonal to; returns (diagnosis, rows, cols) of those pixels."""
     values = np.asarray(values, float)
     good = np.isfinite(values)
     rows, cols = np.nonzero(good)
     against = None if modes is None or not len(modes) else np.asarray(modes)[:, good]
-    return diagnose(values[good], cols.astype(float), rows.astype(float), against=against,
+    return diagnose(values[good], cols.astype(float), rows.astype(float), against=against, exclude=exclude,
                     false_alarm=false_alarm), rows, cols
 
 
@@ -508,6 +537,9 @@ def diagnosis_variables(diagnosis: Diagnosis, rows, cols, shape, *, prefix: str 
                             {"units": "1", "long_name": "probability that a map without stray light shows a "
                                                         "component (at most)"}),
         f"{p}n_components": ((), len(comps), {"units": "1", "long_name": "components found"}),
+        f"{p}excluded_frequency": ((f"{p}excluded", "axis"), np.array(diagnosis.excluded, float).reshape(-1, 2),
+                                   {"units": "1/pixel", "long_name": "frequencies (x, y) whose cells were not "
+                                                                     "searched: the fringes' K / 2 pi and 2K / 2 pi"}),
         f"{p}offset_error": (("row", "col"), offset, {"units": "pixel", "long_name": "the components' sum"}),
         **column("frequency_x", "1/pixel", "spatial frequency along x (aliased into [-1/2, 1/2), f_x >= 0)",
                  [c.frequency[0] for c in comps]),
@@ -545,7 +577,8 @@ def stray_light_dataset(metrology, *, false_alarm: float = FALSE_ALARM, baseline
 
     offsets = metrology["projected_offset"].values
     modes = metrology["unobservable_offset"].values if "unobservable_offset" in metrology else None
-    diagnosis, rows, cols = diagnose_map(offsets, modes=modes, false_alarm=false_alarm)
+    exclude = fringe_harmonics((float(metrology["kx"]), float(metrology["ky"])))
+    diagnosis, rows, cols = diagnose_map(offsets, modes=modes, exclude=exclude, false_alarm=false_alarm)
     if "kx_local" in metrology:
         k_norm = np.hypot(metrology["kx_local"].values, metrology["ky_local"].values)
     else:
@@ -555,6 +588,7 @@ def stray_light_dataset(metrology, *, false_alarm: float = FALSE_ALARM, baseline
         "row": metrology["row"].values, "col": metrology["col"].values,
         "frequency_x": ("frequency_x", diagnosis.frequency_x, {"units": "1/pixel", "long_name": "spatial frequency"}),
         "frequency_y": ("frequency_y", diagnosis.frequency_y, {"units": "1/pixel", "long_name": "spatial frequency"}),
+        "axis": ["x", "y"],
     })
     product.attrs.update({"baseline": baseline, "reference_pixel": list(diagnosis.reference),
                           "component_model": "a cos(2 pi (f.(r - r0) + g |r - r0|^2 / 2) + phi), r = (col, row), "

@@ -307,3 +307,60 @@ def test_a_component_of_known_parameters_is_recovered_within_its_errors():
 def test_diagnose_refuses_maps_it_cannot_read():
     with pytest.raises(ValueError, match="at least 16 finite"):
         stray_light.diagnose(np.array([1.0, np.nan] * 10), np.arange(20.0), np.zeros(20))
+
+
+# --------------------------------------------------------------------------- slice (d): the removal
+
+def test_with_removal_dx_dy_are_at_their_floor_and_the_pair_difference_at_its_own(stray):
+    """metrology.stray_light: remove. Each baseline's components come out of its offsets, and what fitting
+    them takes (5 directions each) is declared with the unobservable modes: dx, dy within 1.3x their floor once
+    the affine part and every declared mode are removed from the truth, and the two pairs' difference, all
+    their modes removed, within 1.2x its floor."""
+    manifest, truth, products = stray
+    pairs = {}
+    for pair, (first, second) in manifest.pairs.items():
+        found = [stray_light.stray_light_dataset(products[b][1], baseline=b) for b in (first, second)]
+        detected = deprojection.offsets_dataset(products[first][1], products[second][1], label=pair)
+        pairs[pair] = deprojection.offsets_dataset(products[first][1], products[second][1], label=pair, stray=found)
+        n_modes = detected.sizes["mode"] + 5 * sum(int(f["n_components"]) for f in found)
+        assert pairs[pair].sizes["mode"] == n_modes == detected.sizes["mode"] + 20, pair
+        error_dx, error_dy, floor_dx, floor_dy = pair_errors(pairs[pair], truth)
+        assert rms(error_dx) < 1.3 * floor_dx and rms(error_dy) < 1.3 * floor_dy, pair
+    difference = deprojection.difference_dataset(pairs["P14"], pairs["P24"], reference_pair="P14", pair="P24",
+                                                 spectrum=True)
+    for axis in ("ddx", "ddy"):
+        assert float(difference[f"{axis}_std"]) < 1.2 * float(difference[f"{axis}_photon_noise_floor"]), axis
+        assert int(difference[f"{axis}_n_components"]) == 0, axis
+
+
+def test_detected_pair_difference_shows_both_pairs_components(stray):
+    """Without removal the pair difference's spectrum shows the stray light of both pairs: components at the
+    frequencies found in the baselines (the difference mixes them into ddx and ddy)."""
+    manifest, truth, products = stray
+    pairs = {pair: deprojection.offsets_dataset(products[a][1], products[b][1]) for pair, (a, b) in
+             manifest.pairs.items()}
+    difference = deprojection.difference_dataset(pairs["P14"], pairs["P24"], reference_pair="P14", pair="P24",
+                                                 spectrum=True)
+    found = np.column_stack([np.concatenate([difference[f"{a}_component_frequency_{axis}"].values
+                                             for a in ("ddx", "ddy")]) for axis in "xy"])
+    true = np.column_stack([truth["stray_frequency_x"].values, truth["stray_frequency_y"].values])
+    nearest = np.min(np.hypot(*(found[:, None, :] - true[None, :, :]).transpose(2, 0, 1)), axis=1)
+    assert len(found) >= 6 and np.all(nearest < 0.005)
+
+
+def test_remove_changes_nothing_where_nothing_is_found(tmp_path):
+    """A stray-free bench (small, spherical): no component, so metrology.stray_light: remove gives dx, dy bit
+    for bit those of detect (a component found by chance would take the offsets' part along its 5 directions,
+    about sqrt(5 / N) of their 1e-3 pixel rms: docs/metrology.md)."""
+    from conftest import small_config
+
+    cfg = small_config(frames_per_file=1000, metrology={
+        "frames": 300, "sweep_frames": 100, "spherical": True,
+        "baselines": {b: BASELINES[b] for b in ("H1H4", "V1V4")}, "pairs": {"P14": ["H1H4", "V1V4"]}})
+    _, _, products = fit_all(cfg, tmp_path)
+    found = [stray_light.stray_light_dataset(products[b][1]) for b in ("H1H4", "V1V4")]
+    assert [int(f["n_components"]) for f in found] == [0, 0]
+    detected = deprojection.offsets_dataset(products["H1H4"][1], products["V1V4"][1])
+    removed = deprojection.offsets_dataset(products["H1H4"][1], products["V1V4"][1], stray=found)
+    for name in ("dx", "dy", "unobservable_dx", "unobservable_dy"):
+        np.testing.assert_array_equal(removed[name].values, detected[name].values)
