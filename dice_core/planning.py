@@ -288,6 +288,7 @@ class Plan:
     def comparison_inputs(self) -> dict:
         """What the paper comparison reads: the studies, and this dataset's accuracy table and Allan products."""
         inputs = {"offset_bias": self.sweep_points(self.paper_sweep("offset_bias")),
+                  "stray_light_study": self.sweep_points(self.paper_sweep("stray_light")),
                   "error_propagation": self.path("error_propagation"),
                   "deflation": self.path("procrustes_deflation")}
         if self.astrometry_targets():
@@ -456,7 +457,8 @@ def paper_pdf_pages(plan: Plan, captions: Path) -> list[tuple[str, str]]:
     figures that the paper shows, those the dataset allows."""
     pages = [(plan.path(key, suffix=".png"), str(captions / f"{stem}.rst"))
              for key, stem in (("figure_paper_comparison", "paper_comparison"), ("figure_offset_bias", "offset_bias"),
-                               ("figure_error_propagation", "error_propagation"))]
+                               ("figure_error_propagation", "error_propagation"),
+                               ("figure_stray_light_study", "stray_light_study"))]
     manifest = plan.manifest
     if plan.metrology_unavailable() is None:
         first = next(iter(manifest.baselines))

@@ -23,7 +23,7 @@ from dice_core.manifest import Detector  # noqa: E402
 __all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure",
            "barycentre_figure", "offset_bias_figure", "paper_comparison_figure", "error_propagation_figure",
            "star_accuracy_figure", "tip_tilt_sweep_figure", "reduction_sweep_figure", "parameter_axis",
-           "PARAMETER_AXES", "reproduction_pdf", "save", "stray_light_figure"]
+           "PARAMETER_AXES", "reproduction_pdf", "save", "stray_light_figure", "stray_light_study_figure"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -913,5 +913,73 @@ def stray_light_figure(ds, detector, *, title, prefix: str = ""):
               title=f"{what} of the components: rms {np.sqrt(np.nanmean(image**2)):.2e} {units.split()[-1][5:-1]}"
               if n else
               "no component: no stray light seen")
+    fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def _study_points(datasets, **fixed):
+    """The stray-light study's points whose scalars equal ``fixed`` (NaN-safe), sorted by what varies."""
+    def keep(ds):
+        return all(np.isclose(float(ds[k]), v, equal_nan=True) for k, v in fixed.items())
+
+    return [ds for ds in datasets if keep(ds)]
+
+
+def stray_light_study_figure(datasets, *, title="Coherent stray light: a pair's offset error, left in and removed"):
+    """The stray-light study (:func:`dice_core.studies.stray_light` points): dx, dy error rms against the field
+    ratio (one tip position, the longest coherence), against the coherence length (field ratio 1e-3) and for
+    one tip position against the mean of several; the photon floor and the paper's 4e-4 pixel."""
+    fig, axes = plt.subplots(1, 3, figsize=(15.5, 4.8), constrained_layout=True)
+    single = [ds for ds in datasets if float(ds["tip_positions"]) == 1]
+    short = [ds for ds in single if float(ds["path_scale"]) != 1]  # sub-mm paths: their own marker
+    single = [ds for ds in single if float(ds["path_scale"]) == 1]
+    longest = max((float(ds["coherence_length"]) for ds in single), default=np.nan)
+    styles = {"detect": ("o", "C3", "left in"), "remove": ("s", "C0", "removed")}
+
+    def series(ax, points, key, xscale):
+        points = sorted(points, key=lambda ds: float(ds[key]))
+        x = [float(ds[key]) * xscale for ds in points]
+        for way, (marker, colour, label) in styles.items():
+            for axis, fill in (("dx", colour), ("dy", "none")):
+                ax.plot(x, [float(ds[f"error_{axis}_{way}"]) for ds in points], marker=marker, color=colour,
+                        mfc=fill, ls="-" if axis == "dx" else "--", label=f"{axis}, stray light {label}")
+        ax.plot(x, [float(ds["floor_dx"]) for ds in points], color="k", lw=1, ls=":", label="photon floor (dx)")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
+
+    ratio = _study_points(single, coherence_length=longest)
+    if ratio:
+        series(axes[0], ratio, "field_ratio", 1.0)
+        axes[0].axhline(4e-4, color="C2", lw=1.5, label="the paper's offset accuracy, 4e-4 pixel")
+        axes[0].set_xscale("log")
+        axes[0].set_xlabel("field ratio sqrt(I1 / I0) of each vane")
+        axes[0].set_title(f"against the field ratio (coherence length {longest * 100:g} cm)", fontsize=9)
+    coherence = _study_points(single, field_ratio=1e-3)
+    if coherence:
+        series(axes[1], coherence, "coherence_length", 100.0)
+        axes[1].set_xscale("log")
+        axes[1].set_xlabel("coherence length [cm] (|gamma| = exp(-(OPD / Lc)^2); vanes' OPD 0.6-1.5 cm)")
+        axes[1].set_title("against the laser's coherence length (field ratio 1e-3)", fontsize=9)
+        for ds in _study_points(short, field_ratio=1e-3):
+            axes[1].plot(float(ds["coherence_length"]) * 100, float(ds["error_dx_detect"]), "*", color="C4", ms=12,
+                         label=f"dx, left in, vanes' paths x {float(ds['path_scale']):g} (sub-mm)")
+        axes[1].legend(fontsize=7)
+    averaged = sorted((ds for ds in datasets if float(ds["tip_positions"]) > 1), key=lambda ds: float(ds["tip_step"]))
+    for i, ds in enumerate(averaged):
+        n = int(ds["tip_positions"])
+        for j, (key, label) in enumerate((("error_dx_detect", "one position"),
+                                          ("average_error_dx_detect", f"mean of {n}"),
+                                          ("average_error_dx_remove", f"mean of {n}, removed"))):
+            axes[2].bar(i + 0.27 * (j - 1), float(ds[key]), width=0.25, color=f"C{[3, 1, 0][j]}",
+                        label=label if i == 0 else None)
+        axes[2].plot([i - 0.4, i + 0.4], [float(ds["average_floor_dx"])] * 2, "k:", label=None if i else
+                     f"floor of the mean of {n}")
+    if averaged:
+        axes[2].set_xticks(range(len(averaged)), [f"tips {float(ds['tip_step']) * 1e3:g} mm apart" for ds in averaged])
+        axes[2].set_yscale("log")
+        axes[2].set_title("dx error: one fiber-tip position or the mean of several (field ratio 1e-3)", fontsize=9)
+    for ax in axes:
+        ax.set_ylabel("rms error against truth [pixel]")
+        ax.legend(fontsize=7)
     fig.suptitle(title, fontsize=11)
     return fig

@@ -114,9 +114,10 @@ _STEPS = [
     Step("plot_offset_bias", ("paper.offset_bias",), whole_run=True),
     Step("error_propagation_table", ("paper.error_propagation",), whole_run=True),
     Step("plot_error_propagation", ("paper.error_propagation",), whole_run=True),
+    Step("plot_stray_light_study", ("paper.stray_light",), whole_run=True),
     Step("procrustes_deflation", ("astrometry.trials",), whole_run=True),
-    Step("paper_comparison", ("paper.offset_bias", "paper.error_propagation", "astrometry.positions",
-                              "centroids.method", "metrology.stray_light"), whole_run=True),
+    Step("paper_comparison", ("paper.offset_bias", "paper.error_propagation", "paper.stray_light",
+                              "astrometry.positions", "centroids.method", "metrology.stray_light"), whole_run=True),
     Step("paper_pdf", whole_run=True),
 ]
 

@@ -1,9 +1,10 @@
 """Coherent stray light: its model on the bench, its signature in the pixel offsets, its diagnosis and removal.
 
 Physics (paper, appendix C and section "Bias on pixel offsets"; docs/metrology.md, "Coherent stray light").
-A stray source s (a baffle vane's edge) re-emits a copy of fiber f's wave with
-field ratio eps (its field over the direct wave's, sqrt(I1 / I0)) and an optical
-path P_s(r) = |r - S| + c_s to detector point r, S its position. Beside the direct
+A stray source s (a baffle vane's edge) at S re-emits a copy of fiber f's wave
+with field ratio eps (its field over the direct wave's, sqrt(I1 / I0)) and an
+optical path P_s(r) = |S - T_f| + |r - S| + e_s from f's tip T_f to detector
+point r (e_s: the path the re-emission adds, a reflection's). Beside the direct
 fringe of a baseline's two fibers a and b, Phi(r) = k (|r - a| - |r - b|), it makes
 
 - with the *other* fiber's wave a parasitic fringe, modulated by the fringe
@@ -61,13 +62,15 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class StraySource:
-    """One stray source on the bench: the fiber whose wave it re-emits, its position ``point`` (m, detector
-    frame), its field ratio, and the constant ``path_constant`` c_s of its path P_s(r) = |r - S| + c_s, m."""
+    """One stray source on the bench: the fiber whose wave it re-emits, its position ``point`` S (m, detector
+    frame), its field ratio, and ``reemission`` e, m: the wave's optical path to detector point r from the
+    fiber's tip T is P_s(r) = |S - T| + |r - S| + e (the tip may move, the source stays); ``extra_path`` is
+    P_s - |r - T| at the detector centre for the tips it was placed with."""
 
     fiber: str
     point: np.ndarray
     field_ratio: float
-    path_constant: float
+    reemission: float
     extra_path: float
 
 
@@ -117,8 +120,9 @@ def place_sources(specs, tips: dict, *, centre, pitch, default_ratio: float):
         point = np.array([*lateral, d])
         extra = float(spec["extra_path"])
         ratio = default_ratio if spec.get("field_ratio") is None else float(spec["field_ratio"])
-        constant = extra + np.linalg.norm(centre_m - tip) - np.linalg.norm(centre_m - point)
-        out.append(StraySource(spec["fiber"], point, ratio, constant, extra))
+        reemission = extra + np.linalg.norm(centre_m - tip) - np.linalg.norm(centre_m - point) - np.linalg.norm(
+            point - tip)
+        out.append(StraySource(spec["fiber"], point, ratio, reemission, extra))
     return out
 
 
@@ -141,22 +145,25 @@ def fringe_terms(x, y, tip_a, tip_b, sources, *, fibers, wavelength, pitch, cohe
     da, ax, ay = _distance(x, y, tip_a, pitch)
     db, bx, by = _distance(x, y, tip_b, pitch)
     centre_m = np.array([centre[0] * pitch, centre[1] * pitch, 0.0])
-    opd_ab = np.linalg.norm(centre_m - tip_a) - np.linalg.norm(centre_m - tip_b)
+    to_a, to_b = np.linalg.norm(centre_m - tip_a), np.linalg.norm(centre_m - tip_b)
     modulated, static = [], []
     for index, s in enumerate(sources):
         if s.fiber not in fibers or s.field_ratio == 0:
             continue
         ds, sx, sy = _distance(x, y, s.point, pitch)
-        path = ds + s.path_constant
+        tip = tip_a if s.fiber == fibers[0] else tip_b
+        constant = np.linalg.norm(s.point - tip) + s.reemission
+        path = ds + constant
+        centre_path = np.linalg.norm(centre_m - s.point) + constant  # the OPDs, at the detector centre
         if s.fiber == fibers[0]:  # a copy of a, beating with b's wave
-            phase, gx, gy, opd = k * (path - db), k * (sx - bx), k * (sy - by), s.extra_path + opd_ab
-            own, ox, oy = k * (path - da), k * (sx - ax), k * (sy - ay)
+            phase, gx, gy, opd = k * (path - db), k * (sx - bx), k * (sy - by), centre_path - to_b
+            own, ox, oy, own_opd = k * (path - da), k * (sx - ax), k * (sy - ay), centre_path - to_a
         else:  # a copy of b, beating with a's
-            phase, gx, gy, opd = k * (da - path), k * (ax - sx), k * (ay - sy), s.extra_path - opd_ab
-            own, ox, oy = k * (path - db), k * (sx - bx), k * (sy - by)
+            phase, gx, gy, opd = k * (da - path), k * (ax - sx), k * (ay - sy), centre_path - to_a
+            own, ox, oy, own_opd = k * (path - db), k * (sx - bx), k * (sy - by), centre_path - to_b
         modulated.append((s.field_ratio * coherence(abs(opd), coherence_length), gx, gy, phase, index))
-        static.append((s.field_ratio * coherence(abs(s.extra_path), coherence_length), ox, oy, own, index))
-    return modulated, static, float(coherence(abs(opd_ab), coherence_length))
+        static.append((s.field_ratio * coherence(abs(own_opd), coherence_length), ox, oy, own, index))
+    return modulated, static, float(coherence(abs(to_a - to_b), coherence_length))
 
 
 # --------------------------------------------------------------------------- components
@@ -222,6 +229,9 @@ FALSE_ALARM = 1e-3
 #: Largest |chirp| searched, cycles/pixel^2: a vane edge 0.2 m above the detector, the fibers 0.6 m away
 #: (pitch^2 / wavelength (1/0.2 - 1/0.6) = 3.0e-3 for 24 um pixels at 633 nm).
 MAX_CHIRP = 3.0e-3
+
+#: Most chirps searched (a map's spectrum is computed once for each, per component found).
+MAX_CHIRPS = 61
 
 #: Zero-padding of the spectrum along each axis (the power between Fourier bins, a quarter bin apart at most).
 PAD = 2
@@ -428,7 +438,9 @@ def diagnose(values, x, y, *, against=None, exclude=(), false_alarm: float = FAL
     ny, nx = PAD * shape[0], PAD * shape[1]
     half = _half_plane(ny, nx)
     half_extent = 0.5 * np.hypot(*shape)
-    step = 1.0 / (np.pi * half_extent**2)  # a chirp step moves the phase at the box's corner by 1 rad
+    # a chirp step moves the phase at the box's corner by 1 rad; on a large detector, where that would take
+    # thousands of spectra, MAX_CHIRPS of them (a strongly chirped component then shows with less contrast)
+    step = max(1.0 / (np.pi * half_extent**2), 2 * max_chirp / (MAX_CHIRPS - 1))
     chirps = np.arange(-np.floor(max_chirp / step), np.floor(max_chirp / step) + 1) * step
     cells = int(np.count_nonzero(_half_plane(*shape)))
     trials = PAD**2 * cells * chirps.size

@@ -70,21 +70,15 @@ def stray(tmp_path_factory):
     return fit_all(stray_bench(), tmp_path_factory.mktemp("stray"))
 
 
-def pair_errors(offsets, truth, extra_modes=()):
-    """dx, dy minus the truth, both with the affine part and the product's declared modes removed, over the
-    finite pixels: (error_dx, error_dy, floor_dx, floor_dy), the floors as rms."""
-    good = np.isfinite(offsets["dx"].values)
-    rows, cols = np.nonzero(good)
-    n = rows.size
-    one, zero, x, y = np.ones(n), np.zeros(n), cols.astype(float), rows.astype(float)
-    basis = [np.concatenate(p) for p in [(one, zero), (x, zero), (y, zero), (zero, one), (zero, x), (zero, y)]]
-    if "unobservable_dx" in offsets:
-        basis += list(np.concatenate([offsets["unobservable_dx"].values[:, good],
-                                      offsets["unobservable_dy"].values[:, good]], axis=1))
-    measured = np.concatenate([offsets["dx"].values[good], offsets["dy"].values[good]])
-    true = np.concatenate([truth["dx"].values[good], truth["dy"].values[good]])
-    error = measured - remove_modes(true, np.array(basis))
-    return (error[:n], error[n:], rms(offsets["dx_photon_noise_floor"].values[good]),
+def pair_errors(offsets, truth):
+    """dx, dy minus the truth (:func:`dice_core.studies.offsets_error`: the affine part and the product's
+    declared modes removed from the truth) over the finite pixels, and the rms floors:
+    (error_dx, error_dy, floor_dx, floor_dy)."""
+    from dice_core.studies import offsets_error
+
+    error = offsets_error(offsets, truth)
+    good = np.isfinite(error[0])
+    return (error[0][good], error[1][good], rms(offsets["dx_photon_noise_floor"].values[good]),
             rms(offsets["dy_photon_noise_floor"].values[good]))
 
 

@@ -421,10 +421,13 @@ OTHER_VALUES = {
     "astrometry.trials": 1000, "astrometry.superimposition": "projective", "astrometry.pose.distance": 30000.0,
     "astrometry.pose.off_axis_deg": 3.0, "astrometry.pose.centre": [20.0, 20.0],
     "paper.offset_bias": "offset_bias_causes", "paper.error_propagation": "error_propagation_sources",
+    "paper.stray_light": "stray_light_small",
 }
 # the second error_propagation sweep paper.error_propagation may name
 EXTRA_SWEEP = {"sweeps": {"error_propagation_sources": {"study": "error_propagation", "parameter": "source",
-                                                        "values": ["prnu", "read"], "options": {"trials": 50}}}}
+                                                        "values": ["prnu", "read"], "options": {"trials": 50}},
+                          "stray_light_small": {"study": "stray_light", "parameter": "stray_light.field_ratio",
+                                                "values": [1.0e-3], "bench": {"metrology.frames": 300}}}}
 
 
 def nested(key, value):

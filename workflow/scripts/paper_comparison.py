@@ -35,6 +35,7 @@ def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, method, str
         for row in reproduction.allan_rows(allan, dataset=dataset):
             row.note += f"; {found}" if found else ""
             rows.append(row)
+    rows += reproduction.stray_light_study_rows([io.read_product(p) for p in inputs["stray_light_study"]])
     for stray in strays.values():
         rows += reproduction.stray_light_rows(stray, dataset=dataset, removed=stray_light == "remove")
     if "accuracy" in inputs:
