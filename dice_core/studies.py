@@ -37,7 +37,7 @@ from dice_core.overrides import apply_dotted
 from dice_core.paper_method import fit_baseline_paper
 
 __all__ = ["OFFSET_BIAS_BENCH", "STAR_ACCURACY_BENCH", "TIP_TILT_BENCH", "STRAY_LIGHT_BENCH", "STRAY_LIGHT_VANES",
-           "STUDIES", "star_accuracy", "tip_tilt", "stray_light", "offsets_error",
+           "STUDIES", "star_accuracy", "tip_tilt", "stray_light", "offsets_error", "simulate_and_fit",
            "flat_metrology_centroids", "apply_overrides", "offset_bias", "affine_free", "error_propagation",
            "sweep_dataset", "sweep_from_dataset", "run_point"]
 
@@ -513,24 +513,36 @@ def _tip_grid(positions: int, step: float) -> list:
     return [(float(dx), float(dy), 0.0) for dy in offsets for dx in offsets]
 
 
+def simulate_and_fit(cfg, workdir):
+    """Simulate ``cfg`` into ``workdir`` and fit every baseline with the true sensitivities as the flat (and the
+    manifest's fiber tips, with spherical waves): (manifest, truth, {baseline: (solution, metrology product)})."""
+    from dice_core import fringes
+
+    manifest = load_manifest(simulation.simulate_dataset(cfg, workdir))
+    truth = read_product(Path(workdir) / "truth.nc").load()
+    products = {}
+    for baseline in manifest.baselines:
+        bench = None if manifest.geometry is None else geometry.BaselineGeometry.of_baseline(manifest.geometry,
+                                                                                           baseline)
+        solution = fringe_fit.fit_baseline(
+            FrameStream(manifest.baselines[baseline], manifest.detector), truth["bias"].values,
+            detector=manifest.detector, flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
+            geometry=bench, label=baseline)
+        products[baseline] = (solution, fringes.solution_dataset(
+            solution, manifest.detector, fibers=None if bench is None else bench.fibers))
+    return manifest, truth, products
+
+
 def _stray_light_position(cfg, workdir):
     """One tip position: simulate ``cfg``, fit its pair, and its offsets with the stray light detected (left in)
     and removed: each one's errors against the truth (the affine part and its declared modes removed from the
     truth), (row, col) maps; the floors; the components found; the truth's stray-light offset error rms."""
-    from dice_core import deprojection, fringes
+    from dice_core import deprojection
     from dice_core import stray_light as stray_light_module
 
-    manifest = load_manifest(simulation.simulate_dataset(cfg, workdir))
-    truth = read_product(Path(workdir) / "truth.nc").load()
+    manifest, truth, products = simulate_and_fit(cfg, workdir)
     (pair, (first, second)), = manifest.pairs.items()
-    fitted = {}
-    for baseline in (first, second):
-        solution = fringe_fit.fit_baseline(
-            FrameStream(manifest.baselines[baseline], manifest.detector), truth["bias"].values,
-            detector=manifest.detector, flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
-            geometry=geometry.BaselineGeometry.of_baseline(manifest.geometry, baseline), label=baseline)
-        fitted[baseline] = fringes.solution_dataset(solution, manifest.detector,
-                                                    fibers=manifest.geometry.baseline_fibers[baseline])
+    fitted = {baseline: product for baseline, (_, product) in products.items()}
     found = [stray_light_module.stray_light_dataset(fitted[b], baseline=b) for b in (first, second)]
     out = {"components": sum(int(f["n_components"]) for f in found)}
     for way, stray in (("detect", (None, None)), ("remove", found)):

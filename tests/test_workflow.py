@@ -1111,8 +1111,11 @@ PAPER_CI = {
         "errors_ci": {"study": "error_propagation", "grid": {"source": ["prnu", "photon", "offsets", "read"],
                                                              "weighting": ["pipeline", "uniform"]},
                       "options": {"trials": 20, "amplitudes": [1.0e-3]}},
+        # the stray-light study at 300 frames: the field ratio 1e-3 point (its rows) and one at 3e-3
+        "stray_ci": {"study": "stray_light", "parameter": "stray_light.field_ratio", "values": [1.0e-3, 3.0e-3],
+                     "bench": {"metrology.frames": 300}},
     },
-    "paper": {"offset_bias": "bias_ci", "error_propagation": "errors_ci"},
+    "paper": {"offset_bias": "bias_ci", "error_propagation": "errors_ci", "stray_light": "stray_ci"},
 }
 
 
@@ -1148,6 +1151,9 @@ def test_the_paper_target_runs_and_its_tables_follow_the_contract(paper_run, out
     assert list(errors[0])[:5] == ["source", "normalisation", "coefficient", "error", "paper_coefficient"]
     assert [r["source"] for r in errors] == ["prnu", "photon", "offsets", "read"]
     assert (out / "figures" / "error_propagation.png").is_file() and (out / "figures" / "offset_bias.png").is_file()
+    assert (out / "figures" / "stray_light_study.png").is_file()
+    stray = [q for q in quantities if q.startswith("pixel-offset accuracy, stray light its main noise")]
+    assert any("field ratio 1e-3, stray light left in, study" in q for q in stray), stray
     assert (out / "report" / "paper_reproduction.pdf").read_bytes()[:5] == b"%PDF-"
 
 
