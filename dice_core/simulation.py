@@ -230,6 +230,9 @@ class MetrologyConfig:
     # Every fiber tip (true and nominal) moved by this vector, m, the stray sources staying where the unmoved
     # tips put them (stray_light): the paper's fiber-tip positions. Omitted from to_dict() when zero.
     tip_shift: tuple = (0.0, 0.0, 0.0)
+    # Which acquisition of the bench: another draw of the metrology frames' noise (photon, read, laser,
+    # phase), the detector and the fringe sweep's shape kept. Omitted from to_dict() when zero.
+    acquisition: int = 0
     baselines: dict = field(default_factory=lambda: {
         "H1H4": {"period": 2.4, "angle_deg": 2.0},
         "V1V4": {"period": 2.4, "angle_deg": 93.0},
@@ -334,6 +337,8 @@ class SimulationConfig:
             del values["stray_light"]
         if not any(self.metrology.tip_shift):
             del values["metrology"]["tip_shift"]
+        if not self.metrology.acquisition:
+            del values["metrology"]["acquisition"]
         return values
 
 
@@ -551,6 +556,11 @@ def project_stars(pattern: np.ndarray, poses: np.ndarray, *, cfg: SimulationConf
 
 # --------------------------------------------------------------------------- truth
 
+def _acquisition(cfg: SimulationConfig) -> tuple:
+    """The names that make another acquisition's noise its own (none for the first: the streams of before)."""
+    return (f"acquisition {cfg.metrology.acquisition}",) if cfg.metrology.acquisition else ()
+
+
 def _rng(cfg: SimulationConfig, *names) -> np.random.Generator:
     key = [cfg.seed] + [zlib.crc32(str(n).encode()) for n in names]
     return np.random.default_rng(key)
@@ -756,7 +766,7 @@ def _fringe_histories(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray, np
     amplitude = np.empty_like(phase)
     stray_phase = np.empty_like(phase)
     for i, name in enumerate(m.baselines):
-        rng = _rng(cfg, "metrology", name)
+        rng = _rng(cfg, "metrology", name, *_acquisition(cfg))
         phase[i] = _phase_history(cfg, name, rng)
         laser = 1 + m.laser_rsd * rng.standard_normal(m.frames)
         if m.intensity_random_walk:
@@ -1097,8 +1107,10 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, n
     ------
     ndarray (frame, row, col), adu (not yet quantised).
     """
-    photon_rngs = _rng(cfg, "photons", kind, name, start), _rng(cfg, "poisson photons", kind, name, start)
-    read_rng = _rng(cfg, "read", kind, name, start)
+    again = _acquisition(cfg) if kind == "baseline" else ()
+    photon_rngs = (_rng(cfg, "photons", kind, name, start, *again),
+                   _rng(cfg, "poisson photons", kind, name, start, *again))
+    read_rng = _rng(cfg, "read", kind, name, start, *again)
     shape = cfg.detector.shape
     prf = pixel_response(truth)
     if kind == "flat":

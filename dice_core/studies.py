@@ -580,7 +580,8 @@ def stray_light(settings: dict, *, workdir, tip_positions: int = 1, tip_step: fl
 
     The bench ``settings`` (:data:`STRAY_LIGHT_BENCH` with a point's overrides: ``stray_light.field_ratio``,
     ``stray_light.coherence_length``...) is simulated at ``tip_positions`` fiber-tip positions (1, or a square
-    grid such as the paper's 9, ``tip_step`` m apart: every tip moved, true and nominal, the vanes fixed) and
+    grid such as the paper's 9, ``tip_step`` m apart: every tip moved, true and nominal, the vanes fixed, each
+    position an acquisition of its own, with its own noise) and
     reduced at each: its pair's dx, dy against the truth, the stray light left in (detect) and taken out
     (remove), each with the affine part and its own declared modes removed from the truth. With several
     positions, the maps are averaged, as the paper did, and so are their errors. ``path_scale`` multiplies
@@ -603,9 +604,12 @@ def stray_light(settings: dict, *, workdir, tip_positions: int = 1, tip_step: fl
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     results = []
-    for shift in _tip_grid(tip_positions, tip_step):
-        cfg = simulation.SimulationConfig.from_dict(apply_dotted(base.to_dict(), {"metrology.tip_shift": list(shift)},
-                                                                 what="stray-light bench"))
+    for index, shift in enumerate(_tip_grid(tip_positions, tip_step)):
+        # each position its own acquisition: the same noise would make the positions' photon-noise errors
+        # correlate as cos(K . shift), which a grid's mean cancels far below the floor / sqrt(positions)
+        cfg = simulation.SimulationConfig.from_dict(apply_dotted(
+            base.to_dict(), {"metrology.tip_shift": list(shift), "metrology.acquisition": index},
+            what="stray-light bench"))
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory(dir=workdir, prefix="tips-") as folder:
             results.append(_stray_light_position(cfg, folder))
