@@ -975,9 +975,14 @@ def stray_light_study_figure(datasets, *, title="Coherent stray light: a pair's 
         axes[2].plot([i - 0.4, i + 0.4], [float(ds["average_floor_dx"])] * 2, "k:", label=None if i else
                      f"floor of the mean of {n}")
     if averaged:
-        axes[2].set_xticks(range(len(averaged)), [f"tips {float(ds['tip_step']) * 1e3:g} mm apart" for ds in averaged])
+        axes[2].set_xticks(range(len(averaged)), [
+            f"{float(ds['tip_step']) * 1e6:g} um" if float(ds["tip_step"]) < 1e-3 else
+            f"{float(ds['tip_step']) * 1e3:g} mm" for ds in averaged])
+        axes[2].set_xlabel("fiber-tip positions' spacing (3x3 grid, vanes fixed)")
         axes[2].set_yscale("log")
-        axes[2].set_title("dx error: one fiber-tip position or the mean of several (field ratio 1e-3)", fontsize=9)
+        top = max(float(ds["error_dx_detect"]) for ds in averaged)
+        axes[2].set_ylim(top=4 * top)
+        axes[2].set_title("dx: one fiber-tip position or the mean of 9 (field ratio 1e-3)", fontsize=9)
     for ax in axes:
         ax.set_ylabel("rms error against truth [pixel]")
         ax.legend(fontsize=7)
