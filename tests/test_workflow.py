@@ -843,6 +843,8 @@ def test_default_preset_against_truth(tmp_path):
         error = metrology["projected_offset"].values[good] - (projected - q @ (q.T @ projected))
         assert np.sqrt(np.mean(error**2)) < 1.2 * float(metrology["photon_noise_floor_rms"]), baseline
         assert metrology.sizes["mode"] >= 1 and "gauge_difference_floor" in metrology, baseline
+        # a bench without stray light: its diagnosis finds none (false-alarm rate 1e-3 a baseline)
+        assert int(read_product(out / "calibration" / f"stray_light_{baseline}.nc")["n_components"]) == 0, baseline
         # Allan deviations of the same baseline: white, and at the photon limit to the last point
         ds = read_product(out / "allan" / f"{baseline}.nc")
         assert float(ds["slope_batch_means"]) == pytest.approx(-0.5, abs=0.05), baseline
