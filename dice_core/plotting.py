@@ -900,18 +900,25 @@ def stray_light_figure(ds, detector, *, title, prefix: str = ""):
             axes[0].plot(*(sign * f), "o", mfc="none", mec="cyan", ms=14, mew=1.2)
         axes[0].annotate(f"{i + 1}: {float(ds[f'{p}component_amplitude'][i]):.1e} px", f, xytext=(8, 8),
                          textcoords="offset points", color="cyan", fontsize=8)
+    for j, f in enumerate(ds[f"{p}excluded_frequency"].values if f"{p}excluded_frequency" in ds else []):
+        aliased = (np.outer([1, -1], f) + 0.5) % 1.0 - 0.5  # the fringes' own K and 2K, left out of the search
+        axes[0].plot(*aliased.T, "x", color="w", ms=9, mew=1.5, ls="none",
+                     label="left out: the fringes' K, 2K" if j == 0 else None)
+    if f"{p}excluded_frequency" in ds and ds.sizes.get(f"{p}excluded", 0):
+        axes[0].legend(fontsize=7, loc="lower left")
+    axes[0].set_xlim(fx[0] - step[0] / 2, fx[-1] + step[0] / 2)
+    axes[0].set_ylim(fy[0] - step[1] / 2, fy[-1] + step[1] / 2)
     axes[0].set_xlabel("spatial frequency x [cycles/pixel]")
     axes[0].set_ylabel("spatial frequency y [cycles/pixel]")
     axes[0].set_title(f"spectrum of the offsets: {n} component(s) above {float(ds[f'{p}threshold']):.1f} x white\n"
                       f"(false-alarm rate {float(ds[f'{p}false_alarm']):g}); white level "
                       f"{np.sqrt(float(ds[f'{p}white_level'])):.1e} pixel rms", fontsize=8)
     if f"{p}phase_error" in ds:
-        image, units, what = ds[f"{p}phase_error"].values, "phase error [1e-3 rad]", "phase error"
+        image, unit, what = ds[f"{p}phase_error"].values, "rad", "phase error"
     else:
-        image, units, what = ds[f"{p}offset_error"].values, "offset error [1e-3 pixel]", "offset error"
-    _show_map(axes[1], fig, image, detector, scale=1e3, symmetric=True, units=units,
-              title=f"{what} of the components: rms {np.sqrt(np.nanmean(image**2)):.2e} {units.split()[-1][5:-1]}"
-              if n else
+        image, unit, what = ds[f"{p}offset_error"].values, "pixel", "offset error"
+    _show_map(axes[1], fig, image, detector, scale=1e3, symmetric=True, units=f"{what} [1e-3 {unit}]",
+              title=f"{what} of the components: rms {np.sqrt(np.nanmean(image**2)):.2e} {unit}" if n else
               "no component: no stray light seen")
     fig.suptitle(title, fontsize=11)
     return fig
