@@ -14,6 +14,7 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.accuracies` -- barycentre residuals, corrected accuracies with error bars, the tables;
 - :mod:`dice_core.deprojection` -- x and y offsets from a pair of baselines;
 - :mod:`dice_core.geometry` -- spherical-wave fringes: the fiber tips' phase surface, their refinement, its modes;
+- :mod:`dice_core.stray_light` -- coherent stray light: its model on the bench, its diagnosis in the offsets, its removal;
 - :mod:`dice_core.prf` -- each pixel's PRF width from the fringe contrast;
 - :mod:`dice_core.detector` -- the pixel-response model (truncated hyper-Gaussian PRFs);
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;

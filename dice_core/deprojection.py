@@ -26,13 +26,17 @@ solve, are then removed from the offsets and the latter declared
 
 from __future__ import annotations
 
+import json
+import logging
+
 import numpy as np
 import xarray as xr
 
+from dice_core import stray_light
 from dice_core.geometry import affine_basis, orthonormal_modes, remove_modes
 
 __all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "difference_dataset", "MIN_SINE",
-           "DeprojectionError"]
+           "DeprojectionError", "without_stray_light"]
 
 #: Smallest |sin| of the angle between the two wavevectors accepted; below it the
 #: intersection is ill-conditioned (errors grow as 1 / sin).
@@ -158,9 +162,8 @@ def _without_unobservable(dx, dy, first, second, k1, k2, label):
     affine = _affine_fields(rows, cols)
     fields = []
     for which, dataset in ((0, first), (1, second)):
-        if "unobservable_offset" not in dataset:
-            continue
-        for mode in dataset["unobservable_offset"].values:
+        own = [dataset[name].values for name in ("unobservable_offset", "stray_mode") if name in dataset]
+        for mode in (m for modes in own for m in modes):
             zeros = np.zeros_like(mode)
             mx, my = deproject(*(((mode, k1, zeros, k2)) if which == 0 else (zeros, k1, mode, k2)), label=label)
             fields.append(np.concatenate([mx[good], my[good]]))
@@ -172,28 +175,50 @@ def _without_unobservable(dx, dy, first, second, k1, k2, label):
     return (*_orthogonal(dx, dy, mode_dx, mode_dy), mode_dx, mode_dy)
 
 
-def offsets_dataset(first, second, *, label: str = "pair"):
+def without_stray_light(metrology, stray):
+    """A ``metrology/<baseline>.nc`` dataset with the stray-light components of its ``stray_light`` product
+    (:func:`dice_core.stray_light.stray_light_dataset`) taken out of its projected offsets, and what fitting
+    them takes (``stray_mode``) declared beside its unobservable modes; the dataset itself if none was found."""
+    if stray is None or int(stray["n_components"]) == 0:
+        return metrology
+    out = metrology.copy()
+    component = np.nan_to_num(stray["offset_error"].values)
+    out["projected_offset"] = (("row", "col"), metrology["projected_offset"].values - component,
+                               metrology["projected_offset"].attrs)
+    out["stray_mode"] = stray["stray_mode"]
+    return out
+
+
+def offsets_dataset(first, second, *, label: str = "pair", stray=(None, None)):
     """The ``calibration/offsets_<pair>.nc`` product from two ``metrology/<baseline>.nc`` datasets.
 
     With spherical waves (products holding ``kx_local``), the solve is made
     with each pixel's wavevectors, and the offsets are reported orthogonal to
     the affine part and to the unobservable modes, which the product holds as
     ``unobservable_dx``, ``unobservable_dy`` (mode, row, col). ``label`` names
-    the pair in errors (colinear wavevectors).
+    the pair in errors (colinear wavevectors). ``stray``: the two baselines'
+    ``calibration/stray_light_<baseline>.nc`` datasets (or None) whose
+    components are removed (:func:`without_stray_light`): what fitting them
+    took joins the unobservable modes.
     """
+    first, second = without_stray_light(first, stray[0]), without_stray_light(second, stray[1])
     k1, k2 = _wavevector(first), _wavevector(second)
     dx, dy = deproject(first["projected_offset"].values, k1, second["projected_offset"].values, k2, label=label)
     fdx, fdy = deproject_floor(first["photon_noise_floor"].values, k1, second["photon_noise_floor"].values, k2)
     rc = ("row", "col")
     modes = {}
-    if np.ndim(k1[0]) or np.ndim(k2[0]):
+    with_modes = np.ndim(k1[0]) or np.ndim(k2[0]) or "stray_mode" in first or "stray_mode" in second
+    if with_modes:
         dx, dy, mode_dx, mode_dy = _without_unobservable(dx, dy, first, second, k1, k2, label)
-    if modes_found := (np.ndim(k1[0]) or np.ndim(k2[0])) and len(mode_dx) > 0:  # none: absent (the contract)
+    if modes_found := with_modes and len(mode_dx) > 0:  # none: absent (the contract)
         attrs = {"units": "1", "long_name": "unobservable offset mode beyond the affine part (unit rms over dx "
                                             "and dy together); dx, dy are orthogonal to every mode"}
         modes = {"unobservable_dx": (("mode", *rc), mode_dx, {**attrs, "long_name": attrs["long_name"] + ", x part"}),
                  "unobservable_dy": (("mode", *rc), mode_dy, {**attrs, "long_name": attrs["long_name"] + ", y part"})}
-    return xr.Dataset(
+    # the fringes' own frequencies (K / 2 pi, 2K / 2 pi), which a spectrum of the pairs' difference leaves out
+    harmonics = [list(map(float, f)) for d in (first, second) for f in stray_light.fringe_harmonics(
+        (float(d["kx"]), float(d["ky"])))]
+    product = xr.Dataset(
         {
             "dx": (rc, dx, {"units": "pixel", "long_name": "pixel offset along x (columns)"}),
             "dy": (rc, dy, {"units": "pixel", "long_name": "pixel offset along y (rows)"}),
@@ -206,9 +231,11 @@ def offsets_dataset(first, second, *, label: str = "pair"):
         coords={"row": first["row"].values, "col": first["col"].values,
                 **({"mode": np.arange(mode_dx.shape[0])} if modes_found else {})},
     )
+    product.attrs["fringe_frequencies"] = json.dumps(harmonics)
+    return product
 
 
-def difference_dataset(reference, other, *, reference_pair: str, pair: str) -> xr.Dataset:
+def difference_dataset(reference, other, *, reference_pair: str, pair: str, spectrum: bool = False) -> xr.Dataset:
     """The ``calibration/offsets_difference_<pair>.nc`` product: ``other``'s offsets minus ``reference``'s.
 
     Both are ``calibration/offsets_<pair>.nc`` datasets (:func:`offsets_dataset`).
@@ -223,7 +250,10 @@ def difference_dataset(reference, other, *, reference_pair: str, pair: str) -> x
         ``ddx``, ``ddy`` (row, col), their standard deviations ``ddx_std``,
         ``ddy_std`` and rms photon-noise floors ``ddx_photon_noise_floor``,
         ``ddy_photon_noise_floor``, all pixel; attributes ``reference_pair``
-        and ``pair``.
+        and ``pair``. With ``spectrum``, each map's stray-light diagnosis
+        (:func:`dice_core.stray_light.diagnose`): ``ddx_power``, ``ddy_power``
+        (frequency_y, frequency_x) over their white levels, the components
+        found in each (``ddx_component_*``...), their sums.
     """
     modes = [(p["unobservable_dx"].values, p["unobservable_dy"].values) for p in (reference, other)
              if "unobservable_dx" in p]
@@ -246,4 +276,22 @@ def difference_dataset(reference, other, *, reference_pair: str, pair: str) -> x
         coords={"row": reference["row"].values, "col": reference["col"].values},
     )
     product.attrs.update({"reference_pair": reference_pair, "pair": pair})
+    if spectrum:  # the fringes' own frequencies of both pairs' baselines left out (offsets_dataset's attribute)
+        exclude = [f for p in (reference, other) for f in json.loads(p.attrs.get("fringe_frequencies", "[]"))]
+        product = _with_spectra(product, f"{pair} - {reference_pair}", exclude)
     return product
+
+
+def _with_spectra(product, what, exclude):
+    """The difference product with the stray-light diagnosis of its ddx and ddy maps, the frequencies
+    ``exclude`` (cycles/pixel) left out."""
+    variables = {}
+    for name in ("ddx", "ddy"):
+        diagnosis, rows, cols = stray_light.diagnose_map(product[name].values, exclude=exclude)
+        variables.update(stray_light.diagnosis_variables(diagnosis, rows, cols, product[name].shape,
+                                                         prefix=f"{name}_", modes=False))
+        logging.getLogger(__name__).info("%s", stray_light.summary_line(diagnosis, f"{name} of {what}"))
+    return product.assign(variables).assign_coords(
+        frequency_x=("frequency_x", diagnosis.frequency_x, {"units": "1/pixel", "long_name": "spatial frequency"}),
+        frequency_y=("frequency_y", diagnosis.frequency_y, {"units": "1/pixel", "long_name": "spatial frequency"}),
+        axis=["x", "y"])

@@ -137,6 +137,7 @@ class Plan:
             targets += [self.path("metrology", baseline=baseline), *self.figure("figure_metrology", baseline=baseline),
                         self.path("allan", baseline=baseline), *self.figure("figure_allan", baseline=baseline)]
         targets += [self.path("prf"), *self.figure("figure_prf")]
+        targets += self.stray_light_products(figures=True)
         pairs = list(self.manifest.pairs)
         for pair in pairs:
             targets += [self.path("offsets", pair=pair), *self.figure("figure_offsets", pair=pair)]
@@ -146,6 +147,24 @@ class Plan:
         if not pairs:
             self.skip("deprojection", "the dataset names no pair of baselines")
         return targets
+
+    def stray_light_products(self, *, figures: bool = False) -> list[str]:
+        """Each baseline's stray-light product (and figure), unless metrology.stray_light is off."""
+        if self.config["metrology"]["stray_light"] == "off":
+            self.skip("stray-light diagnosis", "config metrology.stray_light is off")
+            return []
+        out = []
+        for baseline in self.manifest.baselines:
+            out += [self.path("stray_light", baseline=baseline),
+                    *(self.figure("figure_stray_light", baseline=baseline) if figures else [])]
+        return out
+
+    def stray_light_removed(self, pair: str) -> list[str]:
+        """The stray-light products of a pair's two baselines if their components are removed from its offsets
+        (metrology.stray_light: remove), else nothing."""
+        if self.config["metrology"]["stray_light"] != "remove":
+            return []
+        return [self.path("stray_light", baseline=b) for b in self.manifest.pairs[pair]]
 
     # ------------------------------------------------------------------ pseudo stars and astrometry
 
@@ -268,12 +287,14 @@ class Plan:
     def comparison_inputs(self) -> dict:
         """What the paper comparison reads: the studies, and this dataset's accuracy table and Allan products."""
         inputs = {"offset_bias": self.sweep_points(self.paper_sweep("offset_bias")),
+                  "stray_light_study": self.sweep_points(self.paper_sweep("stray_light")),
                   "error_propagation": self.path("error_propagation"),
                   "deflation": self.path("procrustes_deflation")}
         if self.astrometry_targets():
             inputs["accuracy"] = self.path("accuracy_table")
         if self.metrology_unavailable() is None:
             inputs["allan"] = [self.path("allan", baseline=baseline) for baseline in self.manifest.baselines]
+            inputs["stray_light"] = self.stray_light_products()
         return inputs
 
 
@@ -437,7 +458,8 @@ def paper_pdf_pages(plan: Plan, captions: Path) -> list[tuple[str, str]]:
     figures that the paper shows, those the dataset allows."""
     pages = [(plan.path(key, suffix=".png"), str(captions / f"{stem}.rst"))
              for key, stem in (("figure_paper_comparison", "paper_comparison"), ("figure_offset_bias", "offset_bias"),
-                               ("figure_error_propagation", "error_propagation"))]
+                               ("figure_error_propagation", "error_propagation"),
+                               ("figure_stray_light_study", "stray_light_study"))]
     manifest = plan.manifest
     if plan.metrology_unavailable() is None:
         first = next(iter(manifest.baselines))

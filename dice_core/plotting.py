@@ -23,7 +23,7 @@ from dice_core.manifest import Detector  # noqa: E402
 __all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure",
            "barycentre_figure", "offset_bias_figure", "paper_comparison_figure", "error_propagation_figure",
            "star_accuracy_figure", "tip_tilt_sweep_figure", "reduction_sweep_figure", "parameter_axis",
-           "PARAMETER_AXES", "reproduction_pdf", "save"]
+           "PARAMETER_AXES", "reproduction_pdf", "save", "stray_light_figure", "stray_light_study_figure"]
 
 
 def map_figure(image: np.ndarray, detector: Detector, *, title: str, units: str, scale: float = 1.0,
@@ -899,4 +899,122 @@ def tip_tilt_sweep_figure(datasets, *, title="Tip-tilt: what each superimpositio
         ax.set_xlabel("stage tip-tilt amplitude [rad peak to valley]")
         ax.grid(True, which="both", alpha=0.3)
     fig.suptitle(f"{title} ({datasets[0].attrs.get('method', '')} centroids)", fontsize=10)
+    return fig
+
+
+def stray_light_figure(ds, detector, *, title, prefix: str = ""):
+    """A map's stray-light diagnosis (a ``calibration/stray_light_<baseline>.nc`` dataset, or an offsets
+    difference's ``ddx_``/``ddy_`` part with ``prefix``): the power spectrum over the white level (log scale)
+    with the components found circled at f and -f, and the phase error (or, without it, the offset error)
+    they make (1e-3 rad or 1e-3 pixel)."""
+    p = prefix
+    fig, axes = plt.subplots(1, 2, figsize=(11.6, 4.9), constrained_layout=True)
+    fx, fy = ds["frequency_x"].values, ds["frequency_y"].values
+    step = (fx[1] - fx[0], fy[1] - fy[0])
+    power = np.log10(np.maximum(ds[f"{p}power"].values, 1e-3))
+    im = axes[0].imshow(power, origin="lower", interpolation="nearest", cmap="magma", vmin=-1,
+                        vmax=max(np.log10(float(ds[f"{p}threshold"])) + 0.5, float(power.max())),
+                        extent=(fx[0] - step[0] / 2, fx[-1] + step[0] / 2, fy[0] - step[1] / 2, fy[-1] + step[1] / 2))
+    fig.colorbar(im, ax=axes[0], shrink=0.85).set_label("log10 power / white level")
+    n = int(ds[f"{p}n_components"])
+    for i in range(n):
+        f = np.array([float(ds[f"{p}component_frequency_x"][i]), float(ds[f"{p}component_frequency_y"][i])])
+        for sign in (1, -1):
+            axes[0].plot(*(sign * f), "o", mfc="none", mec="cyan", ms=14, mew=1.2)
+        axes[0].annotate(f"{i + 1}: {float(ds[f'{p}component_amplitude'][i]):.1e} px", f, xytext=(8, 8),
+                         textcoords="offset points", color="cyan", fontsize=8)
+    for j, f in enumerate(ds[f"{p}excluded_frequency"].values if f"{p}excluded_frequency" in ds else []):
+        aliased = (np.outer([1, -1], f) + 0.5) % 1.0 - 0.5  # the fringes' own K and 2K, left out of the search
+        axes[0].plot(*aliased.T, "x", color="w", ms=9, mew=1.5, ls="none",
+                     label="left out: the fringes' K, 2K" if j == 0 else None)
+    if f"{p}excluded_frequency" in ds and ds.sizes.get(f"{p}excluded", 0):
+        axes[0].legend(fontsize=7, loc="lower left")
+    axes[0].set_xlim(fx[0] - step[0] / 2, fx[-1] + step[0] / 2)
+    axes[0].set_ylim(fy[0] - step[1] / 2, fy[-1] + step[1] / 2)
+    axes[0].set_xlabel("spatial frequency x [cycles/pixel]")
+    axes[0].set_ylabel("spatial frequency y [cycles/pixel]")
+    axes[0].set_title(f"spectrum of the offsets: {n} component(s) above {float(ds[f'{p}threshold']):.1f} x white\n"
+                      f"(false-alarm rate {float(ds[f'{p}false_alarm']):g}); white level "
+                      f"{np.sqrt(float(ds[f'{p}white_level'])):.1e} pixel rms", fontsize=8)
+    if f"{p}phase_error" in ds:
+        image, unit, what = ds[f"{p}phase_error"].values, "rad", "phase error"
+    else:
+        image, unit, what = ds[f"{p}offset_error"].values, "pixel", "offset error"
+    _show_map(axes[1], fig, image, detector, scale=1e3, symmetric=True, units=f"{what} [1e-3 {unit}]",
+              title=f"{what} of the components: rms {np.sqrt(np.nanmean(image**2)):.2e} {unit}" if n else
+              "no component: no stray light seen")
+    fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def _study_points(datasets, **fixed):
+    """The stray-light study's points whose scalars equal ``fixed`` (NaN-safe), sorted by what varies."""
+    def keep(ds):
+        return all(np.isclose(float(ds[k]), v, equal_nan=True) for k, v in fixed.items())
+
+    return [ds for ds in datasets if keep(ds)]
+
+
+def stray_light_study_figure(datasets, *, title="Coherent stray light: a pair's offset error, left in and removed"):
+    """The stray-light study (:func:`dice_core.studies.stray_light` points): dx, dy error rms against the field
+    ratio (one tip position, the longest coherence), against the coherence length (field ratio 1e-3) and for
+    one tip position against the mean of several; the photon floor and the paper's 4e-4 pixel."""
+    fig, axes = plt.subplots(1, 3, figsize=(15.5, 4.8), constrained_layout=True)
+    single = [ds for ds in datasets if float(ds["tip_positions"]) == 1]
+    short = [ds for ds in single if float(ds["path_scale"]) != 1]  # sub-mm paths: their own marker
+    single = [ds for ds in single if float(ds["path_scale"]) == 1]
+    longest = max((float(ds["coherence_length"]) for ds in single), default=np.nan)
+    styles = {"detect": ("o", "C3", "left in"), "remove": ("s", "C0", "removed")}
+
+    def series(ax, points, key, xscale):
+        points = sorted(points, key=lambda ds: float(ds[key]))
+        x = [float(ds[key]) * xscale for ds in points]
+        for way, (marker, colour, label) in styles.items():
+            for axis, fill in (("dx", colour), ("dy", "none")):
+                ax.plot(x, [float(ds[f"error_{axis}_{way}"]) for ds in points], marker=marker, color=colour,
+                        mfc=fill, ls="-" if axis == "dx" else "--", label=f"{axis}, stray light {label}")
+        ax.plot(x, [float(ds["floor_dx"]) for ds in points], color="k", lw=1, ls=":", label="photon floor (dx)")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
+
+    ratio = _study_points(single, coherence_length=longest)
+    if ratio:
+        series(axes[0], ratio, "field_ratio", 1.0)
+        axes[0].axhline(4e-4, color="C2", lw=1.5, label="the paper's offset accuracy, 4e-4 pixel")
+        axes[0].set_xscale("log")
+        axes[0].set_xlabel("field ratio sqrt(I1 / I0) of each vane")
+        axes[0].set_title(f"against the field ratio (coherence length {longest * 100:g} cm)", fontsize=9)
+    coherence = _study_points(single, field_ratio=1e-3)
+    if coherence:
+        series(axes[1], coherence, "coherence_length", 100.0)
+        axes[1].set_xscale("log")
+        axes[1].set_xlabel("coherence length [cm] (|gamma| = exp(-(OPD / Lc)^2); vanes' OPD 0.6-1.5 cm)")
+        axes[1].set_title("against the laser's coherence length (field ratio 1e-3)", fontsize=9)
+        for ds in _study_points(short, field_ratio=1e-3):
+            axes[1].plot(float(ds["coherence_length"]) * 100, float(ds["error_dx_detect"]), "*", color="C4", ms=12,
+                         label=f"dx, left in, vanes' paths x {float(ds['path_scale']):g} (sub-mm)")
+        axes[1].legend(fontsize=7)
+    averaged = sorted((ds for ds in datasets if float(ds["tip_positions"]) > 1), key=lambda ds: float(ds["tip_step"]))
+    for i, ds in enumerate(averaged):
+        n = int(ds["tip_positions"])
+        for j, (key, label) in enumerate((("error_dx_detect", "one position"),
+                                          ("average_error_dx_detect", f"mean of {n}"),
+                                          ("average_error_dx_remove", f"mean of {n}, removed"))):
+            axes[2].bar(i + 0.27 * (j - 1), float(ds[key]), width=0.25, color=f"C{[3, 1, 0][j]}",
+                        label=label if i == 0 else None)
+        axes[2].plot([i - 0.4, i + 0.4], [float(ds["average_floor_dx"])] * 2, "k:", label=None if i else
+                     f"floor of the mean of {n}")
+    if averaged:
+        axes[2].set_xticks(range(len(averaged)), [
+            f"{float(ds['tip_step']) * 1e6:g} um" if float(ds["tip_step"]) < 1e-3 else
+            f"{float(ds['tip_step']) * 1e3:g} mm" for ds in averaged])
+        axes[2].set_xlabel("fiber-tip positions' spacing (3x3 grid, vanes fixed)")
+        axes[2].set_yscale("log")
+        top = max(float(ds["error_dx_detect"]) for ds in averaged)
+        axes[2].set_ylim(top=4 * top)
+        axes[2].set_title("dx: one fiber-tip position or the mean of 9 (field ratio 1e-3)", fontsize=9)
+    for ax in axes:
+        ax.set_ylabel("rms error against truth [pixel]")
+        ax.legend(fontsize=7)
+    fig.suptitle(title, fontsize=11)
     return fig

@@ -175,6 +175,31 @@ _PRODUCTS = [
                                                                 "orthogonal to them. Absent when there are none",
                          optional=True),
                        _V("unobservable_dy", "mode row col", "1", "the same modes, y part", optional=True))),
+    Product("stray_light", "calibration/stray_light_{baseline}.nc", "find_stray_light", "netcdf", stable=True,
+            stage="metrology",
+            meaning="the coherent stray light found in a baseline's projected offsets (docs/metrology.md, \"Coherent "
+                    "stray light\"): their power spectrum over the white level, the components above the threshold "
+                    "(a cos(2 pi (f.(r - r0) + g |r - r0|^2 / 2) + phi), r0 the attribute reference_pixel; none: "
+                    "empty) and the phase-error map they make; with metrology.stray_light: remove, the offsets "
+                    "product removes them",
+            variables=(_V("power", "frequency_y frequency_x", "1", "power spectrum of the projected offsets over "
+                                                                   "the white level"),
+                       _V("white_level", "", "pixel2", "variance per pixel of the offsets without the components: "
+                                                       "the pixels' own offsets and photon noise"),
+                       _V("threshold", "", "1", "detection threshold over the white level"),
+                       _V("false_alarm", "", "1", "probability that offsets without stray light show a component "
+                                                  "(at most)"),
+                       _V("component_frequency_x", "component", "1/pixel", "spatial frequency along x, aliased "
+                                                                           "into [-1/2, 1/2), f_x >= 0"),
+                       _V("component_frequency_y", "component", "1/pixel", "spatial frequency along y"),
+                       _V("component_chirp", "component", "1/pixel2", "chirp g"),
+                       _V("component_amplitude", "component", "pixel", "amplitude in the projected offsets"),
+                       _V("component_phase", "component", "rad", "phase at the reference pixel"),
+                       _V("component_frequency_x_error", "component", "1/pixel", "1-sigma error (and so for the "
+                                                                                 "other component_*_error)"),
+                       _V("phase_error", RC, "rad", "phase error the components make, in the fitted phase's "
+                                                    "sense (NaN outside the fit)"),
+                       _V("offset_error", RC, "pixel", "the components' sum in the projected offsets"))),
     Product("offsets_difference", "calibration/offsets_difference_{pair}.nc", "compare_pairs", "netcdf",
             stage="metrology", meaning="a pair's offsets minus the reference pair's (the manifest's first)",
             variables=(_V("ddx", RC, "pixel", "dx difference"), _V("ddy", RC, "pixel", "dy difference"),
@@ -257,6 +282,9 @@ _FIGURES = [
     ("figure_offsets", "figures/offsets_{pair}", "plot_offsets", "a pair's dx and dy maps", "metrology"),
     ("figure_offsets_difference", "figures/offsets_difference_{pair}", "plot_offsets_difference",
      "a pair's offsets minus the reference pair's", "metrology"),
+    ("figure_stray_light", "figures/stray_light_{baseline}", "plot_stray_light",
+     "a baseline's offset spectrum with the stray-light components found, and the phase-error map they make",
+     "metrology"),
     ("figure_prf", "figures/prf", "plot_prf", "the PRF width maps and their errors", "metrology"),
     ("figure_centroids", "figures/centroids_{mode}", "plot_centroids", "a mode's centroids and precisions",
      "pseudo stars"),
@@ -270,6 +298,9 @@ _FIGURES = [
      "paper"),
     ("figure_error_propagation", "figures/error_propagation", "plot_error_propagation",
      "error-propagation coefficients", "paper"),
+    ("figure_stray_light_study", "figures/stray_light_study", "plot_stray_light_study",
+     "a pair's offset error under coherent stray light, left in and removed, against the field ratio (beside the "
+     "paper's 4e-4 pixel), the coherence length and the fiber-tip positions averaged", "paper"),
     ("figure_paper_comparison", "figures/paper_comparison", "paper_comparison", "every regenerated number beside "
                                                                                 "the paper's", "paper"),
 ]

@@ -23,7 +23,8 @@ import numpy as np
 from dice_core import accuracies, error_budget, superimposition
 
 __all__ = ["PAPER", "Row", "comparison_csv", "nominal_configurations", "procrustes_deflation", "accuracy_rows",
-           "allan_rows", "offset_bias_rows", "error_propagation_rows"]
+           "allan_rows", "offset_bias_rows", "error_propagation_rows", "stray_light_note", "stray_light_rows",
+           "stray_light_study_rows"]
 
 SIMULATIONS = "Numerical simulations"
 EXPERIMENT = "Experimental data analysis"
@@ -55,6 +56,12 @@ PAPER = {
     "accuracy_flat+metrology_position": ("accuracy, flat and metrology (p)", EXPERIMENT, 9.7e-5, "pixel"),
     "accuracy_flat+metrology_group": ("accuracy, flat and metrology (g)", EXPERIMENT, 5.9e-5, "pixel"),
     "calibration_gain": ("accuracy gain of flat and metrology over raw (p)", EXPERIMENT, 2.2, "1"),
+    "offset_accuracy": ("pixel-offset accuracy, stray light its main noise (Bias on pixel offsets)", EXPERIMENT,
+                        4e-4, "pixel"),
+    "coherence_gain": ("gain on the offsets from a 1 cm coherence length (Bias on pixel offsets: none)", EXPERIMENT,
+                       1.0, "1"),
+    "tip_averaging_gain": ("gain on the offsets from averaging 9 fiber-tip positions (Bias on pixel offsets: none)",
+                           EXPERIMENT, 1.0, "1"),
 }
 
 PAPER_ALLAN_FRAMES = 100_000  # frames per group of the paper's largest Allan group
@@ -259,3 +266,74 @@ def error_propagation_rows(records) -> list[Row]:
                 out.append(Row(f"requirement_{source}", requirement, requirement * error / coefficient, dataset,
                                "5e-6 pixel / the per-axis coefficient", variant=variant))
     return out
+
+
+def stray_light_note(stray) -> str:
+    """What a ``calibration/stray_light_<baseline>.nc`` product found, for a note ("" if nothing)."""
+    n = int(stray["n_components"])
+    if n == 0:
+        return ""
+    frequencies = ", ".join(f"({float(fx):+.3f}, {float(fy):+.3f})" for fx, fy in zip(
+        stray["component_frequency_x"].values, stray["component_frequency_y"].values))
+    return (f"coherent stray light: {n} component(s) at {frequencies} cycles/pixel, rms "
+            f"{float(np.sqrt(np.nanmean(stray['offset_error'].values ** 2))):.2e} pixel "
+            f"(calibration/stray_light_{stray.attrs.get('baseline', '')}.nc)")
+
+
+def stray_light_rows(stray, *, dataset: str, removed: bool) -> list[Row]:
+    """A baseline's coherent stray light beside the paper's 4e-4 pixel offset accuracy, which its section
+    "Bias on pixel offsets" blames on stray light: the rms of the components found in the projected offsets,
+    a row only where there are some."""
+    note = stray_light_note(stray)
+    if not note:
+        return []
+    rms = float(np.sqrt(np.nanmean(stray["offset_error"].values ** 2)))
+    baseline = stray.attrs.get("baseline", "")
+    return [Row("offset_accuracy", rms, math.nan, f"{dataset} {baseline}".strip(),
+                note + ("; removed from the pairs' offsets (metrology.stray_light: remove)" if removed else
+                        "; left in the offsets (metrology.stray_light: detect)"),
+                variant=f"{baseline}, rms of the stray-light components found")]
+
+
+def _excess(error: float, floor: float) -> float:
+    """The part of an rms error beyond the photon floor, in quadrature (0 at or under it)."""
+    return math.sqrt(max(error**2 - floor**2, 0.0))
+
+
+def stray_light_study_rows(points) -> list[Row]:
+    """The stray-light study's numbers beside the paper's (:func:`dice_core.studies.stray_light` points): at
+    field ratio 1e-3, the dx, dy error with the stray light left in and removed beside the 4e-4 pixel the paper
+    blamed on it; the gain of a 1 cm coherence length (the longest's error over its, the photon floor taken out
+    in quadrature); the gain of averaging the tip positions (one position's error over the mean's)."""
+    rows, single = [], [p for p in points if float(p["tip_positions"]) == 1]
+    short = [p for p in single if float(p["path_scale"]) != 1]
+    single = [p for p in single if float(p["path_scale"]) == 1]
+    longest = max((float(p["coherence_length"]) for p in single), default=math.nan)
+    reference = next((p for p in single if np.isclose(float(p["field_ratio"]), 1e-3)
+                      and np.isclose(float(p["coherence_length"]), longest)), None)
+    dataset = "stray-light study bench"
+    if reference is None:
+        return rows
+    for axis in ("dx", "dy"):
+        for way, what in (("detect", "left in"), ("remove", "removed")):
+            rows.append(Row("offset_accuracy", float(reference[f"error_{axis}_{way}"]), math.nan, dataset,
+                            f"photon floor {float(reference[f'floor_{axis}']):.2e} pixel; "
+                            f"{int(reference['components'])} component(s) found",
+                            variant=f"{axis}, field ratio 1e-3, stray light {what}, study"))
+    for point in single + short:
+        if np.isclose(float(point["field_ratio"]), 1e-3) and np.isclose(float(point["coherence_length"]), 0.01):
+            gain = _excess(float(reference["error_dx_detect"]), float(reference["floor_dx"])) / max(
+                _excess(float(point["error_dx_detect"]), float(point["floor_dx"])), 1e-300)
+            scale = float(point["path_scale"])
+            paths = f"{6 * scale:g}-{15 * scale:g} mm"
+            rows.append(Row("coherence_gain", gain, math.nan, dataset,
+                            f"stray part of the dx error (floor out in quadrature) at coherence {longest * 100:g} cm "
+                            f"over 1 cm; vanes' extra paths {paths}", variant=f"dx, vanes' paths {paths}, study"))
+    for point in (p for p in points if float(p["tip_positions"]) > 1):
+        gain = float(point["error_dx_detect"]) / float(point["average_error_dx_detect"])
+        rows.append(Row("tip_averaging_gain", gain, math.nan, dataset,
+                        f"dx error of one position over that of the mean of {int(point['tip_positions'])} (its floor "
+                        f"{float(point['average_floor_dx']):.1e} pixel, one position's "
+                        f"{float(point['floor_dx']):.1e}); vanes fixed",
+                        variant=f"dx, tips {float(point['tip_step']) * 1e3:g} mm apart, study"))
+    return rows

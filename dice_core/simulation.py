@@ -43,8 +43,9 @@ import xarray as xr
 import yaml
 from scipy.ndimage import gaussian_filter
 
-from dice_core import DatasetError, yamlfile
+from dice_core import DatasetError, stray_light, yamlfile
 from dice_core.detector import PixelResponse
+from dice_core.geometry import affine_basis as geometry_affine
 from dice_core.geometry import two_source_phase
 from dice_core.io import write_cube, write_product, write_text
 from dice_core.polynomials import polynomial_design
@@ -226,6 +227,12 @@ class MetrologyConfig:
     # The manifest's nominal tips are off the true ones by a random vector of this length range, m
     # (a bench measures them to about 1 mm); the truth holds the true ones.
     tip_error: tuple = (0.5e-3, 1.0e-3)
+    # Every fiber tip (true and nominal) moved by this vector, m, the stray sources staying where the unmoved
+    # tips put them (stray_light): the paper's fiber-tip positions. Omitted from to_dict() when zero.
+    tip_shift: tuple = (0.0, 0.0, 0.0)
+    # Which acquisition of the bench: another draw of the metrology frames' noise (photon, read, laser,
+    # phase), the detector and the fringe sweep's shape kept. Omitted from to_dict() when zero.
+    acquisition: int = 0
     baselines: dict = field(default_factory=lambda: {
         "H1H4": {"period": 2.4, "angle_deg": 2.0},
         "V1V4": {"period": 2.4, "angle_deg": 93.0},
@@ -254,6 +261,31 @@ class StarsConfig:
 
 
 @dataclass(frozen=True)
+class StraySourceConfig:
+    """A stray source (a baffle vane's edge) re-emitting a copy of one metrology fiber's wave
+    (:mod:`dice_core.stray_light`)."""
+
+    fiber: str                         # the fiber whose wave it re-emits, e.g. H1H4a (b + "a" or b + "b")
+    offset_mrad: tuple = (0.0, 0.0)    # its direction from the detector centre minus the fiber tip's, mrad (x, y)
+    distance: float = 0.3              # m, its height above the detector plane (the tips are at fiber_distance)
+    extra_path: float = 0.01           # m, its optical path to the detector centre minus the fiber's direct one
+    field_ratio: float | None = None   # its field over the direct wave's; None: stray_light.field_ratio
+
+
+@dataclass(frozen=True)
+class StrayLightConfig:
+    """Coherent stray light of the metrology laser (:mod:`dice_core.stray_light`); off by default (no sources,
+    and omitted from to_dict(), so that the presets' datasets are those of before it existed, bit for bit)."""
+
+    field_ratio: float = 1e-3          # sqrt(I1 / I0) of every source that does not set its own
+    coherence_length: float | None = None  # m, the OPD at which the laser's coherence falls to 1/e; None: coherent
+    sources: tuple = ()                # StraySourceConfig mappings
+    # flat -> metrology fiber: that flat is lit coherently by the laser through that fiber, so it carries the
+    # fiber's stray sources' static pattern (speckle of contrast 2 eps gamma); the others stay incoherent (LED)
+    coherent_flats: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class SimulationConfig:
     """A whole simulated testbed. See ``config/presets/*.yaml`` for annotated presets."""
 
@@ -266,12 +298,13 @@ class SimulationConfig:
     flats: FlatConfig = field(default_factory=FlatConfig)
     metrology: MetrologyConfig = field(default_factory=MetrologyConfig)
     stars: StarsConfig = field(default_factory=StarsConfig)
+    stray_light: StrayLightConfig = field(default_factory=StrayLightConfig)
 
     @classmethod
     def from_dict(cls, values: dict) -> "SimulationConfig":
         values = dict(values or {})
         sections = {"detector": DetectorConfig, "dark": DarkConfig, "flats": FlatConfig,
-                    "metrology": MetrologyConfig, "stars": StarsConfig}
+                    "metrology": MetrologyConfig, "stars": StarsConfig, "stray_light": StrayLightConfig}
         built = {key: _build(sub, values.pop(key, {}), key) for key, sub in sections.items()}
         top = _build(cls, values, "(top level)")
         cfg = dataclasses.replace(top, **built)
@@ -286,10 +319,51 @@ class SimulationConfig:
             unknown = [m for m in members if m not in cfg.metrology.baselines]
             if unknown:
                 raise ValueError(f"simulation config metrology.pairs.{pair}: unknown baseline(s) {unknown}")
+        _check_stray_light(cfg)
         return cfg
 
+    @property
+    def has_stray_light(self) -> bool:
+        """Whether any stray source has a field: the frames and the truth then carry it."""
+        s = self.stray_light
+        return any((s.field_ratio if src.get("field_ratio") is None else src["field_ratio"]) != 0
+                   for src in s.sources)
+
     def to_dict(self) -> dict:
-        return json.loads(json.dumps(dataclasses.asdict(self)))
+        """The configuration as plain JSON types; the keys added after the presets (stray_light, tip_shift)
+        only where they differ from their defaults, so that a preset's truth and records stay as they were."""
+        values = json.loads(json.dumps(dataclasses.asdict(self)))
+        if self.stray_light == StrayLightConfig():
+            del values["stray_light"]
+        if not any(self.metrology.tip_shift):
+            del values["metrology"]["tip_shift"]
+        if not self.metrology.acquisition:
+            del values["metrology"]["acquisition"]
+        return values
+
+
+def _check_stray_light(cfg: SimulationConfig) -> None:
+    """Refuse stray sources that name no fiber of the bench, or a bench without fiber tips (plane waves)."""
+    s = cfg.stray_light
+    fibers = [b + suffix for b in cfg.metrology.baselines for suffix in "ab"]
+    for i, spec in enumerate(s.sources):
+        src = _build(StraySourceConfig, spec, f"stray_light.sources[{i}]")
+        if not cfg.metrology.spherical:
+            raise ValueError("simulation config stray_light.sources: stray sources re-emit a fiber's wave, which "
+                             "only spherical-wave fringes have (metrology.spherical: true)")
+        if src.fiber not in fibers:
+            raise ValueError(f"simulation config stray_light.sources[{i}]: fiber {src.fiber!r} is not a fiber of "
+                             f"the bench ({', '.join(fibers)})")
+        if not 0 < src.distance < cfg.metrology.fiber_distance:
+            raise ValueError(f"simulation config stray_light.sources[{i}]: distance {src.distance!r} m is not "
+                             f"between the detector and the fibers (0 to {cfg.metrology.fiber_distance} m)")
+    for flat, fiber in s.coherent_flats.items():
+        if flat not in cfg.flats.fibers or fiber not in fibers:
+            raise ValueError(f"simulation config stray_light.coherent_flats: {flat!r}: {fiber!r} must map a flat "
+                             f"({', '.join(cfg.flats.fibers)}) to a metrology fiber ({', '.join(fibers)})")
+    if s.coherence_length is not None and not s.coherence_length > 0:
+        raise ValueError(f"simulation config stray_light.coherence_length must be > 0 (m) or null, got "
+                         f"{s.coherence_length!r}")
 
 
 def load_preset(path, overrides: dict | None = None) -> SimulationConfig:
@@ -482,6 +556,11 @@ def project_stars(pattern: np.ndarray, poses: np.ndarray, *, cfg: SimulationConf
 
 # --------------------------------------------------------------------------- truth
 
+def _acquisition(cfg: SimulationConfig) -> tuple:
+    """The names that make another acquisition's noise its own (none for the first: the streams of before)."""
+    return (f"acquisition {cfg.metrology.acquisition}",) if cfg.metrology.acquisition else ()
+
+
 def _rng(cfg: SimulationConfig, *names) -> np.random.Generator:
     key = [cfg.seed] + [zlib.crc32(str(n).encode()) for n in names]
     return np.random.default_rng(key)
@@ -557,7 +636,7 @@ def _phase_history(cfg: SimulationConfig, name: str, rng) -> np.ndarray:
     return phase
 
 
-def fiber_tips(cfg: SimulationConfig) -> tuple[dict, dict]:
+def fiber_tips(cfg: SimulationConfig, *, shifted: bool = True) -> tuple[dict, dict]:
     """True and nominal fiber-tip positions (name -> (x, y, z), m, detector frame) of spherical-wave baselines.
 
     Two tips per baseline ``b``, named ``b + "a"`` and ``b + "b"`` in phase
@@ -567,7 +646,8 @@ def fiber_tips(cfg: SimulationConfig) -> tuple[dict, dict]:
     centre (about wavelength x distance / (period x pitch), corrected for the
     obliquity). The nominal tips, written to the manifest as a bench would
     measure them, are off by ``tip_error`` (a random direction, one stream
-    per baseline).
+    per baseline). ``shifted``: with ``metrology.tip_shift`` added (the tips' position on the bench; the
+    stray sources are placed from the unshifted ones).
     """
     m, (rows, cols) = cfg.metrology, cfg.detector.shape
     centre_px = np.array([(cols - 1) / 2, (rows - 1) / 2])
@@ -591,7 +671,21 @@ def fiber_tips(cfg: SimulationConfig) -> tuple[dict, dict]:
             error = rng.standard_normal(3)
             error *= rng.uniform(*m.tip_error) / np.linalg.norm(error)
             true[name + suffix], nominal[name + suffix] = tip, tip + error
+    if shifted and any(m.tip_shift):  # only then: a zero shift adds nothing, not even a rounding
+        shift = np.asarray(m.tip_shift, float)
+        true = {f: tip + shift for f, tip in true.items()}
+        nominal = {f: tip + shift for f, tip in nominal.items()}
     return true, nominal
+
+
+def stray_sources(cfg: SimulationConfig) -> list:
+    """The bench's stray sources (:class:`dice_core.stray_light.StraySource`), fixed by the unshifted tips."""
+    if not cfg.has_stray_light:
+        return []
+    rows, cols = cfg.detector.shape
+    return stray_light.place_sources(cfg.stray_light.sources, fiber_tips(cfg, shifted=False)[0],
+                                     centre=((cols - 1) / 2, (rows - 1) / 2), pitch=cfg.metrology.pixel_pitch,
+                                     default_ratio=cfg.stray_light.field_ratio)
 
 
 def _pixel_response_truth(cfg: SimulationConfig, mask: np.ndarray) -> tuple[PixelResponse, np.ndarray]:
@@ -672,7 +766,7 @@ def _fringe_histories(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray, np
     amplitude = np.empty_like(phase)
     stray_phase = np.empty_like(phase)
     for i, name in enumerate(m.baselines):
-        rng = _rng(cfg, "metrology", name)
+        rng = _rng(cfg, "metrology", name, *_acquisition(cfg))
         phase[i] = _phase_history(cfg, name, rng)
         laser = 1 + m.laser_rsd * rng.standard_normal(m.frames)
         if m.intensity_random_walk:
@@ -712,6 +806,42 @@ def _flat_illuminations(cfg: SimulationConfig, x0, y0) -> np.ndarray:
         illumination[i] = (1 + fib.gradient[0] * (x0 - xc) / cols + fib.gradient[1] * (y0 - yc) / rows
                            + fib.curvature * ((x0 - xc) ** 2 + (y0 - yc) ** 2) / corner2)
     return illumination
+
+
+def _coherence_matters(cfg: SimulationConfig) -> bool:
+    """Whether the bench has stray light or a finite coherence length (else the frames are those without)."""
+    return cfg.has_stray_light or cfg.stray_light.coherence_length is not None
+
+
+def _stray_fringes(cfg: SimulationConfig, prf: PixelResponse, tips: dict, name: str):
+    """Baseline ``name``'s coherence of the direct fringe, the stray waves' fringe response (complex, added to
+    the direct one's as :meth:`PixelResponse.fringe_response` gives it) and their pattern of the level
+    (relative to B, sensitivity included), (row, col) each (:func:`dice_core.stray_light.fringe_terms`)."""
+    m, (rows, cols) = cfg.metrology, cfg.detector.shape
+    x0, y0 = prf.centres()
+    modulated, static, direct = stray_light.fringe_terms(
+        x0, y0, tips[name + "a"], tips[name + "b"], stray_sources(cfg), fibers=(name + "a", name + "b"),
+        wavelength=m.wavelength, pitch=m.pixel_pitch, coherence_length=cfg.stray_light.coherence_length,
+        centre=((cols - 1) / 2, (rows - 1) / 2))
+    stray = sum((w * prf.fringe_response(gx, gy, phase=phase) for w, gx, gy, phase, _ in modulated),
+                np.zeros(cfg.detector.shape, complex))
+    level = sum((w * prf.fringe_response(gx, gy, phase=phase).real for w, gx, gy, phase, _ in static),
+                np.zeros(cfg.detector.shape))
+    return direct, stray, level
+
+
+def _coherent_speckle(cfg: SimulationConfig, prf: PixelResponse, tips: dict, fiber: str) -> np.ndarray:
+    """The relative pattern (row, col) of a flat lit coherently through metrology ``fiber``: its stray
+    waves beating with its own, 2 eps gamma h cos Delta_s summed over its sources (the pixel's response h)."""
+    m, (rows, cols) = cfg.metrology, cfg.detector.shape
+    x0, y0 = prf.centres()
+    _, static, _ = stray_light.fringe_terms(
+        x0, y0, tips[fiber], tips[fiber], stray_sources(cfg), fibers=(fiber, None), wavelength=m.wavelength,
+        pitch=m.pixel_pitch, coherence_length=cfg.stray_light.coherence_length, centre=((cols - 1) / 2, (rows - 1) / 2))
+    pattern = sum((w * prf.fringe_response(gx, gy, phase=phase).real for w, gx, gy, phase, _ in static),
+                  np.zeros(cfg.detector.shape))
+    sensitivity = prf.sensitivity
+    return 2 * np.divide(pattern, sensitivity, out=np.zeros_like(pattern), where=sensitivity > 0)
 
 
 def _stage_poses(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -820,9 +950,84 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
             **({} if not m.spherical else {"fiber": list(tips), "xyz": ["x", "y", "z"]}),
         },
     )
+    if cfg.has_stray_light:
+        ds = ds.assign(_stray_truth(cfg, prf, tips, mask))
+    if cfg.has_stray_light and cfg.stray_light.coherent_flats:
+        speckle = np.stack([_coherent_speckle(cfg, prf, tips, cfg.stray_light.coherent_flats[f])
+                            if f in cfg.stray_light.coherent_flats else np.zeros(d.shape) for f in fibers])
+        ds["flat_illumination"] = ds["flat_illumination"] * (1 + speckle)
+        ds["coherent_speckle"] = (("flat", "row", "col"), speckle,
+                                  {"units": "1", "long_name": "relative pattern of the stray waves in a flat lit "
+                                                              "coherently (zero: an incoherent flat)"})
     ds.attrs.update({"prf_order": d.prf_order, "prf_half_width": d.prf_half_width,
                      "simulation": json.dumps(cfg.to_dict(), sort_keys=True)})
     return ds
+
+
+def _stray_truth(cfg: SimulationConfig, prf: PixelResponse, tips: dict, mask: np.ndarray) -> dict:
+    """The truth of the stray light: each baseline's phase error (baseline, row, col) and the offset error it
+    makes along the baseline's local wavevector; each source's place and the component it makes in its
+    baseline's projected offsets (:mod:`dice_core.stray_light`: frequency and chirp from its Delta_s at the
+    nominal pixel centres, amplitude and phase fitted to the offset error jointly with the baseline's other
+    sources and the affine part, all over the science area; the sign of the offsets along the true phase's
+    gradient)."""
+    m, (rows, cols) = cfg.metrology, cfg.detector.shape
+    names, sources = list(m.baselines), stray_sources(cfg)
+    x0, y0 = prf.centres()
+    r, c = np.nonzero(mask)
+    reference = stray_light.reference_pixel(c, r)
+    phase_error, offset_error = np.zeros((2, len(names), rows, cols))
+    n = len(sources)
+    baseline_of = [""] * n
+    frequency, chirp, amplitude, phase, gamma = np.zeros((n, 2)), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    for i, name in enumerate(names):
+        direct, stray, _ = _stray_fringes(cfg, prf, tips, name)
+        _, kx, ky = two_source_phase(x0, y0, tips[name + "a"], tips[name + "b"], wavelength=m.wavelength,
+                                     pixel_pitch=m.pixel_pitch)
+        response = prf.fringe_response(kx, ky, phase=two_source_phase(x0, y0, tips[name + "a"], tips[name + "b"],
+                                                                      wavelength=m.wavelength,
+                                                                      pixel_pitch=m.pixel_pitch)[0])
+        phase_error[i] = np.angle((direct * response + stray) * np.conj(response))
+        offset_error[i] = phase_error[i] / np.hypot(kx, ky)
+        # each source's Delta_s at the nominal centres, which the reduction's components are functions of
+        direct_phase = two_source_phase(c, r, tips[name + "a"], tips[name + "b"], wavelength=m.wavelength,
+                                        pixel_pitch=m.pixel_pitch)[0]
+        terms, _, _ = stray_light.fringe_terms(
+            c, r, tips[name + "a"], tips[name + "b"], sources, fibers=(name + "a", name + "b"),
+            wavelength=m.wavelength, pitch=m.pixel_pitch, coherence_length=cfg.stray_light.coherence_length,
+            centre=((cols - 1) / 2, (rows - 1) / 2))
+        if not terms:
+            continue
+        found = [stray_light.quadratic_frequency(t[3] - direct_phase, c, r, reference) for t in terms]
+        a, phi = stray_light.fit_amplitudes(offset_error[i][r, c], c, r, [f for f, _ in found],
+                                            [g for _, g in found], reference,
+                                            against=geometry_affine(c, r))
+        for (w, *_, index), (f, g), a_s, phi_s in zip(terms, found, a, phi):
+            frequency[index], chirp[index], phase[index] = stray_light.canonical(f, g, phi_s)
+            amplitude[index], gamma[index], baseline_of[index] = a_s, w / sources[index].field_ratio, name
+    src = ("stray_source",)
+    return {
+        "stray_phase_error": (("baseline", "row", "col"), phase_error,
+                              {"units": "rad", "long_name": "phase error of each baseline's fringe from stray light"}),
+        "stray_offset_error": (("baseline", "row", "col"), offset_error,
+                               {"units": "pixel", "long_name": "the phase error over the local |K|: the projected "
+                                                               "offset error along the true phase's gradient"}),
+        "stray_source_position": (("stray_source", "xyz"), np.array([s.point for s in sources]),
+                                  {"units": "m", "long_name": "stray source position, detector frame"}),
+        "stray_source_fiber": (src, [s.fiber for s in sources], {"units": "1", "long_name": "fiber whose wave it re-emits"}),
+        "stray_source_baseline": (src, baseline_of, {"units": "1", "long_name": "the baseline whose fringe it disturbs"}),
+        "stray_field_ratio": (src, [s.field_ratio for s in sources], {"units": "1", "long_name": "field ratio"}),
+        "stray_extra_path": (src, [s.extra_path for s in sources],
+                             {"units": "m", "long_name": "optical path beyond the fiber's direct path"}),
+        "stray_coherence": (src, gamma, {"units": "1", "long_name": "coherence of its parasitic fringe"}),
+        "stray_frequency_x": (src, frequency[:, 0], {"units": "1/pixel", "long_name": "component frequency x "
+                                                                                        "(aliased, canonical sign)"}),
+        "stray_frequency_y": (src, frequency[:, 1], {"units": "1/pixel", "long_name": "component frequency y"}),
+        "stray_chirp": (src, chirp, {"units": "1/pixel2", "long_name": "component chirp"}),
+        "stray_amplitude": (src, amplitude, {"units": "pixel", "long_name": "component amplitude in the "
+                                                                           "projected offsets"}),
+        "stray_phase": (src, phase, {"units": "rad", "long_name": "component phase at the reference pixel"}),
+    }
 
 
 def pixel_response(truth: xr.Dataset) -> PixelResponse:
@@ -902,8 +1107,10 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, n
     ------
     ndarray (frame, row, col), adu (not yet quantised).
     """
-    photon_rngs = _rng(cfg, "photons", kind, name, start), _rng(cfg, "poisson photons", kind, name, start)
-    read_rng = _rng(cfg, "read", kind, name, start)
+    again = _acquisition(cfg) if kind == "baseline" else ()
+    photon_rngs = (_rng(cfg, "photons", kind, name, start, *again),
+                   _rng(cfg, "poisson photons", kind, name, start, *again))
+    read_rng = _rng(cfg, "read", kind, name, start, *again)
     shape = cfg.detector.shape
     prf = pixel_response(truth)
     if kind == "flat":
@@ -922,6 +1129,10 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, n
                                                          wavelength=cfg.metrology.wavelength,
                                                          pixel_pitch=cfg.metrology.pixel_pitch)
             fringe = prf.fringe_response(kx_map, ky_map, phase=phase_map)
+            if _coherence_matters(cfg):  # the stray waves' fringes beside the direct one, and their level
+                direct, stray, static = _stray_fringes(cfg, prf, tips, name)
+                fringe = direct * fringe + stray
+                base = base + static * envelope
         else:
             fringe = prf.fringe_response(float(b["kx"]), float(b["ky"]))
         response = fringe * envelope * truth["visibility"].values

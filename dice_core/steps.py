@@ -85,8 +85,9 @@ _STEPS = [
     Step("fit_finish", (*_STREAM, *_FIT, "metrology.parts", "metrology.tip_sigma"),
          stands_for=("fit_start", "fit_part", "fit_reduce")),
     Step("prf_widths", ("prf.order", "prf.half_width", "prf.sigma", "metrology.smooth_degree")),
-    Step("deproject_offsets"),
-    Step("compare_pairs"),
+    Step("find_stray_light"),
+    Step("deproject_offsets", ("metrology.stray_light",)),
+    Step("compare_pairs", ("metrology.stray_light",)),
     Step("allan_deviation", _STREAM),
     # pseudo stars and astrometry
     Step("stack_position", (*_STREAM, "centroids.batches")),
@@ -101,6 +102,7 @@ _STEPS = [
     Step("plot_allan"),
     Step("plot_offsets"),
     Step("plot_offsets_difference"),
+    Step("plot_stray_light"),
     Step("plot_prf"),
     Step("plot_centroids", ("astrometry.positions",)),
     Step("plot_procrustes_residuals"),
@@ -114,9 +116,10 @@ _STEPS = [
     Step("plot_offset_bias", ("paper.offset_bias",), whole_run=True),
     Step("error_propagation_table", ("paper.error_propagation",), whole_run=True),
     Step("plot_error_propagation", ("paper.error_propagation",), whole_run=True),
+    Step("plot_stray_light_study", ("paper.stray_light",), whole_run=True),
     Step("procrustes_deflation", ("astrometry.trials",), whole_run=True),
-    Step("paper_comparison", ("paper.offset_bias", "paper.error_propagation", "astrometry.positions",
-                              "centroids.method"), whole_run=True),
+    Step("paper_comparison", ("paper.offset_bias", "paper.error_propagation", "paper.stray_light",
+                              "astrometry.positions", "centroids.method", "metrology.stray_light"), whole_run=True),
     Step("paper_pdf", whole_run=True),
 ]
 

@@ -9,6 +9,8 @@ point a set of parameter values applied to the study's own simulated bench.
   pixel-offset-bias figure).
 - :func:`error_propagation`: centroid error per unit of one error source
   (:mod:`dice_core.error_budget`; the paper's table of error coefficients).
+- :func:`stray_light`: a pair's offset errors under coherent stray light, detected and removed, against
+  the field ratio, the laser's coherence length and the fiber tips' positions (issue 25).
 - :func:`star_accuracy`: centroid accuracy of each calibration mode with
   perfect calibrations, against truth and by Procrustes (e.g. against the
   PRF width spread, which neither calibration sees).
@@ -34,7 +36,8 @@ from dice_core.manifest import load_manifest
 from dice_core.overrides import apply_dotted
 from dice_core.paper_method import fit_baseline_paper
 
-__all__ = ["OFFSET_BIAS_BENCH", "STAR_ACCURACY_BENCH", "TIP_TILT_BENCH", "STUDIES", "star_accuracy", "tip_tilt",
+__all__ = ["OFFSET_BIAS_BENCH", "STAR_ACCURACY_BENCH", "TIP_TILT_BENCH", "STRAY_LIGHT_BENCH", "STRAY_LIGHT_VANES",
+           "STUDIES", "star_accuracy", "tip_tilt", "stray_light", "offsets_error", "simulate_and_fit",
            "flat_metrology_centroids", "apply_overrides", "offset_bias", "affine_free", "error_propagation",
            "sweep_dataset", "sweep_from_dataset", "run_point"]
 
@@ -532,11 +535,184 @@ def tip_tilt_removals(procrustes, pose, *, tilted, untilted, true_tip_tilt, tria
                                         "measured share over the noise-limited bound")}
 
 
+# --------------------------------------------------------------------------- coherent stray light
+
+#: Vane edges of the stray-light study's bench, two a baseline (one copying each fiber's wave): directions
+#: 2.5-6 mrad off their fiber's seen from the detector centre, 0.40-0.55 m above it, extra paths 0.6-1.5 cm
+#: (the paper: "around 1 cm plus or minus a factor 2").
+STRAY_LIGHT_VANES = [
+    {"fiber": "H1H4a", "offset_mrad": [4.0, 2.5], "distance": 0.45, "extra_path": 0.008},
+    {"fiber": "H1H4b", "offset_mrad": [-6.0, 3.0], "distance": 0.52, "extra_path": 0.015},
+    {"fiber": "V1V4a", "offset_mrad": [3.0, -5.0], "distance": 0.40, "extra_path": 0.006},
+    {"fiber": "V1V4b", "offset_mrad": [-2.5, -7.0], "distance": 0.55, "extra_path": 0.012},
+]
+
+#: The stray-light study's bench: the default preset's detector, noise and pair P14 (spherical fringes from
+#: fibers 600 mm away), 2000 frames a baseline (a per-pixel floor of 7.5e-5 pixel), the vanes above at the
+#: paper's field ratio 1e-3 and a HeNe's coherence (30 cm: every vane coherent).
+STRAY_LIGHT_BENCH = {
+    "name": "stray-light",
+    "seed": 20150926,
+    "frames_per_file": 100000,
+    "detector": {"shape": [80, 84], "science_rows": [2, 79], "science_cols": [10, 83]},
+    "dark": {"frames": 2},
+    "flats": {"frames": 2},
+    "stars": {"positions": 1, "frames": 1},
+    "metrology": {"frames": 2000, "spherical": True,
+                  "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0, "midpoint": [0.012, 0.006]},
+                                "V1V4": {"period": 2.4, "angle_deg": 93.0, "midpoint": [-0.004, 0.008]}},
+                  "pairs": {"P14": ["H1H4", "V1V4"]}},
+    "stray_light": {"field_ratio": 1e-3, "coherence_length": 0.3, "sources": STRAY_LIGHT_VANES},
+}
+
+
+def _tip_grid(positions: int, step: float) -> list:
+    """The fiber-tip shifts (x, y, 0), m: the unshifted tips alone, or a square grid of ``positions`` (9: 3x3)
+    of ``step`` about them."""
+    side = int(round(np.sqrt(positions)))
+    if side * side != positions:
+        raise ValueError(f"tip_positions must be a square number (1, 9...), got {positions}")
+    offsets = (np.arange(side) - (side - 1) / 2) * step
+    return [(float(dx), float(dy), 0.0) for dy in offsets for dx in offsets]
+
+
+def simulate_and_fit(cfg, workdir):
+    """Simulate ``cfg`` into ``workdir`` and fit every baseline with the true sensitivities as the flat (and the
+    manifest's fiber tips, with spherical waves): (manifest, truth, {baseline: (solution, metrology product)})."""
+    from dice_core import fringes
+
+    manifest = load_manifest(simulation.simulate_dataset(cfg, workdir))
+    truth = read_product(Path(workdir) / "truth.nc").load()
+    products = {}
+    for baseline in manifest.baselines:
+        bench = None if manifest.geometry is None else geometry.BaselineGeometry.of_baseline(manifest.geometry,
+                                                                                           baseline)
+        solution = fringe_fit.fit_baseline(
+            FrameStream(manifest.baselines[baseline], manifest.detector), truth["bias"].values,
+            detector=manifest.detector, flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
+            geometry=bench, label=baseline)
+        products[baseline] = (solution, fringes.solution_dataset(
+            solution, manifest.detector, fibers=None if bench is None else bench.fibers))
+    return manifest, truth, products
+
+
+def _stray_light_position(cfg, workdir):
+    """One tip position: simulate ``cfg``, fit its pair, and its offsets with the stray light detected (left in)
+    and removed: each one's errors against the truth (the affine part and its declared modes removed from the
+    truth), (row, col) maps; the floors; the components found; the truth's stray-light offset error rms."""
+    from dice_core import deprojection
+    from dice_core import stray_light as stray_light_module
+
+    manifest, truth, products = simulate_and_fit(cfg, workdir)
+    (pair, (first, second)), = manifest.pairs.items()
+    fitted = {baseline: product for baseline, (_, product) in products.items()}
+    found = [stray_light_module.stray_light_dataset(fitted[b], baseline=b) for b in (first, second)]
+    out = {"components": sum(int(f["n_components"]) for f in found)}
+    for way, stray in (("detect", (None, None)), ("remove", found)):
+        offsets = deprojection.offsets_dataset(fitted[first], fitted[second], stray=stray, label=pair)
+        out[way] = offsets_error(offsets, truth)
+        out["floor"] = [float(np.sqrt(np.nanmean(offsets[f"{a}_photon_noise_floor"].values ** 2)))
+                        for a in ("dx", "dy")]
+    return out
+
+
+def offsets_error(offsets, truth):
+    """A pair's dx, dy (``calibration/offsets_<pair>.nc``) minus the truth, the affine part of (dx, dy) and
+    the product's declared modes removed from the truth: (2, row, col) maps, pixel, NaN outside the finite
+    pixels."""
+    good = np.isfinite(offsets["dx"].values) & np.isfinite(offsets["dy"].values)
+    rows, cols = np.nonzero(good)
+    n = rows.size
+    zeros = np.zeros((3, n))
+    affine = geometry.affine_basis(cols, rows)
+    fields = [*np.hstack([affine, zeros]), *np.hstack([zeros, affine])]
+    if "unobservable_dx" in offsets:
+        fields += list(np.concatenate([offsets["unobservable_dx"].values[:, good],
+                                       offsets["unobservable_dy"].values[:, good]], axis=1))
+    true = np.concatenate([truth["dx"].values[good], truth["dy"].values[good]])
+    error = np.concatenate([offsets["dx"].values[good], offsets["dy"].values[good]]) - geometry.remove_modes(
+        true, np.array(fields))
+    maps = np.full((2, *good.shape), np.nan)
+    maps[0][good], maps[1][good] = error[:n], error[n:]
+    return maps
+
+
+def stray_light(settings: dict, *, workdir, tip_positions: int = 1, tip_step: float = 0.0,
+                path_scale: float = 1.0) -> xr.Dataset:
+    """Offset errors of a pair under coherent stray light, with and without its removal (issue 25).
+
+    The bench ``settings`` (:data:`STRAY_LIGHT_BENCH` with a point's overrides: ``stray_light.field_ratio``,
+    ``stray_light.coherence_length``...) is simulated at ``tip_positions`` fiber-tip positions (1, or a square
+    grid such as the paper's 9, ``tip_step`` m apart: every tip moved, true and nominal, the vanes fixed, each
+    position an acquisition of its own, with its own noise) and
+    reduced at each: its pair's dx, dy against the truth, the stray light left in (detect) and taken out
+    (remove), each with the affine part and its own declared modes removed from the truth. With several
+    positions, the maps are averaged, as the paper did, and so are their errors. ``path_scale`` multiplies
+    every source's extra path (0.03: the sub-millimetre paths of edges diffracting close to the beams, where
+    the 0.6-1.5 cm of the vanes are reflections').
+
+    Returns
+    -------
+    xarray.Dataset
+        Scalars, pixel: ``error_dx_detect``, ``error_dy_detect``, ``error_dx_remove``, ``error_dy_remove``
+        (rms over the pixels, the first position), ``floor_dx``, ``floor_dy`` (rms photon-noise floors there);
+        with several positions ``average_error_*`` (the same of the averaged maps) and ``average_floor_*``
+        (the floors over sqrt(positions)); ``components`` found (first position), ``field_ratio``,
+        ``coherence_length`` (m, NaN: coherent) and each vane's ``coherence`` of its parasitic fringe.
+    """
+    settings = json.loads(json.dumps(settings))
+    for source in settings.get("stray_light", {}).get("sources", []):
+        source["extra_path"] = source["extra_path"] * path_scale
+    base = simulation.SimulationConfig.from_dict(settings)
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    results = []
+    for index, shift in enumerate(_tip_grid(tip_positions, tip_step)):
+        # each position its own acquisition: the same noise would make the positions' photon-noise errors
+        # correlate as cos(K . shift), which a grid's mean cancels far below the floor / sqrt(positions)
+        cfg = simulation.SimulationConfig.from_dict(apply_dotted(
+            base.to_dict(), {"metrology.tip_shift": list(shift), "metrology.acquisition": index},
+            what="stray-light bench"))
+        t0 = time.perf_counter()
+        with tempfile.TemporaryDirectory(dir=workdir, prefix="tips-") as folder:
+            results.append(_stray_light_position(cfg, folder))
+        log.info("tips shifted by (%.2f, %.2f) mm: dx error %.2e (detect), %.2e (remove), floor %.2e pixel; %d "
+                 "component(s) in %.1f s", shift[0] * 1e3, shift[1] * 1e3,
+                 np.sqrt(np.nanmean(results[-1]["detect"][0] ** 2)), np.sqrt(np.nanmean(results[-1]["remove"][0] ** 2)),
+                 results[-1]["floor"][0], results[-1]["components"], time.perf_counter() - t0)
+    ds = xr.Dataset()
+
+    def scalar(name, value, units, meaning):
+        ds[name] = ((), float(value), {"units": units, "long_name": meaning})
+
+    first = results[0]
+    for i, axis in enumerate(("dx", "dy")):
+        for way in ("detect", "remove"):
+            scalar(f"error_{axis}_{way}", np.sqrt(np.nanmean(first[way][i] ** 2)), "pixel",
+                   f"rms of {axis} minus truth, stray light {'left in' if way == 'detect' else 'removed'}")
+            if len(results) > 1:
+                average = np.mean([r[way][i] for r in results], axis=0)
+                scalar(f"average_error_{axis}_{way}", np.sqrt(np.nanmean(average**2)), "pixel",
+                       f"the same of {axis} averaged over the {len(results)} tip positions")
+        scalar(f"floor_{axis}", first["floor"][i], "pixel", f"rms photon-noise floor of {axis}")
+        if len(results) > 1:
+            scalar(f"average_floor_{axis}", np.sqrt(np.mean([r["floor"][i] ** 2 for r in results]) / len(results)),
+                   "pixel", f"the floor of the averaged {axis}")
+    scalar("components", first["components"], "1", "stray-light components found in the pair's baselines")
+    scalar("field_ratio", base.stray_light.field_ratio, "1", "field ratio of the vanes")
+    scalar("coherence_length", np.nan if base.stray_light.coherence_length is None else
+           base.stray_light.coherence_length, "m", "coherence length of the laser (NaN: coherent)")
+    scalar("tip_positions", len(results), "1", "fiber-tip positions averaged")
+    scalar("tip_step", tip_step, "m", "their spacing")
+    scalar("path_scale", path_scale, "1", "factor on the vanes' extra paths")
+    return ds
+
+
 # --------------------------------------------------------------------------- sweeps
 
 #: Each study's runner: point and settings -> dataset. ``bench`` holds dotted keys of the
 #: study's simulated bench, ``options`` its keyword options; a point's parameters are either.
-STUDIES = ("offset_bias", "error_propagation", "star_accuracy", "tip_tilt")
+STUDIES = ("offset_bias", "error_propagation", "star_accuracy", "tip_tilt", "stray_light")
 
 
 def run_point(study: str, point: dict, *, bench: dict | None = None, options: dict | None = None,
@@ -578,6 +754,9 @@ def run_point(study: str, point: dict, *, bench: dict | None = None, options: di
         ds = star_accuracy(apply_overrides(STAR_ACCURACY_BENCH, bench), **options)
     elif study == "tip_tilt":
         ds = tip_tilt(apply_overrides(TIP_TILT_BENCH, bench), **options)
+    elif study == "stray_light":
+        with tempfile.TemporaryDirectory(prefix="stray-light-", dir=workdir) as folder:
+            ds = stray_light(apply_overrides(STRAY_LIGHT_BENCH, bench), workdir=folder, **options)
     else:
         raise ValueError(f"unknown study {study!r}; studies are {', '.join(STUDIES)}")
     ds.attrs.update({"study": study, "point": json.dumps(point)})

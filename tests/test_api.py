@@ -21,6 +21,12 @@ EXCEPTIONS = {
     # coordinates, the Allan statistics' per-pixel arrays, the pose model's directions, poses and bench
     "centroids.response_corrected", "prf.log_transfer", "prf.pixel_scale", "allan.allan_statistics",
     "allan.statistics_dataset", "superimposition.pose_project",
+    # stray light: a map's values at pixel coordinates x, y; a component's frequency, chirp and phase (and the
+    # reference pixel they are measured from); a baseline's two fiber tips and the stray sources
+    "stray_light.canonical", "stray_light.component_design", "stray_light.component_model",
+    "stray_light.component_phase", "stray_light.diagnose", "stray_light.diagnosis_variables",
+    "stray_light.fit_amplitudes", "stray_light.fringe_terms", "stray_light.quadratic_frequency",
+    "stray_light.tangent_modes",
     # a dotted key, the value to set there and the value it replaces
     "overrides.typed_value",
 }

@@ -3,10 +3,8 @@
 import numpy as np
 import pytest
 
-from dice_core import deprojection, fringe_fit, fringes, geometry, simulation
-from dice_core.geometry import BaselineGeometry, fit_two_source, remove_modes, two_source_phase
-from dice_core.io import FrameStream, read_product
-from dice_core.manifest import load_manifest
+from dice_core import deprojection, fringes, geometry, simulation, studies
+from dice_core.geometry import fit_two_source, remove_modes, two_source_phase
 
 PITCH, WAVELENGTH, DISTANCE = 24e-6, 633e-9, 0.6
 ROWS, COLS = np.mgrid[2:79, 10:83]
@@ -133,18 +131,7 @@ def spherical(tmp_path_factory):
         "metrology": {"frames": 2000, "spherical": True, "tip_error": [1.0e-3, 1.0e-3],
                       "baselines": SPHERICAL_BASELINES, "pairs": {"P14": ["H1H4", "V1V4"], "P24": ["H2H4", "V2V4"]}},
     })
-    outdir = tmp_path_factory.mktemp("spherical")
-    manifest = load_manifest(simulation.simulate_dataset(cfg, outdir))
-    truth = read_product(outdir / "truth.nc")
-    products = {}
-    for baseline in manifest.baselines:
-        solution = fringe_fit.fit_baseline(
-            FrameStream(manifest.baselines[baseline], manifest.detector), truth["bias"].values,
-            detector=manifest.detector, flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values,
-            geometry=BaselineGeometry.of_baseline(manifest.geometry, baseline), label=baseline)
-        products[baseline] = (solution, fringes.solution_dataset(solution, manifest.detector,
-                                                                 fibers=manifest.geometry.baseline_fibers[baseline]))
-    return manifest, truth, products
+    return studies.simulate_and_fit(cfg, tmp_path_factory.mktemp("spherical"))
 
 
 @pytest.mark.parametrize("baseline", list(SPHERICAL_BASELINES))

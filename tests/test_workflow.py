@@ -67,11 +67,13 @@ def test_products_and_figures_exist(out):
     for product in ("metrology/H1H4.nc", "metrology/V2V4.nc", "calibration/offsets_P14.nc",
                     "calibration/offsets_P24.nc", "calibration/offsets_difference_P24.nc", "allan/H1H4.nc",
                     "allan/V2V4.nc", "centroids/raw.nc", "centroids/flat.nc", "centroids/metrology.nc",
-                    "centroids/flat+metrology.nc"):
+                    "centroids/flat+metrology.nc", "calibration/stray_light_H1H4.nc",
+                    "calibration/stray_light_V2V4.nc"):
         assert (out / product).is_file(), product
     for figure in ("dark", "dark_noise", "prnu_fiber_a", "prnu_fiber_b", "prnu_difference_fiber_b",
                    "metrology_H1H4", "offsets_P14", "offsets_difference_P24", "allan_H1H4",
-                   "centroids_flat+metrology", "procrustes_residuals", "barycentre_residuals"):
+                   "centroids_flat+metrology", "procrustes_residuals", "barycentre_residuals",
+                   "stray_light_H1H4"):
         for ext in ("png", "pdf"):
             assert (out / "figures" / f"{figure}.{ext}").stat().st_size > 1000, figure
     for log in ("measure_dark", "measure_prnu_fiber_a", "simulate_truth"):
@@ -242,6 +244,20 @@ def test_metrology_products_follow_the_contract_and_the_truth(out):
     assert float(difference["ddx_std"]) < 1.3 * float(difference["ddx_photon_noise_floor"])
 
 
+def test_the_ci_bench_shows_no_stray_light_and_the_logs_say_so(out):
+    """The ci bench has none (metrology.stray_light: detect by default): no baseline and neither component of
+    the pair difference shows a component, each product holds its spectrum, and each log says it in a line."""
+    for baseline in ("H1H4", "V1V4", "H2H4", "V2V4"):
+        stray = read_product(out / f"calibration/stray_light_{baseline}.nc")
+        assert int(stray["n_components"]) == 0 and stray.sizes["component"] == 0, baseline
+        assert stray["power"].dims == ("frequency_y", "frequency_x") and float(stray["false_alarm"]) == 1e-3
+        assert float(stray["white_level"]) > 0 and np.nanmax(stray["power"].values) < float(stray["threshold"]) * 2
+        assert f"{baseline}: no coherent stray light" in (out / f"logs/find_stray_light_{baseline}.log").read_text()
+    difference = read_product(out / "calibration/offsets_difference_P24.nc")
+    assert int(difference["ddx_n_components"]) == 0 and int(difference["ddy_n_components"]) == 0
+    assert "ddy of P24 - P14: no coherent stray light" in (out / "logs/compare_pairs_P24.log").read_text()
+
+
 @pytest.mark.parametrize("step", ["fit_fringes_H1H4", "allan_deviation_H1H4"])
 def test_steps_run_one_blas_thread_per_worker_whatever_snakemake_sets(out, step):
     """Snakemake sets the thread variables to a rule's threads (2); each process still runs one BLAS thread."""
@@ -399,16 +415,20 @@ def test_a_mode_added_to_the_sweep_runs_only_its_own_jobs(workdir, out):
 OTHER_VALUES = {
     "chunk_frames": 16, "prnu.gradient_degree": 2, "metrology.tolerance": 2.0e-7, "metrology.max_passes": 9,
     "metrology.parts": 3, "metrology.use_flat": False, "metrology.smooth_degree": 5, "metrology.tip_sigma": 2.0e-3,
+    "metrology.stray_light": "remove",
     "prf.order": 6.0, "prf.half_width": 0.45, "prf.sigma": 0.32, "centroids.modes": ["raw", "flat"],
     "centroids.method": "gaussian", "centroids.methods": ["fourier"], "centroids.half_size": 6,
     "centroids.batches": 3, "centroids.pair": "P24", "astrometry.positions": [1, 3], "astrometry.groups": 2,
     "astrometry.trials": 1000, "astrometry.superimposition": "projective", "astrometry.pose.distance": 30000.0,
     "astrometry.pose.off_axis_deg": 3.0, "astrometry.pose.centre": [20.0, 20.0],
     "paper.offset_bias": "offset_bias_causes", "paper.error_propagation": "error_propagation_sources",
+    "paper.stray_light": "stray_light_small",
 }
 # the second error_propagation sweep paper.error_propagation may name
 EXTRA_SWEEP = {"sweeps": {"error_propagation_sources": {"study": "error_propagation", "parameter": "source",
-                                                        "values": ["prnu", "read"], "options": {"trials": 50}}}}
+                                                        "values": ["prnu", "read"], "options": {"trials": 50}},
+                          "stray_light_small": {"study": "stray_light", "parameter": "stray_light.field_ratio",
+                                                "values": [1.0e-3], "bench": {"metrology.frames": 300}}}}
 
 
 def nested(key, value):
@@ -843,6 +863,8 @@ def test_default_preset_against_truth(tmp_path):
         error = metrology["projected_offset"].values[good] - (projected - q @ (q.T @ projected))
         assert np.sqrt(np.mean(error**2)) < 1.2 * float(metrology["photon_noise_floor_rms"]), baseline
         assert metrology.sizes["mode"] >= 1 and "gauge_difference_floor" in metrology, baseline
+        # a bench without stray light: its diagnosis finds none (false-alarm rate 1e-3 a baseline)
+        assert int(read_product(out / "calibration" / f"stray_light_{baseline}.nc")["n_components"]) == 0, baseline
         # Allan deviations of the same baseline: white, and at the photon limit to the last point
         ds = read_product(out / "allan" / f"{baseline}.nc")
         assert float(ds["slope_batch_means"]) == pytest.approx(-0.5, abs=0.05), baseline
@@ -1111,8 +1133,11 @@ PAPER_CI = {
         "errors_ci": {"study": "error_propagation", "grid": {"source": ["prnu", "photon", "offsets", "read"],
                                                              "weighting": ["pipeline", "uniform"]},
                       "options": {"trials": 20, "amplitudes": [1.0e-3]}},
+        # the stray-light study at 300 frames: the field ratio 1e-3 point (its rows) and one at 3e-3
+        "stray_ci": {"study": "stray_light", "parameter": "stray_light.field_ratio", "values": [1.0e-3, 3.0e-3],
+                     "bench": {"metrology.frames": 300}},
     },
-    "paper": {"offset_bias": "bias_ci", "error_propagation": "errors_ci"},
+    "paper": {"offset_bias": "bias_ci", "error_propagation": "errors_ci", "stray_light": "stray_ci"},
 }
 
 
@@ -1148,6 +1173,9 @@ def test_the_paper_target_runs_and_its_tables_follow_the_contract(paper_run, out
     assert list(errors[0])[:5] == ["source", "normalisation", "coefficient", "error", "paper_coefficient"]
     assert [r["source"] for r in errors] == ["prnu", "photon", "offsets", "read"]
     assert (out / "figures" / "error_propagation.png").is_file() and (out / "figures" / "offset_bias.png").is_file()
+    assert (out / "figures" / "stray_light_study.png").is_file()
+    stray = [q for q in quantities if q.startswith("pixel-offset accuracy, stray light its main noise")]
+    assert any("field ratio 1e-3, stray light left in, study" in q for q in stray), stray
     assert (out / "report" / "paper_reproduction.pdf").read_bytes()[:5] == b"%PDF-"
 
 

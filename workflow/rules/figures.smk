@@ -143,3 +143,21 @@ rule plot_offsets_difference:
         **step_params("plot_offsets_difference"),
     script:
         "../scripts/plot_offsets_difference.py"
+
+
+rule plot_stray_light:
+    input:
+        stray=output_of("stray_light"),
+        manifest=MANIFEST_FILE,
+    output:
+        **figure_of("figure_stray_light", category="Metrology", caption="stray_light"),
+    log:
+        f"{OUT}/logs/plot_stray_light_{{baseline}}.log",
+    conda:
+        "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_stray_light"),
+    params:
+        **step_params("plot_stray_light"),
+    script:
+        "../scripts/plot_stray_light.py"

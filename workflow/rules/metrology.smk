@@ -157,11 +157,31 @@ rule prf_widths:
         "../scripts/prf_widths.py"
 
 
+# Each baseline's offset spectrum and the coherent stray light it shows (metrology.stray_light: detect or remove).
+rule find_stray_light:
+    input:
+        metrology=output_of("metrology"),
+    output:
+        stray=output_of("stray_light"),
+    log:
+        f"{OUT}/logs/find_stray_light_{{baseline}}.log",
+    conda:
+        "../envs/dice.yaml"
+    resources:
+        **step_resources("find_stray_light"),
+    params:
+        **step_params("find_stray_light"),
+    script:
+        "../scripts/find_stray_light.py"
+
+
 rule deproject_offsets:
     input:
         first=lambda w: PLAN.path("metrology", baseline=pair_baselines(w)[0]),
         second=lambda w: PLAN.path("metrology", baseline=pair_baselines(w)[1]),
         manifest=MANIFEST_FILE,  # names the pair in errors
+        # with metrology.stray_light: remove, the components found in its two baselines
+        stray=lambda w: PLAN.stray_light_removed(w.pair),
     output:
         offsets=output_of("offsets"),
     log:

@@ -151,6 +151,23 @@ rule plot_offset_bias:
         "../scripts/plot_offset_bias.py"
 
 
+rule plot_stray_light_study:
+    input:
+        points=PLAN.sweep_points(PAPER_SWEEPS["stray_light"]),
+    output:
+        **figure_of("figure_stray_light_study", category="Numerical simulations", caption="stray_light_study"),
+    log:
+        f"{OUT}/logs/plot_stray_light_study.log",
+    conda:
+        "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_stray_light_study"),
+    params:
+        **step_params("plot_stray_light_study"),
+    script:
+        "../scripts/plot_stray_light_study.py"
+
+
 rule error_propagation_table:
     input:
         points=PLAN.sweep_points(PAPER_SWEEPS["error_propagation"]),
@@ -247,6 +264,7 @@ rule paper:
         rules.paper_pdf.output,
         DEFAULT_TARGETS,
         rules.plot_offset_bias.output,
+        rules.plot_stray_light_study.output,
         rules.error_propagation_table.output,
         rules.plot_error_propagation.output,
         rules.paper_comparison.output,

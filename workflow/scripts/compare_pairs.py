@@ -8,7 +8,8 @@ from dice_core import deprojection, io
 
 def compare_pairs(reference_path, other_path, reference, pair, output, config):
     product = deprojection.difference_dataset(io.read_product(reference_path), io.read_product(other_path),
-                                              reference_pair=reference, pair=pair)
+                                              reference_pair=reference, pair=pair,
+                                              spectrum=config["metrology"]["stray_light"] != "off")
     logging.getLogger("dice").info("%s - %s: std(ddx) %.3e, std(ddy) %.3e pixel; photon floor %.3e, %.3e",
                                    pair, reference, float(product["ddx_std"]), float(product["ddy_std"]),
                                    float(product["ddx_photon_noise_floor"]),

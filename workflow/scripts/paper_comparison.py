@@ -12,7 +12,7 @@ def read_csv(path):
         return list(csv.DictReader(handle))
 
 
-def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, method):
+def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, method, stray_light):
     log = logging.getLogger("dice")
     points = {}
     for path in inputs["offset_bias"]:
@@ -27,8 +27,17 @@ def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, method):
     (deflation,) = read_csv(inputs["deflation"])
     rows.append(reproduction.Row("deflation", float(deflation["factor"]), float(deflation["error"]), "nominal geometry",
                                  f"{deflation['trials']} Monte Carlo trials of white jitter"))
+    strays = {ds.attrs["baseline"]: ds for ds in map(io.read_product, inputs.get("stray_light", []))}
     for path in inputs.get("allan", []):
-        rows += reproduction.allan_rows(io.read_product(path), dataset=dataset)
+        allan = io.read_product(path)
+        found = reproduction.stray_light_note(strays[allan.attrs["baseline"]]) if allan.attrs.get(
+            "baseline") in strays else ""
+        for row in reproduction.allan_rows(allan, dataset=dataset):
+            row.note += f"; {found}" if found else ""
+            rows.append(row)
+    rows += reproduction.stray_light_study_rows([io.read_product(p) for p in inputs["stray_light_study"]])
+    for stray in strays.values():
+        rows += reproduction.stray_light_rows(stray, dataset=dataset, removed=stray_light == "remove")
     if "accuracy" in inputs:
         used = "all positions" if positions is None else f"positions {positions[0]}-{positions[1]}"
         records = [r for r in read_csv(inputs["accuracy"]) if r["method"] == method]
@@ -46,4 +55,5 @@ inputs = {key: (list(value) if not isinstance(value, str) else value) for key, v
 dice_core.run_logged(snakemake.log[0], paper_comparison, inputs, snakemake.output.csv, snakemake.output.png,
                      snakemake.output.pdf, snakemake.params.dataset,
                      snakemake.params.settings["astrometry"]["positions"],
-                     snakemake.params.settings["centroids"]["method"])
+                     snakemake.params.settings["centroids"]["method"],
+                     snakemake.params.settings["metrology"]["stray_light"])
