@@ -43,6 +43,7 @@ Units: m for wavelengths and depths (the manifest's), 1 for kernels and weights.
 from __future__ import annotations
 
 import numpy as np
+import xarray as xr
 
 __all__ = [
     "EXTINCTION",
@@ -63,6 +64,9 @@ __all__ = [
     "spectrum_grid",
     "EffectiveResponse",
     "effective_response",
+    "chromatic_dataset",
+    "star_calibration",
+    "calibration_from_products",
 ]
 
 #: Extinction coefficient k of crystalline silicon at 295 K against wavelength (m): Schinke et al. 2015,
@@ -466,3 +470,164 @@ def effective_response(calibration, maps: dict, *, spectrum, sensitivity=None, s
     share = dict(zip((float(w) for w in calibration), a @ m))
     return EffectiveResponse(total / scale, effective["dx"], effective["dy"], effective.get("width_x"),
                              effective.get("width_y"), share)
+
+
+# --------------------------------------------------------------------------- the product and the stars' correction
+
+def chromatic_dataset(wavelengths, *, offsets: dict, widths: dict, sensitivity: dict, pairs: dict, flats: dict,
+                      reference: float) -> xr.Dataset:
+    """The ``calibration/chromatic.nc`` product: each calibration wavelength's maps, stacked along ``wavelength``.
+
+    Parameters
+    ----------
+    wavelengths : sequence of float
+        The calibration wavelengths, m, in the manifest's order of their pairs.
+    offsets : dict
+        Wavelength -> that wavelength's reference pair's ``calibration/offsets_<pair>.nc`` (dx, dy and their
+        photon-noise floors, pixel).
+    widths : dict
+        Wavelength -> that wavelength's width maps (:class:`dice_core.prf.WidthMaps`, or None where they could not
+        be made).
+    sensitivity : dict
+        Wavelength -> the PRNU map (row, col) of a laser flat at that wavelength; absent where the dataset has none.
+    pairs, flats : dict
+        Wavelength -> the name of the pair, of the flat (absent: none) each map comes from.
+    reference : float
+        The reference pair's wavelength, m: the chromatic mode corrects the PRF widths' change from it.
+    """
+    wavelengths = [float(w) for w in wavelengths]
+    first = offsets[wavelengths[0]]
+    shape = first["dx"].shape
+    dims = ("wavelength", "row", "col")
+
+    def stack(get):
+        return np.stack([np.full(shape, np.nan) if (value := get(w)) is None else np.asarray(value, float)
+                         for w in wavelengths])
+
+    variables = {
+        "dx": (dims, stack(lambda w: offsets[w]["dx"].values), {"units": "pixel", "long_name": "pixel offset "
+                                                                "along x at each wavelength (its reference pair's)"}),
+        "dy": (dims, stack(lambda w: offsets[w]["dy"].values), {"units": "pixel", "long_name": "pixel offset "
+                                                                "along y at each wavelength"}),
+        "sensitivity": (dims, stack(lambda w: sensitivity.get(w)), {
+            "units": "1", "long_name": "relative sensitivity at each wavelength (its laser flat's PRNU; NaN: no "
+                                       "flat at that wavelength)"}),
+        "width_x": (dims, stack(lambda w: None if widths.get(w) is None else widths[w].width_x), {
+            "units": "pixel", "long_name": "PRF standard deviation along x at each wavelength (NaN: not measured)"}),
+        "width_y": (dims, stack(lambda w: None if widths.get(w) is None else widths[w].width_y), {
+            "units": "pixel", "long_name": "PRF standard deviation along y at each wavelength (NaN: not measured)"}),
+    }
+    for axis in "xy":
+        name = f"d{axis}_photon_noise_floor"
+        if all(name in offsets[w] for w in wavelengths):
+            variables[name] = (dims, stack(lambda w, n=name: offsets[w][n].values), {
+                "units": "pixel", "long_name": f"1-sigma photon-noise error of d{axis} at each wavelength"})
+    rows, cols = shape
+    return xr.Dataset(
+        variables,
+        coords={"wavelength": ("wavelength", wavelengths, {"units": "m", "long_name": "calibration wavelength"}),
+                "row": np.arange(rows), "col": np.arange(cols),
+                "pair": ("wavelength", [pairs[w] for w in wavelengths]),
+                "flat": ("wavelength", [flats.get(w, "") for w in wavelengths])},
+        attrs={"model": MODEL, "max_degree": MAX_DEGREE, "reference_wavelength": float(reference),
+               "depth_coordinate": "ln(absorption length / 1 um) of silicon at 295 K (Schinke et al. 2015)"},
+    )
+
+
+def star_calibration(product: xr.Dataset, spectrum, *, white_prnu, log=None) -> dict:
+    """The chromatic mode's calibration of stars of ``spectrum``: ``measure_positions``' prnu, dx, dy, variances.
+
+    Parameters
+    ----------
+    product : xarray.Dataset
+        ``calibration/chromatic.nc`` (:func:`chromatic_dataset`).
+    spectrum : (samples, weights)
+        The stars' detected spectrum (m, relative photons per unit wavelength).
+    white_prnu : ndarray (row, col)
+        The reference (white) flat's PRNU: the sensitivity where fewer than two wavelengths have a laser flat.
+
+    Returns
+    -------
+    dict
+        ``prnu`` (the effective sensitivity), ``dx``, ``dy`` (pixel) and ``variance_x``, ``variance_y``: the
+        effective PRF variances' change from the reference wavelength's (pixel^2; zero where the widths were not
+        measured), for :func:`dice_core.centroids.measure_positions`.
+
+    Notes
+    -----
+    On an achromatic detector every wavelength's maps are the same, up to their noise: the effective maps are
+    then the reference's (the model reproduces a constant), their noise a weighted mean's, and the variances'
+    change is noise about zero, so that the mode is flat+metrology's.
+    """
+    wavelengths = [float(w) for w in product["wavelength"].values]
+    with_flat = [w for i, w in enumerate(wavelengths) if np.isfinite(product["sensitivity"].values[i]).any()]
+    several = len(with_flat) >= 2
+    if log is not None and not several:
+        log.info("chromatic: %d wavelength(s) with a laser flat; the white flat stands for the sensitivity",
+                 len(with_flat))
+    maps = {name: product[name].values for name in ("dx", "dy", "width_x", "width_y")}
+    effective = effective_response(
+        wavelengths, maps, spectrum=spectrum,
+        sensitivity=product["sensitivity"].isel(wavelength=[wavelengths.index(w) for w in with_flat]).values
+        if several else white_prnu,
+        sensitivity_wavelengths=with_flat if several else None)
+    # the manifest's order, not sorted: the nearest wavelength by hand
+    nearest = int(np.argmin(np.abs(np.array(wavelengths) - float(product.attrs["reference_wavelength"]))))
+    reference = product.isel(wavelength=nearest)
+    variances = {}
+    for axis in "xy":
+        change = getattr(effective, f"variance_{axis}") - reference[f"width_{axis}"].values ** 2
+        variances[f"variance_{axis}"] = np.where(np.isfinite(change), change, 0.0)
+    if log is not None:
+        log.info("chromatic: the stars' effective offsets from %s",
+                 ", ".join(f"{w * 1e9:g} nm x {share:.3f}" for w, share in effective.weights.items()))
+    return {"prnu": effective.sensitivity, "dx": effective.dx, "dy": effective.dy, **variances}
+
+
+def calibration_from_products(manifest, *, offsets, metrology, flats, gain: float, read_noise=None, shape=None,
+                              smooth_degree: int = 6, log=None) -> xr.Dataset:
+    """``calibration/chromatic.nc`` of a dataset with pairs at several wavelengths, from its products.
+
+    Parameters
+    ----------
+    manifest : dice_core.manifest.Manifest
+        Format 1.2: its pairs' wavelengths say which products belong together.
+    offsets, metrology, flats : iterable of xarray.Dataset
+        Each wavelength's reference pair's ``calibration/offsets_<pair>.nc`` (attribute ``pair``), the
+        ``metrology/<baseline>.nc`` of every baseline of its pairs (``baseline``) and its laser flats'
+        ``calibration/flats/prnu_<flat>.nc`` (``flat``).
+    gain, read_noise, shape, smooth_degree :
+        The PRF width maps' (:func:`dice_core.prf.width_maps`), one set per wavelength of that wavelength's
+        baselines.
+
+    Raises
+    ------
+    ValueError
+        A wavelength whose reference pair's offsets or baselines' products are missing.
+    """
+    from dice_core import prf
+
+    by_pair = {ds.attrs["pair"]: ds for ds in offsets}
+    by_baseline = {ds.attrs["baseline"]: ds for ds in metrology}
+    by_flat = {ds.attrs["flat"]: ds for ds in flats}
+    found = {"offsets": {}, "widths": {}, "sensitivity": {}, "pairs": {}, "flats": {}}
+    for wavelength in manifest.wavelengths:
+        pairs = manifest.pairs_at(wavelength)
+        baselines = list(dict.fromkeys(b for p in pairs for b in manifest.pairs[p]))
+        missing = [p for p in pairs[:1] if p not in by_pair] + [b for b in baselines if b not in by_baseline]
+        if missing:
+            raise ValueError(f"{wavelength * 1e9:g} nm: no product for {missing}")
+        found["offsets"][wavelength], found["pairs"][wavelength] = by_pair[pairs[0]], pairs[0]
+        found["widths"][wavelength] = prf.width_maps({b: by_baseline[b] for b in baselines}, gain=gain,
+                                                     read_noise=read_noise, shape=shape, smooth_degree=smooth_degree,
+                                                     science=manifest.detector.science_mask(), log=log)
+        laser = [f for f in manifest.flats_at(wavelength) if f in by_flat]
+        if laser:
+            found["sensitivity"][wavelength] = by_flat[laser[0]]["prnu"].values
+            found["flats"][wavelength] = laser[0]
+        if log is not None:
+            log.info("%g nm: pair %s, PRF widths from %s, %s", wavelength * 1e9, pairs[0], ", ".join(baselines),
+                     f"laser flat {laser[0]}" if laser else "no laser flat")
+    return chromatic_dataset(manifest.wavelengths, offsets=found["offsets"], widths=found["widths"],
+                             sensitivity=found["sensitivity"], pairs=found["pairs"], flats=found["flats"],
+                             reference=manifest.pair_wavelength(manifest.reference_pair))
