@@ -67,6 +67,7 @@ __all__ = [
     "chromatic_dataset",
     "star_calibration",
     "calibration_from_products",
+    "stars_spectrum",
 ]
 
 #: Extinction coefficient k of crystalline silicon at 295 K against wavelength (m): Schinke et al. 2015,
@@ -631,3 +632,26 @@ def calibration_from_products(manifest, *, offsets, metrology, flats, gain: floa
     return chromatic_dataset(manifest.wavelengths, offsets=found["offsets"], widths=found["widths"],
                              sensitivity=found["sensitivity"], pairs=found["pairs"], flats=found["flats"],
                              reference=manifest.pair_wavelength(manifest.reference_pair))
+
+
+def stars_spectrum(configured, manifest_spectrum):
+    """The stars' spectrum (samples in m, weights) the chromatic mode uses: ``configured`` (config
+    ``centroids.spectrum``: a name of :data:`SPECTRA` or {wavelength, weight}) where set, else the manifest's
+    (a :class:`dice_core.manifest.Spectrum`).
+
+    Raises
+    ------
+    ValueError
+        Neither gives one; a configured spectrum of unequal lengths or decreasing wavelengths.
+    """
+    if configured is None:
+        if manifest_spectrum is None:
+            raise ValueError("no spectrum of the stars: the manifest has no stars.spectrum and config "
+                             "centroids.spectrum is null")
+        return np.array(manifest_spectrum.wavelength), np.array(manifest_spectrum.weight)
+    if isinstance(configured, str):
+        return named_spectrum(configured)
+    wavelength, weight = (np.asarray(configured[k], float) for k in ("wavelength", "weight"))
+    if wavelength.shape != weight.shape or np.any(np.diff(wavelength) <= 0):
+        raise ValueError("config centroids.spectrum: one weight per wavelength, the wavelengths increasing (m)")
+    return wavelength, weight

@@ -21,6 +21,7 @@ from dice_core import error_budget  # noqa: E402
 from dice_core.manifest import Detector  # noqa: E402
 
 __all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure",
+           "chromatic_figure",
            "barycentre_figure", "offset_bias_figure", "paper_comparison_figure", "error_propagation_figure",
            "star_accuracy_figure", "tip_tilt_sweep_figure", "reduction_sweep_figure", "parameter_axis",
            "PARAMETER_AXES", "reproduction_pdf", "save"]
@@ -877,3 +878,55 @@ def tip_tilt_sweep_figure(datasets, *, title="Tip-tilt: what each superimpositio
         ax.grid(True, which="both", alpha=0.3)
     fig.suptitle(f"{title} ({datasets[0].attrs.get('method', '')} centroids)", fontsize=10)
     return fig
+
+
+def chromatic_figure(ds, detector, *, title="Calibration across wavelength"):
+    """Each wavelength's offsets and sensitivity against the reference wavelength's (calibration/chromatic.nc).
+
+    One row per wavelength other than the reference: dx and dy minus the reference's (1e-3 pixel) and the
+    sensitivity's ratio to the reference's minus 1 (1e-3; blank without laser flats at both). Last row: the rms
+    over the science area of each change against wavelength, each point a calibration wavelength.
+    """
+    wavelengths = ds["wavelength"].values
+    reference = float(ds.attrs["reference_wavelength"])
+    ref = int(np.argmin(np.abs(wavelengths - reference)))
+    others = [i for i in range(wavelengths.size) if i != ref]
+    fig, axes = plt.subplots(len(others) + 1, 3, figsize=(14, 4.2 * (len(others) + 1)), constrained_layout=True,
+                             squeeze=False)
+    mask = detector.science_mask()
+    changes = {"dx": [], "dy": [], "sensitivity": []}
+    for row, i in enumerate(others):
+        nm = f"{wavelengths[i] * 1e9:g} nm"
+        for j, name in enumerate(changes):
+            if name == "sensitivity":
+                change = ds[name].values[i] / ds[name].values[ref] - 1
+            else:
+                change = ds[name].values[i] - ds[name].values[ref]
+            finite = np.isfinite(change) & mask
+            rms = float(np.sqrt(np.mean(change[finite] ** 2))) if finite.any() else float("nan")
+            changes[name].append(rms)
+            if finite.any():
+                _show_map(axes[row, j], fig, change, detector, scale=1e3, symmetric=True,
+                          units=f"{'ratio - 1' if name == 'sensitivity' else name + ' change'} [1e-3"
+                                f"{'' if name == 'sensitivity' else ' pixel'}]",
+                          title=f"{name} at {nm} against {reference * 1e9:g} nm, rms {rms:.2e}")
+            else:
+                axes[row, j].set_axis_off()
+                axes[row, j].set_title(f"{name} at {nm}: no laser flat", fontsize=9)
+    last = axes[-1, 0]
+    order = np.argsort(wavelengths[others])
+    for name, values in changes.items():
+        values = np.array(values)[order]
+        if np.isfinite(values).any():
+            last.plot(wavelengths[others][order] * 1e9, values, "o-", label=name)
+    last.axvline(reference * 1e9, color="0.6", ls=":", label="reference")
+    last.set_xlabel("wavelength [nm]")
+    last.set_ylabel("rms change from the reference [pixel, or 1]")
+    last.set_yscale("log")
+    last.legend(fontsize=8)
+    last.set_title("the detector's change with wavelength", fontsize=9)
+    for ax in axes[-1, 1:]:
+        ax.set_axis_off()
+    fig.suptitle(f"{title}: pairs {', '.join(map(str, ds['pair'].values))}", fontsize=11)
+    return fig
+

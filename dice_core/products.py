@@ -163,6 +163,20 @@ _PRODUCTS = [
                                                                 "orthogonal to them. Absent when there are none",
                          optional=True),
                        _V("unobservable_dy", "mode row col", "1", "the same modes, y part", optional=True))),
+    Product("chromatic", "calibration/chromatic.nc", "chromatic_calibration", "netcdf", stable=True,
+            stage="metrology",
+            meaning="every wavelength's calibration (format 1.2, datasets with pairs at several wavelengths): its "
+                    "reference pair's offsets, its baselines' PRF widths and its laser flat's PRNU, with the model "
+                    "the chromatic mode interpolates them with across wavelength (attribute model; "
+                    "docs/centroids.md, \"Chromatic pixels\")",
+            variables=(_V("dx", "wavelength row col", "pixel", "pixel offset along x at each wavelength"),
+                       _V("dy", "wavelength row col", "pixel", "pixel offset along y at each wavelength"),
+                       _V("sensitivity", "wavelength row col", "1", "relative sensitivity at each wavelength, from "
+                                                                    "its laser flat (NaN: none)"),
+                       _V("width_x", "wavelength row col", "pixel", "PRF standard deviation along x at each "
+                                                                    "wavelength"),
+                       _V("width_y", "wavelength row col", "pixel", "PRF standard deviation along y at each "
+                                                                    "wavelength"))),
     Product("offsets_difference", "calibration/offsets_difference_{pair}.nc", "compare_pairs", "netcdf",
             stage="metrology", meaning="a pair's offsets minus the reference pair's (the manifest's first)",
             variables=(_V("ddx", RC, "pixel", "dx difference"), _V("ddy", RC, "pixel", "dy difference"),
@@ -239,6 +253,8 @@ _FIGURES = [
     ("figure_offsets_difference", "figures/offsets_difference_{pair}", "plot_offsets_difference",
      "a pair's offsets minus the reference pair's", "metrology"),
     ("figure_prf", "figures/prf", "plot_prf", "the PRF width maps and their errors", "metrology"),
+    ("figure_chromatic", "figures/chromatic", "plot_chromatic", "each wavelength's offsets and sensitivity against "
+     "the reference wavelength's, and what a spectrum takes of each wavelength", "metrology"),
     ("figure_centroids", "figures/centroids_{mode}", "plot_centroids", "a mode's centroids and precisions",
      "pseudo stars"),
     ("figure_procrustes_residuals", "figures/procrustes_residuals", "plot_procrustes_residuals",

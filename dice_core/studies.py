@@ -509,42 +509,43 @@ CHROMATIC_BENCH = {
     "chromatic": {"amplitude": 5.0},
 }
 
-#: The chromatic study's modes: the paper's at 633 nm on the chromatic detector, the chromatic mode, and the
+#: The chromatic study's modes besides the chromatic one: the paper's at 633 nm on the chromatic detector, and the
 #: achromatic twin's raw and flat+metrology.
-CHROMATIC_MODES = ("raw", "flat", "flat+metrology", "flat+metrology+chromatic", "achromatic raw",
-                   "achromatic flat+metrology")
+CHROMATIC_MODES = ("raw", "flat", "flat+metrology", "achromatic raw", "achromatic flat+metrology")
 
 
-def true_calibrations(truth: xr.Dataset, wavelengths, *, spectrum, mask) -> dict:
+def true_calibrations(truth: xr.Dataset, wavelength_sets: dict, *, spectrum, mask) -> dict:
     """Perfect calibrations of a simulated bench, by mode: measure_positions' prnu, dx, dy (and variances).
 
     The flat is the white flat's sensitivity (the lamp's spectrum, ``flat_spectrum_weight``), the offsets are
-    those at metrology.wavelength (the truth's dx, dy), and the chromatic mode's are the effective response to
-    ``spectrum`` (samples, weights) of the true maps at ``wavelengths`` (m; :func:`dice_core.chromatic.effective_response`):
-    the sensitivities from them where there are two or more (laser flats), else the white flat's, and the PRF
-    variances' change from metrology.wavelength's as the width maps measure it (its pixel-scale part over
-    ``mask``, the science area).
+    those at metrology.wavelength (the truth's dx, dy), and the chromatic mode's, one per entry of
+    ``wavelength_sets`` (a name -> calibration wavelengths, m; the mode ``chromatic <name>``), are the effective
+    response to ``spectrum`` (samples, weights) of the true maps at those wavelengths
+    (:func:`dice_core.chromatic.effective_response`): the sensitivities from them where there are two or more
+    (laser flats), else the white flat's, and the PRF variances' change from metrology.wavelength's as the width
+    maps measure it (its pixel-scale part over ``mask``, the science area).
     """
     from dice_core import chromatic
 
     white = np.tensordot(truth["flat_spectrum_weight"].values, truth["sensitivity_wavelength"].values, axes=1)
-    at = truth.sel(wavelength=list(wavelengths), method="nearest")
-    several = len(wavelengths) >= 2
-    effective = chromatic.effective_response(
-        wavelengths, {name: at[f"{name}_wavelength"].values for name in ("dx", "dy", "width_x", "width_y")},
-        spectrum=spectrum, sensitivity=at["sensitivity_wavelength"].values if several else white,
-        sensitivity_wavelengths=wavelengths if several else None)
-    change = {f"variance_{axis}": pixel_scale_map(getattr(effective, f"variance_{axis}") - truth[f"width_{axis}"].values
-                                                  ** 2, mask) for axis in "xy"}
-    return {"raw": {}, "flat": {"prnu": white},
-            "flat+metrology": {"prnu": white, "dx": truth["dx"].values, "dy": truth["dy"].values},
-            "flat+metrology+chromatic": {"prnu": effective.sensitivity, "dx": effective.dx, "dy": effective.dy,
-                                         **change}}
+    out = {"raw": {}, "flat": {"prnu": white},
+           "flat+metrology": {"prnu": white, "dx": truth["dx"].values, "dy": truth["dy"].values}}
+    for name, wavelengths in wavelength_sets.items():
+        at = truth.sel(wavelength=list(wavelengths), method="nearest")
+        several = len(wavelengths) >= 2
+        effective = chromatic.effective_response(
+            wavelengths, {n: at[f"{n}_wavelength"].values for n in ("dx", "dy", "width_x", "width_y")},
+            spectrum=spectrum, sensitivity=at["sensitivity_wavelength"].values if several else white,
+            sensitivity_wavelengths=wavelengths if several else None)
+        change = {f"variance_{axis}": pixel_scale_map(getattr(effective, f"variance_{axis}")
+                                                      - truth[f"width_{axis}"].values ** 2, mask) for axis in "xy"}
+        out[f"chromatic {name}"] = {"prnu": effective.sensitivity, "dx": effective.dx, "dy": effective.dy, **change}
+    return out
 
 
 def _mode_centroids(truth, manifest, positions, position_stacks, calibrations: dict, *, method, half_size, label):
     """{mode: its centroids dataset} and {mode: its rms error against truth (each position's mean displacement
-    removed), pixel} of a simulated bench under the given calibrations (mode -> prnu, dx, dy)."""
+    removed), pixel} of a simulated bench under the given calibrations (mode -> measure_positions' maps)."""
     from dice_core import centroids
 
     datasets, errors = {}, {}
@@ -561,87 +562,99 @@ def _mode_centroids(truth, manifest, positions, position_stacks, calibrations: d
     return datasets, errors
 
 
-def chromatic_accuracy(settings: dict, *, wavelengths: int = 3, method: str = "gaussian", half_size: int = 7,
-                       batches: int = 4, groups: int = 3, trials: int = 500, modes=CHROMATIC_MODES) -> xr.Dataset:
+def _accuracy_table(datasets: dict, *, groups: int, trials: int) -> dict:
+    """{(name, grouping): (accuracy, error)} of centroid datasets by any name (accuracies.mode_accuracies takes
+    modes only), Procrustes over positions and over groups of positions, pixel."""
+    from dice_core import accuracies
+
+    table = {}
+    for name, found in datasets.items():
+        configurations = accuracies.select_positions(found)[0]
+        for grouping, data in (("position", configurations),
+                               ("group", accuracies.group_means(configurations, groups))):
+            result = accuracies.accuracy(data, trials=trials)
+            table[name, grouping] = (result.accuracy, result.error)
+    return table
+
+
+def chromatic_accuracy(settings: dict, *, wavelengths=tuple(CALIBRATION_WAVELENGTHS), method: str = "gaussian",
+                       half_size: int = 7, batches: int = 4, groups: int = 3, trials: int = 500,
+                       modes=CHROMATIC_MODES) -> xr.Dataset:
     """Broadband stars' accuracy on a chromatic detector against the number of calibration wavelengths.
 
     The bench ``settings`` (:data:`CHROMATIC_BENCH` with a point's overrides) is simulated in memory twice with
     the same seed, hence the same noise draws: as set, and as its achromatic twin (``chromatic.amplitude`` 0,
     the detector at metrology.wavelength at every wavelength). Each is calibrated perfectly
     (:func:`true_calibrations`): the white flat, the offsets at 633 nm, and the chromatic mode from the true
-    maps at the ``wavelengths`` calibration wavelengths (:data:`CALIBRATION_WAVELENGTHS`), evaluated for the
-    stars' spectrum as the manifest gives it. What is left is what colour does to each calibration.
-
-    ``modes`` (of :data:`CHROMATIC_MODES`) restricts what is measured; the scalars below whose modes are
-    left out are NaN.
+    maps at each number of calibration wavelengths of ``wavelengths`` (keys of :data:`CALIBRATION_WAVELENGTHS`),
+    evaluated for the stars' spectrum as the manifest gives it. What is left is what colour does to each
+    calibration. ``modes`` (of :data:`CHROMATIC_MODES`) restricts the other modes measured; the scalars whose
+    modes are left out are NaN.
 
     Returns
     -------
     xarray.Dataset
-        Per mode (``modes``): ``accuracy_position``, ``error_position``, ``accuracy_group``,
-        ``error_group`` (Procrustes, pixel) and ``truth_error`` (rms against truth, each position's mean
-        displacement removed, pixel). Scalars: ``gain`` and ``achromatic_gain`` (raw over flat+metrology,
-        (p), on each detector), ``chromatic_over_achromatic`` (the chromatic mode's (p) accuracy over the
-        twin's flat+metrology's), ``photon_limit`` (rms Cramer-Rao bound, pixel).
+        Per mode (``modes``): ``accuracy_position``, ``error_position``, ``accuracy_group``, ``error_group``
+        (Procrustes, pixel) and ``truth_error`` (rms against truth, each position's mean displacement removed,
+        pixel). The same per number of calibration wavelengths (dim ``wavelengths``) for the chromatic mode,
+        ``chromatic_*``, and ``chromatic_over_achromatic``: its (p) accuracy over the twin's flat+metrology's.
+        Scalars: ``gain`` and ``achromatic_gain`` (raw over flat+metrology, (p), on each detector),
+        ``photon_limit`` (rms Cramer-Rao bound a position, pixel).
     """
-    from dice_core import accuracies
-
-    if wavelengths not in CALIBRATION_WAVELENGTHS:
-        raise ValueError(f"wavelengths {wavelengths!r}: the study knows {sorted(CALIBRATION_WAVELENGTHS)} "
+    unknown = [n for n in wavelengths if n not in CALIBRATION_WAVELENGTHS]
+    if unknown:
+        raise ValueError(f"wavelengths {unknown}: the study knows {sorted(CALIBRATION_WAVELENGTHS)} numbers of "
                          "calibration wavelengths (CALIBRATION_WAVELENGTHS)")
-    calibration = CALIBRATION_WAVELENGTHS[wavelengths]
+    sets = {n: CALIBRATION_WAVELENGTHS[n] for n in wavelengths}
     twin = apply_overrides(settings, {"chromatic.amplitude": 0.0})
-    datasets, errors = {}, {}
+    datasets, errors, configs = {}, {}, {}
     for name, bench in (("", settings), ("achromatic ", twin)):
         cfg, truth, manifest, positions, position_stacks = simulated_stacks(bench, batches=batches,
                                                                             label=f"{name}chromatic")
         if manifest.spectrum is None:
             raise ValueError("the chromatic study's stars need a spectrum (stars.spectrum)")
-        calibrations = true_calibrations(truth, calibration, spectrum=(manifest.spectrum.wavelength,
-                                                                       manifest.spectrum.weight),
+        configs[name] = cfg
+        calibrations = true_calibrations(truth, {} if name else sets, spectrum=(manifest.spectrum.wavelength,
+                                                                                manifest.spectrum.weight),
                                          mask=manifest.detector.science_mask())
-        if not name:
-            chromatic_cfg = cfg
-        calibrations = {mode: calibration for mode, calibration in calibrations.items()
-                        if name + mode in modes and (not name or mode in ("raw", "flat+metrology"))}
+        calibrations = {mode: c for mode, c in calibrations.items() if mode.startswith("chromatic ")
+                        or (name + mode in modes and (not name or mode in ("raw", "flat+metrology")))}
         found, found_errors = _mode_centroids(truth, manifest, positions, position_stacks, calibrations,
                                               method=method, half_size=half_size, label=name + "bench")
         datasets.update({name + mode: ds for mode, ds in found.items()})
         errors.update({name + mode: value for mode, value in found_errors.items()})
-    table = {}
-    for mode, found in datasets.items():  # accuracies.mode_accuracies, for names that are not all modes
-        configurations = accuracies.select_positions(found)[0]
-        for grouping, data in (("position", configurations),
-                               ("group", accuracies.group_means(configurations, groups))):
-            result = accuracies.accuracy(data, trials=trials)
-            table[mode, grouping] = {"accuracy": result.accuracy, "error": result.error}
-    dims = ("mode",)
+    table = _accuracy_table(datasets, groups=groups, trials=trials)
     modes = [m for m in CHROMATIC_MODES if m in modes]
-    ds = xr.Dataset({"truth_error": (dims, [errors[m] for m in modes], {
-        "units": "pixel", "long_name": "rms centroid error against truth, each position's mean displacement removed"})},
-                    coords={"mode": modes})
-    for grouping in ("position", "group"):
-        for field_, what in (("accuracy", "corrected Procrustes accuracy"), ("error", "its 1-sigma error")):
-            ds[f"{field_}_{grouping}"] = (dims, [table[m, grouping][field_] for m in modes], {
-                "units": "pixel", "long_name": f"{what} over {grouping}s"})
-    p = {m: table[m, "position"]["accuracy"] if m in modes else np.nan for m in CHROMATIC_MODES}
+    ds = xr.Dataset(coords={"mode": modes, "wavelengths": list(sets)})
+    for prefix, dim, names in (("", "mode", modes), ("chromatic_", "wavelengths", [f"chromatic {n}" for n in sets])):
+        what = "the chromatic mode's " if prefix else ""
+        ds[f"{prefix}truth_error"] = ((dim,), [errors[m] for m in names], {
+            "units": "pixel", "long_name": f"{what}rms centroid error against truth, each position's mean "
+                                           "displacement removed"})
+        for grouping in ("position", "group"):
+            for k, (field_, text) in enumerate((("accuracy", "corrected Procrustes accuracy"),
+                                                ("error", "its 1-sigma error"))):
+                ds[f"{prefix}{field_}_{grouping}"] = ((dim,), [table[m, grouping][k] for m in names], {
+                    "units": "pixel", "long_name": f"{what}{text} over {grouping}s"})
+    p = {m: table[m, "position"][0] if (m, "position") in table else np.nan for m in CHROMATIC_MODES}
+    ds["chromatic_over_achromatic"] = (("wavelengths",), [table[f"chromatic {n}", "position"][0]
+                                                          / p["achromatic flat+metrology"] for n in sets], {
+        "units": "1", "long_name": "the chromatic mode's (p) accuracy over the twin's flat+metrology's"})
     limit = next(iter(datasets.values()))[["photon_limit_x", "photon_limit_y"]].to_array()
     for key, value, what in (
             ("gain", p["raw"] / p["flat+metrology"], "raw over flat+metrology (p), chromatic detector, 633 nm"),
             ("achromatic_gain", p["achromatic raw"] / p["achromatic flat+metrology"],
              "raw over flat+metrology (p), the achromatic twin"),
-            ("chromatic_over_achromatic", p["flat+metrology+chromatic"] / p["achromatic flat+metrology"],
-             "the chromatic mode's (p) accuracy over the twin's flat+metrology's"),
             ("photon_limit", float(np.sqrt(np.nanmean(limit.values**2))), "rms Cramer-Rao bound a position")):
         ds[key] = ((), value, {"units": "pixel" if key == "photon_limit" else "1", "long_name": what})
+    chromatic_cfg = configs[""]
     ds.attrs.update({"method": method, "positions": len(next(iter(datasets.values()))["position"]),
-                     "calibration_wavelengths": [float(w) for w in calibration], "wavelengths": wavelengths,
-                     "amplitude": float(chromatic_cfg.chromatic.amplitude), "spectrum": chromatic_cfg.stars.spectrum})
-    log.info("chromatic amplitude %g, %s stars, %d wavelength(s): gain %.2f (achromatic %.2f), chromatic mode %.2e "
-             "against the twin's flat+metrology %.2e pixel (p)", chromatic_cfg.chromatic.amplitude,
-             chromatic_cfg.stars.spectrum,
-             wavelengths, float(ds["gain"]), float(ds["achromatic_gain"]), p["flat+metrology+chromatic"],
-             p["achromatic flat+metrology"])
+                     "amplitude": float(chromatic_cfg.chromatic.amplitude), "spectrum": chromatic_cfg.stars.spectrum,
+                     **{f"calibration_wavelengths_{n}": [float(w) for w in sets[n]] for n in sets}})
+    log.info("chromatic amplitude %g, %s stars: gain %.2f (achromatic %.2f); the chromatic mode over the twin's "
+             "flat+metrology (p): %s", chromatic_cfg.chromatic.amplitude, chromatic_cfg.stars.spectrum,
+             float(ds["gain"]), float(ds["achromatic_gain"]),
+             ", ".join(f"{n} wavelength(s) {float(v):.2f}" for n, v in zip(sets, ds["chromatic_over_achromatic"].values)))
     return ds
 
 

@@ -400,7 +400,8 @@ OTHER_VALUES = {
     "metrology.parts": 3, "metrology.use_flat": False, "metrology.smooth_degree": 5, "metrology.tip_sigma": 2.0e-3,
     "prf.order": 6.0, "prf.half_width": 0.45, "prf.sigma": 0.32, "centroids.modes": ["raw", "flat"],
     "centroids.method": "gaussian", "centroids.methods": ["fourier"], "centroids.half_size": 6,
-    "centroids.batches": 3, "centroids.pair": "P24", "astrometry.positions": [1, 3], "astrometry.groups": 2,
+    "centroids.batches": 3, "centroids.pair": "P24", "centroids.spectrum": "warm", "astrometry.positions": [1, 3],
+    "astrometry.groups": 2,
     "astrometry.trials": 1000, "astrometry.superimposition": "projective", "astrometry.pose.distance": 30000.0,
     "astrometry.pose.off_axis_deg": 3.0, "astrometry.pose.centre": [20.0, 20.0],
     "paper.offset_bias": "offset_bias_causes", "paper.error_propagation": "error_propagation_sources",
@@ -784,10 +785,52 @@ def test_a_bench_geometry_plans_the_metrology_and_every_mode(workdir, out, tmp_p
     manifest.write_text(yaml.safe_dump(document))
     result = snakemake(workdir, "-n", "--config", f"dataset={manifest}")
     said = result.stdout + result.stderr
-    assert "skipping" not in said
+    # the one mode it cannot have: a single wavelength has no calibration across wavelength (format 1.2)
+    assert [line for line in said.splitlines() if "skipping" in line] == [
+        f"dice: skipping centroid mode flat+metrology+chromatic: no calibration across wavelength: {manifest} has "
+        "its pairs at one wavelength (format 1.2 gives each baseline its own)"]
     for planned in ("rule fit_fringes", "rule allan_deviation", "rule deproject_offsets", "metrology/H1H4.nc",
                     "calibration/offsets_", "centroids/metrology.nc", "centroids/flat+metrology.nc"):
         assert planned in said, planned
+
+
+def test_a_dataset_of_several_wavelengths_plans_its_calibration_across_wavelength_and_the_chromatic_mode(workdir):
+    """The chromatic preset (format 1.2: lasers at 633, 450 and 800 nm, a laser flat at each, broadband stars): every
+    wavelength's pairs reduced as a single wavelength's, calibration/chromatic.nc from them, the chromatic mode and
+    its figure; nothing skipped. (The reduction itself is the slow test below.)"""
+    result = snakemake(workdir, "-n", "--config", "dataset=chromatic")
+    said = result.stdout + result.stderr
+    assert "skipping" not in said
+    for planned in ("rule chromatic_calibration", "calibration/chromatic.nc", "figures/chromatic.png",
+                    "metrology/H1H4_450.nc", "calibration/offsets_P14_800.nc", "calibration/flats/prnu_laser_450.nc",
+                    "centroids/flat+metrology+chromatic.nc", "centroids/gaussian/flat+metrology+chromatic.nc"):
+        assert planned in said, planned
+
+
+@pytest.mark.slow  # 4 min 45 s on 2 shared cores (load 5; 2026-12-05): 109 jobs
+def test_a_dataset_of_several_wavelengths_is_reduced_wavelength_by_wavelength_and_across(tmp_path):
+    """The chromatic preset through the workflow: each wavelength's offsets against the truth at that wavelength
+    within 1.2 of their photon floor (measured 1.0), calibration/chromatic.nc holding each wavelength's
+    calibration, and the chromatic mode's rows in the accuracy table."""
+    root = copy_repository(tmp_path)
+    snakemake(root, "--config", "dataset=chromatic", timeout=1800)
+    out = root / "results" / "sim-chromatic"
+    truth = read_product(out / "raw" / "truth.nc")
+    product = read_product(out / "calibration" / "chromatic.nc")
+    assert list(product["pair"].values) == ["P14", "P14_450", "P14_800"]
+    np.testing.assert_allclose(product["wavelength"].values, [633e-9, 450e-9, 800e-9])
+    assert product.attrs["reference_wavelength"] == 633e-9 and "absorption length" in product.attrs["model"]
+    for pair, wavelength in zip(product["pair"].values, product["wavelength"].values):
+        offsets = read_product(out / "calibration" / f"offsets_{pair}.nc")
+        at = truth.sel(wavelength=wavelength)
+        ratios = pair_errors_over_floors(offsets, {"dx": at["dx_wavelength"], "dy": at["dy_wavelength"]})
+        assert max(ratios) < 1.2, (pair, ratios)
+        np.testing.assert_array_equal(product["dx"].sel(wavelength=wavelength).values, offsets["dx"].values)
+        flat = read_product(out / "calibration" / "flats" / f"prnu_laser_{round(wavelength * 1e9)}.nc")
+        np.testing.assert_array_equal(product["sensitivity"].sel(wavelength=wavelength).values, flat["prnu"].values)
+    rows = read_accuracy_table(out / "tables" / "accuracy.csv")
+    assert {r["grouping"] for r in rows if r["mode"] == "flat+metrology+chromatic"} == {"position", "group"}
+    assert "Metrology + chromatic" in (out / "tables" / "accuracy.tex").read_text()
 
 
 @pytest.mark.slow
