@@ -316,7 +316,8 @@ class Plan:
         """What the paper comparison reads: the studies, and this dataset's accuracy table and Allan products."""
         inputs = {"offset_bias": self.sweep_points(self.paper_sweep("offset_bias")),
                   "error_propagation": self.path("error_propagation"),
-                  "deflation": self.path("procrustes_deflation")}
+                  "deflation": self.path("procrustes_deflation"),
+                  "chromatic": self.sweep_points(self.paper_sweep("chromatic"))}
         if self.astrometry_targets():
             inputs["accuracy"] = self.path("accuracy_table")
         if self.metrology_unavailable() is None:
@@ -483,6 +484,8 @@ def paper_pdf_pages(plan: Plan, captions: Path) -> list[tuple[str, str]]:
     pages = [(plan.path(key, suffix=".png"), str(captions / f"{stem}.rst"))
              for key, stem in (("figure_paper_comparison", "paper_comparison"), ("figure_offset_bias", "offset_bias"),
                                ("figure_error_propagation", "error_propagation"))]
+    pages.append((plan.path("chromatic_study_figure", suffix=".png", sweep=plan.paper_sweep("chromatic")),
+                  str(captions / "chromatic_study.rst")))
     manifest = plan.manifest
     if plan.metrology_unavailable() is None:
         first = next(iter(manifest.baselines))

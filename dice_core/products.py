@@ -222,6 +222,9 @@ _PRODUCTS = [
     Product("sweep_accuracy_figure", "{sweep}/accuracy", "plot_star_accuracy", "figure", base="sweeps",
             stage="sweeps", extra=("reduction_sweep_summary",),
             meaning="accuracy against the swept parameter (star_accuracy and reduction sweeps)"),
+    Product("chromatic_study_figure", "{sweep}/chromatic", "plot_chromatic_study", "figure", base="sweeps",
+            stage="sweeps", meaning="broadband stars' accuracy against the number of calibration wavelengths, and the "
+                                    "633 nm calibration's gain against the paper's 2.2 (chromatic sweeps)"),
     Product("tip_tilt_figure", "{sweep}/tip_tilt", "plot_tip_tilt", "figure", base="sweeps", stage="sweeps",
             meaning="each superimposition against tip-tilt (tip_tilt sweeps)"),
     Product("error_propagation", "tables/error_propagation.csv", "error_propagation_table", "csv", stable=True,

@@ -18,6 +18,10 @@ The numerical model follows the paper's section "Numerical simulations":
   centres at each detector position come from an exact 3-D projection of fixed
   star directions through the detector pose (translation, tip, tilt, roll), so
   tip-tilt produces the paper's non-homogeneous scale (appendix D).
+- **Chromatic pixels** (off by default; docs/simulation.md, "Chromatic pixels"):
+  each pixel's sensitivity, offsets and PRF widths change with wavelength
+  (:mod:`dice_core.chromatic`); lasers at several wavelengths, laser flats and
+  broadband stars, summed over their spectrum (format 1.2).
 
 Every random quantity comes from a generator seeded by ``(seed, name)``, so a
 configuration always gives the same dataset. Frames are generated and written
@@ -65,6 +69,12 @@ __all__ = [
     "project_stars",
     "fiber_tips",
     "two_source_phase",
+    "metrology_baselines",
+    "metrology_pairs",
+    "flat_acquisitions",
+    "is_chromatic",
+    "wavelength_grid",
+    "wavelength_tag",
 ]
 
 log = logging.getLogger(__name__)

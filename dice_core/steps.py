@@ -112,12 +112,13 @@ _STEPS = [
     Step("reduction_sweep_summary", whole_run=True),
     Step("plot_star_accuracy", whole_run=True),
     Step("plot_tip_tilt", whole_run=True),
+    Step("plot_chromatic_study", whole_run=True),
     Step("plot_offset_bias", ("paper.offset_bias",), whole_run=True),
     Step("error_propagation_table", ("paper.error_propagation",), whole_run=True),
     Step("plot_error_propagation", ("paper.error_propagation",), whole_run=True),
     Step("procrustes_deflation", ("astrometry.trials",), whole_run=True),
-    Step("paper_comparison", ("paper.offset_bias", "paper.error_propagation", "astrometry.positions",
-                              "centroids.method"), whole_run=True),
+    Step("paper_comparison", ("paper.offset_bias", "paper.error_propagation", "paper.chromatic",
+                              "astrometry.positions", "centroids.method"), whole_run=True),
     Step("paper_pdf", whole_run=True),
 ]
 

@@ -238,3 +238,41 @@ def test_on_an_achromatic_detector_the_star_calibration_is_flat_and_metrology_s(
     np.testing.assert_allclose(found["prnu"], truth["sensitivity"].values / np.mean(truth["sensitivity"].values),
                                rtol=1e-12)
     assert np.max(np.abs(found["variance_x"])) < 1e-15
+
+
+@pytest.mark.slow  # 1-2 min: 4000 frames of a baseline simulated, fitted twice (2 shared cores, 2026-12-04)
+def test_a_wavelength_s_offsets_reach_their_floor_with_its_own_flat_as_the_gauge_s(tmp_path):
+    """A 450 nm baseline of the default detector made chromatic (amplitude 5), 4000 frames: with the 450 nm laser
+    flat for its gauge (what the workflow takes where the dataset has one) its projected offsets are at the photon
+    floor against the 450 nm truth (measured 1.02); with the white flat, whose sensitivities are not the laser's,
+    the gauge ripples them (3.1 times the floor; docs/metrology.md, "A flat that is not the laser's response")."""
+    from dice_core import fringe_fit, simulation
+    from dice_core.io import FrameStream
+    from dice_core.manifest import parse_manifest
+
+    cfg = simulation.SimulationConfig.from_dict({
+        "name": "gauge", "frames_per_file": 4000, "metrology": {
+            "frames": 4000, "wavelengths": [633e-9, 450e-9], "pairs": {"P14": ["H1H4", "V1V4"]},
+            "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}, "V1V4": {"period": 2.4, "angle_deg": 93.0}}},
+        "flats": {"wavelengths": [450e-9]}, "stars": {"spectrum": "flat", "positions": 2, "frames": 2},
+        "chromatic": {"amplitude": 5.0}})
+    truth = simulation.make_truth(cfg)
+    manifest = parse_manifest(simulation.dataset_layout(cfg), tmp_path / "dataset.yaml")
+    for relpath in simulation.acquisition_files(cfg, "baseline", name="V1V4_450"):
+        simulation.write_file(cfg, truth, relpath=relpath, outdir=tmp_path)
+    at = truth.sel(wavelength=450e-9)
+    flats = {"white": np.tensordot(truth["flat_spectrum_weight"].values, truth["sensitivity_wavelength"].values,
+                                   axes=1), "450 nm": at["sensitivity_wavelength"].values}
+    ratios = {}
+    for name, flat in flats.items():
+        solution = fringe_fit.fit_baseline(FrameStream(manifest.baselines["V1V4_450"], manifest.detector),
+                                           truth["bias"].values, detector=manifest.detector, flat=flat,
+                                           read_noise=truth["read_noise"].values, label=f"V1V4_450, {name} flat")
+        rows, cols = solution.rows, solution.cols
+        k = solution.k / np.hypot(*solution.k)
+        error = solution.offsets - (k[0] * at["dx_wavelength"].values[rows, cols]
+                                    + k[1] * at["dy_wavelength"].values[rows, cols])
+        design = np.column_stack([np.ones(rows.size), cols, rows])  # the offsets' affine gauge
+        error -= design @ np.linalg.lstsq(design, error, rcond=None)[0]
+        ratios[name] = float(np.sqrt(np.mean(error**2) / np.mean(solution.photon_floor**2)))
+    assert ratios["450 nm"] < 1.2 < 1.5 < ratios["white"]

@@ -1,6 +1,7 @@
 """dice_core.planning: what a run makes of a dataset and a configuration, without the workflow engine."""
 
 import copy
+from pathlib import Path
 
 import pytest
 import yaml
@@ -175,3 +176,9 @@ def test_the_chromatic_mode_needs_a_spectrum_of_the_stars():
     assert "flat+metrology+chromatic" not in p.centroid_modes()
     assert any("no spectrum of the stars" in line and "centroids.spectrum is null" in line for line in p.skipped)
     assert "flat+metrology+chromatic" in plan(chromatic_layout(), centroids={"spectrum": "cool"}).centroid_modes()
+
+
+def test_the_reproduction_report_has_the_chromatic_study_s_page():
+    pages = planning.paper_pdf_pages(plan(), REPO / "workflow" / "report")
+    assert ("results/sweeps/chromatic/chromatic.png", str(REPO / "workflow" / "report" / "chromatic_study.rst")) in pages
+    assert all(Path(caption).is_file() for _, caption in pages)
