@@ -215,7 +215,7 @@ def test_unknown_config_keys_are_refused():
         simulation.SimulationConfig.from_dict({"detector": {"science_rows": [0, 200]}})
 
 
-@pytest.mark.parametrize("preset", ["default", "ci", "paper", "large"])
+@pytest.mark.parametrize("preset", ["default", "ci", "paper", "large", "chromatic"])
 def test_presets_load_and_lay_out_a_valid_manifest(preset, tmp_path):
     from dice_core.manifest import parse_manifest
 
