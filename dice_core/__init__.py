@@ -16,6 +16,7 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.geometry` -- spherical-wave fringes: the fiber tips' phase surface, their refinement, its modes;
 - :mod:`dice_core.stray_light` -- coherent stray light: its model on the bench, its diagnosis in the offsets, its removal;
 - :mod:`dice_core.prf` -- each pixel's PRF width from the fringe contrast;
+- :mod:`dice_core.chromatic` -- chromatic pixels: silicon's absorption depth, spectra, the response across wavelength;
 - :mod:`dice_core.detector` -- the pixel-response model (truncated hyper-Gaussian PRFs);
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;
 - :mod:`dice_core.polynomials` -- 2-D polynomial surfaces shared by the fits;

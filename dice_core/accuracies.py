@@ -395,7 +395,8 @@ def latex_table(rows, *, notes=()) -> str:
         cells = ["--", r"\specialcell{" + r"\\".join(parts) + "}"]
         if not next(iter(by_grouping.values()))["flat"]:
             cells.reverse()
-        label = "Metrology + widths" if mode == "flat+metrology+width" else mode.replace("_", r"\_")
+        label = {"flat+metrology+width": "Metrology + widths",
+                 "flat+metrology+chromatic": "Metrology + chromatic"}.get(mode, mode.replace("_", r"\_"))
         lines.append(f"{label} & {cells[0]} & {cells[1]} " + r"\\")
     lines.append(r"\hline")
     lines += [r"\multicolumn{3}{l}{\footnotesize " + note.replace("%", r"\%") + r"} \\" for note in notes]

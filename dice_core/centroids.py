@@ -414,8 +414,9 @@ def response_corrected(image: np.ndarray, dx: np.ndarray, dy: np.ndarray, varian
 @dataclass(frozen=True)
 class Mode:
     """A calibration mode: the calibrations it corrects a star window with, a subset of ``flat`` (the
-    reference PRNU), ``offsets`` (a pair's pixel offsets) and ``widths`` (the PRF width maps), and what that
-    means, in words. Dark subtraction is always on."""
+    reference PRNU), ``offsets`` (a pair's pixel offsets), ``widths`` (the PRF width maps) and ``chromatic``
+    (every wavelength's, evaluated for the stars' spectrum: :func:`dice_core.chromatic.star_calibration`), and
+    what that means, in words. Dark subtraction is always on."""
 
     needs: frozenset
     description: str
@@ -431,6 +432,10 @@ MODES = {
     "flat+metrology": Mode(frozenset({"flat", "offsets"}), "both: the paper's calibrated mode"),
     "flat+metrology+width": Mode(frozenset({"flat", "offsets", "widths"}),
                                  "both, and each pixel's PRF width (calibration/prf.nc): beyond the paper"),
+    "flat+metrology+chromatic": Mode(frozenset({"flat", "offsets", "chromatic"}),
+                                     "both as the stars' spectrum sees them, and the PRF widths' change from the "
+                                     "reference pair's wavelength, from every wavelength's calibration "
+                                     "(calibration/chromatic.nc; datasets of several wavelengths)"),
 }
 
 #: Every centroid method by name, with what it does (:func:`measure_positions`).
@@ -452,7 +457,7 @@ def method_descriptions() -> dict[str, str]:
 
 
 def mode_needs(mode: str) -> frozenset:
-    """The calibrations a mode uses: a subset of {"flat", "offsets", "widths"} (:data:`MODES`)."""
+    """The calibrations a mode uses: a subset of {"flat", "offsets", "widths", "chromatic"} (:data:`MODES`)."""
     if mode not in MODES:
         raise ValueError(f"unknown calibration mode {mode!r}; modes are {', '.join(MODES)}")
     return MODES[mode].needs

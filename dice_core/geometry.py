@@ -91,11 +91,13 @@ class BaselineGeometry:
     tip_sigma: float = 1e-3
 
     @classmethod
-    def of_baseline(cls, bench, baseline: str, *, tip_sigma: float = 1e-3) -> "BaselineGeometry":
-        """From a manifest's :class:`dice_core.manifest.BenchGeometry`."""
+    def of_baseline(cls, bench, baseline: str, *, tip_sigma: float = 1e-3,
+                    wavelength: float | None = None) -> "BaselineGeometry":
+        """From a manifest's :class:`dice_core.manifest.BenchGeometry`; ``wavelength`` (m), the baseline's own
+        (format 1.2: ``Manifest.baseline_wavelength``), replaces the bench's in its phase surface."""
         fibers = tuple(bench.baseline_fibers[baseline])
-        return cls(fibers, tuple(tuple(bench.fibers[f]) for f in fibers), bench.wavelength, bench.pixel_pitch,
-                   tip_sigma)
+        return cls(fibers, tuple(tuple(bench.fibers[f]) for f in fibers),
+                   bench.wavelength if wavelength is None else wavelength, bench.pixel_pitch, tip_sigma)
 
 
 def two_source_phase(x, y, tip_a, tip_b, *, wavelength, pixel_pitch):

@@ -6,6 +6,11 @@ keys, then :func:`load_manifest` checks what a schema cannot (science area
 inside the detector, pairs naming known baselines, distinct star positions,
 files present and readable). Every failure raises :class:`dice_core.DatasetError`
 naming the manifest (or the missing file) and the problem.
+
+Format 1.2 (several wavelengths) adds a ``wavelength`` (m) to a baseline or a
+flat and the pseudo stars' detected ``stars.spectrum``; a baseline without one
+takes ``metrology.geometry.wavelength`` when the manifest has a geometry. Both
+baselines of a pair must share one wavelength.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ __all__ = [
     "Detector",
     "Manifest",
     "StarPosition",
+    "Spectrum",
     "load_manifest",
     "parse_manifest",
     "FORMAT",
@@ -83,11 +89,31 @@ class Acquisition:
     """One acquisition: its files, concatenated in time in the order listed.
 
     ``label`` says what it is ("dark", "flat fiber_a", "baseline H1H4",
-    "position 3") so that errors can name it.
+    "position 3") so that errors can name it. ``wavelength`` (m) is the one a
+    flat or a baseline states (format 1.2), None where it states none (a
+    broadband flat; a baseline of format 1 or 1.1).
     """
 
     label: str
     files: tuple[Path, ...]
+    wavelength: float | None = None
+
+
+@dataclass(frozen=True)
+class Spectrum:
+    """The pseudo stars' spectrum as detected (``stars.spectrum``, format 1.2).
+
+    Attributes
+    ----------
+    wavelength : tuple of float
+        Sample wavelengths, m, increasing.
+    weight : tuple of float
+        Relative photons per unit wavelength at each sample (the source times
+        the detector's mean quantum efficiency), >= 0, not all 0.
+    """
+
+    wavelength: tuple[float, ...]
+    weight: tuple[float, ...]
 
 
 @dataclass(frozen=True)
@@ -105,7 +131,7 @@ class BenchGeometry:
     Attributes
     ----------
     wavelength : float
-        Of the metrology laser, m.
+        Of the metrology laser, m; in format 1.2 the default of the baselines that state none.
     pixel_pitch : float
         m.
     fibers : dict of str to (float, float, float)
@@ -164,6 +190,7 @@ class Manifest:
     star_approx: tuple[tuple[float, float], ...] = ()
     positions: tuple[StarPosition, ...] = ()
     geometry: BenchGeometry | None = None
+    spectrum: Spectrum | None = None
 
     @property
     def reference_flat(self) -> str | None:
@@ -174,6 +201,32 @@ class Manifest:
     def reference_pair(self) -> str | None:
         """Name of the reference metrology pair (the first one listed), or None."""
         return next(iter(self.pairs), None)
+
+    def baseline_wavelength(self, baseline: str) -> float | None:
+        """A baseline's wavelength, m: its own, else ``metrology.geometry.wavelength``, else None (unstated)."""
+        own = self.baselines[baseline].wavelength
+        if own is not None:
+            return own
+        return None if self.geometry is None else self.geometry.wavelength
+
+    def pair_wavelength(self, pair: str) -> float | None:
+        """The wavelength (m) both baselines of a pair share, or None where they state none."""
+        return self.baseline_wavelength(self.pairs[pair][0])
+
+    @property
+    def wavelengths(self) -> tuple[float, ...]:
+        """The distinct wavelengths of the pairs, m, in the order their first pair is listed; empty where no
+        pair states one (formats 1 and 1.1)."""
+        found = [self.pair_wavelength(p) for p in self.pairs]
+        return tuple(dict.fromkeys(w for w in found if w is not None))
+
+    def pairs_at(self, wavelength: float) -> list[str]:
+        """The pairs at ``wavelength`` (m), in manifest order (the first is that wavelength's reference)."""
+        return [p for p in self.pairs if self.pair_wavelength(p) == wavelength]
+
+    def flats_at(self, wavelength: float) -> list[str]:
+        """The flats that state ``wavelength`` (m), in manifest order."""
+        return [f for f, acquisition in self.flats.items() if acquisition.wavelength == wavelength]
 
     def acquisitions(self) -> list[Acquisition]:
         """Every acquisition (dark, flats, baselines, star positions), in manifest order."""
@@ -209,6 +262,45 @@ def name_problem(value) -> str | None:
 
 def _fail(path, problem):
     raise DatasetError(path, problem)
+
+
+#: What a wavelength in metres may be, m: the manifest's wavelengths are checked to lie between them, so that one
+#: given in nm or um is refused rather than read as a far-infrared or X-ray wavelength.
+WAVELENGTH_RANGE = (1e-7, 1e-5)
+
+
+def _check_wavelength(path, key, value):
+    low, high = WAVELENGTH_RANGE
+    if not low < value < high:
+        _fail(path, f"{key} {value!r} is not in metres ({low:g} to {high:g} m expected)")
+    return float(value)
+
+
+def _nm(wavelength) -> str:
+    return "no stated wavelength" if wavelength is None else f"{wavelength * 1e9:g} nm"
+
+
+def _check_pair_wavelengths(path, manifest) -> None:
+    """Refuse a pair whose two baselines differ in wavelength (one stated and one not included)."""
+    for pair, (first, second) in manifest.pairs.items():
+        w1, w2 = manifest.baseline_wavelength(first), manifest.baseline_wavelength(second)
+        if w1 != w2:
+            _fail(path, f"metrology.pairs.{pair} mixes wavelengths: {first} at {_nm(w1)}, {second} at {_nm(w2)}; "
+                        "both baselines of a pair must share one")
+
+
+def _spectrum(path, entry) -> Spectrum:
+    """The manifest's ``stars.spectrum``, checked beyond what the schema can."""
+    wavelength, weight = entry["wavelength"], entry["weight"]
+    if len(wavelength) != len(weight):
+        _fail(path, f"stars.spectrum gives {len(wavelength)} wavelength(s) and {len(weight)} weight(s); one weight "
+                    "per wavelength")
+    values = [_check_wavelength(path, "stars.spectrum.wavelength", w) for w in wavelength]
+    if any(b <= a for a, b in zip(values, values[1:])):
+        _fail(path, "stars.spectrum.wavelength is not strictly increasing")
+    if not sum(weight) > 0:
+        _fail(path, "stars.spectrum.weight is zero everywhere: no light")
+    return Spectrum(tuple(values), tuple(float(w) for w in weight))
 
 
 def _shown(value, limit: int = 60) -> str:
@@ -285,8 +377,11 @@ def parse_manifest(document, path) -> Manifest:
 
     root = path.parent
 
-    def acquisition(label, entry):
-        return Acquisition(label, tuple((root / f).resolve() for f in entry["files"]))
+    def acquisition(label, entry, key=None):
+        wavelength = entry.get("wavelength")
+        if wavelength is not None:
+            wavelength = _check_wavelength(path, f"{key}.wavelength", wavelength)
+        return Acquisition(label, tuple((root / f).resolve() for f in entry["files"]), wavelength)
 
     det = document["detector"]
     shape = tuple(det["shape"])
@@ -299,10 +394,10 @@ def parse_manifest(document, path) -> Manifest:
                         det.get("read_noise"), det.get("frame_rate"))
 
     dark = acquisition("dark", document["dark"]) if "dark" in document else None
-    flats = {name: acquisition(f"flat {name}", e) for name, e in document.get("flats", {}).items()}
+    flats = {name: acquisition(f"flat {name}", e, f"flats.{name}") for name, e in document.get("flats", {}).items()}
 
     metrology = document.get("metrology", {})
-    baselines = {name: acquisition(f"baseline {name}", e)
+    baselines = {name: acquisition(f"baseline {name}", e, f"metrology.baselines.{name}")
                  for name, e in metrology.get("baselines", {}).items()}
     pairs = {}
     for pair, members in metrology.get("pairs", {}).items():
@@ -316,8 +411,10 @@ def parse_manifest(document, path) -> Manifest:
     geometry = _check_geometry(path, metrology["geometry"], baselines) if "geometry" in metrology else None
 
     stars = document.get("stars")
-    approx, positions = (), ()
+    approx, positions, spectrum = (), (), None
     if stars:
+        if "spectrum" in stars:
+            spectrum = _spectrum(path, stars["spectrum"])
         approx = tuple(tuple(float(v) for v in rc) for rc in stars["approx"])
         indices = [p["index"] for p in stars["positions"]]
         if len(set(indices)) != len(indices):
@@ -328,5 +425,7 @@ def parse_manifest(document, path) -> Manifest:
             if not (0 <= r < shape[0] and 0 <= c < shape[1]):
                 _fail(path, f"stars.approx [{r}, {c}] lies outside the detector {list(shape)}")
 
-    return Manifest(path, document["name"], detector, dark, flats, baselines, pairs,
-                    approx, positions, geometry)
+    manifest = Manifest(path, document["name"], detector, dark, flats, baselines, pairs,
+                        approx, positions, geometry, spectrum)
+    _check_pair_wavelengths(path, manifest)
+    return manifest

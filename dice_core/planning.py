@@ -103,9 +103,15 @@ class Plan:
             self.skip("PRNU difference", "the dataset has a single flat")
         return targets
 
-    def prnu_for_metrology(self) -> list[str]:
-        """The reference PRNU, which tells the fringe solution the intensity map from the fringe, if used."""
-        return [self.path("prnu")] if self.config["metrology"]["use_flat"] and self.manifest.flats else []
+    def prnu_for_metrology(self, baseline: str | None = None) -> list[str]:
+        """The PRNU that tells a baseline's fringe solution the intensity map from the fringe, if used: a laser
+        flat's at the baseline's wavelength where the dataset has one (format 1.2: what that laser sees), else the
+        reference flat's."""
+        if not (self.config["metrology"]["use_flat"] and self.manifest.flats):
+            return []
+        wavelength = None if baseline is None else self.manifest.baseline_wavelength(baseline)
+        same = self.manifest.flats_at(wavelength) if wavelength is not None else []
+        return [self.path("flat_prnu", flat=same[0])] if same else [self.path("prnu")]
 
     def bad_pixel_mask(self) -> list[str]:
         """The bad-pixel mask, which every stage that reads pixels leaves its flagged pixels out by, if the
@@ -122,9 +128,40 @@ class Plan:
             return f"{self.manifest.path} has no dark to subtract"
         return None
 
+    def prf_baselines(self) -> list[str]:
+        """The baselines the PRF widths (calibration/prf.nc) are measured with: all of them, or, where the
+        baselines state wavelengths (format 1.2), those at the reference pair's (each wavelength's PRFs are its
+        own: calibration/chromatic.nc holds them)."""
+        m = self.manifest
+        if not m.pairs or m.pair_wavelength(m.reference_pair) is None:
+            return list(m.baselines)
+        reference = m.pair_wavelength(m.reference_pair)
+        return [b for b in m.baselines if m.baseline_wavelength(b) == reference]
+
     def metrology_products(self) -> list[str]:
-        """Every baseline's metrology product (the PRF widths use them all)."""
-        return [self.path("metrology", baseline=b) for b in self.manifest.baselines]
+        """The metrology products the PRF widths use (:meth:`prf_baselines`)."""
+        return [self.path("metrology", baseline=b) for b in self.prf_baselines()]
+
+    def chromatic_unavailable(self) -> str | None:
+        """Why this dataset has no calibration across wavelength (calibration/chromatic.nc), or None."""
+        if (why := self.metrology_unavailable()) is not None:
+            return why
+        wavelengths = self.manifest.wavelengths
+        if len(wavelengths) < 2:
+            at = "one wavelength" if wavelengths else "no stated wavelength"
+            return f"{self.manifest.path} has its pairs at {at} (format 1.2 gives each baseline its own)"
+        return None
+
+    def chromatic_inputs(self) -> dict:
+        """What calibration/chromatic.nc is made of: each wavelength's reference pair's offsets, the metrology of
+        every baseline of its pairs (their PRF widths), and its laser flats' PRNU, in the manifest's order."""
+        m = self.manifest
+        pairs = [m.pairs_at(w)[0] for w in m.wavelengths]
+        baselines = [b for w in m.wavelengths for p in m.pairs_at(w) for b in m.pairs[p]]
+        flats = [m.flats_at(w)[0] for w in m.wavelengths if m.flats_at(w)]
+        return {"offsets": [self.path("offsets", pair=p) for p in pairs],
+                "metrology": [self.path("metrology", baseline=b) for b in dict.fromkeys(baselines)],
+                "flats": [self.path("flat_prnu", flat=f) for f in flats]}
 
     def metrology_targets(self) -> list[str]:
         """Products and figures of the metrology stage that this dataset allows."""
@@ -146,6 +183,8 @@ class Plan:
                         *self.figure("figure_offsets_difference", pair=pair)]
         if not pairs:
             self.skip("deprojection", "the dataset names no pair of baselines")
+        if self.chromatic_unavailable() is None:
+            targets += [self.path("chromatic"), *self.figure("figure_chromatic")]
         return targets
 
     def stray_light_products(self, *, figures: bool = False) -> list[str]:
@@ -206,6 +245,11 @@ class Plan:
                 self.skip(f"centroid mode {mode}", "the dataset names no pair of metrology baselines")
             elif needs & {"offsets", "widths"} and self.metrology_unavailable() is not None:
                 self.skip(f"centroid mode {mode}", f"the metrology is not reduced ({self.metrology_unavailable()})")
+            elif "chromatic" in needs and self.chromatic_unavailable() is not None:
+                self.skip(f"centroid mode {mode}", f"no calibration across wavelength: {self.chromatic_unavailable()}")
+            elif "chromatic" in needs and m.spectrum is None and self.config["centroids"]["spectrum"] is None:
+                self.skip(f"centroid mode {mode}", f"no spectrum of the stars ({m.path} has no stars.spectrum and "
+                                                   "config centroids.spectrum is null)")
             else:
                 modes.append(mode)
         return modes
@@ -235,6 +279,8 @@ class Plan:
             inputs["offsets"] = self.path("offsets", pair=self.centroid_pair())
         if "widths" in needs:
             inputs["prf"] = self.path("prf")
+        if "chromatic" in needs:
+            inputs["chromatic"] = self.path("chromatic")
         return inputs
 
     def extra_superimpositions(self) -> list[str]:
@@ -289,7 +335,8 @@ class Plan:
         inputs = {"offset_bias": self.sweep_points(self.paper_sweep("offset_bias")),
                   "stray_light_study": self.sweep_points(self.paper_sweep("stray_light")),
                   "error_propagation": self.path("error_propagation"),
-                  "deflation": self.path("procrustes_deflation")}
+                  "deflation": self.path("procrustes_deflation"),
+                  "chromatic": self.sweep_points(self.paper_sweep("chromatic"))}
         if self.astrometry_targets():
             inputs["accuracy"] = self.path("accuracy_table")
         if self.metrology_unavailable() is None:
@@ -460,6 +507,8 @@ def paper_pdf_pages(plan: Plan, captions: Path) -> list[tuple[str, str]]:
              for key, stem in (("figure_paper_comparison", "paper_comparison"), ("figure_offset_bias", "offset_bias"),
                                ("figure_error_propagation", "error_propagation"),
                                ("figure_stray_light_study", "stray_light_study"))]
+    pages.append((plan.path("chromatic_study_figure", suffix=".png", sweep=plan.paper_sweep("chromatic")),
+                  str(captions / "chromatic_study.rst")))
     manifest = plan.manifest
     if plan.metrology_unavailable() is None:
         first = next(iter(manifest.baselines))

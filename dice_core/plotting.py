@@ -21,6 +21,7 @@ from dice_core import error_budget  # noqa: E402
 from dice_core.manifest import Detector  # noqa: E402
 
 __all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure",
+           "chromatic_figure", "chromatic_study_figure", "PAPER_CALIBRATION_GAIN",
            "barycentre_figure", "offset_bias_figure", "paper_comparison_figure", "error_propagation_figure",
            "star_accuracy_figure", "tip_tilt_sweep_figure", "reduction_sweep_figure", "parameter_axis",
            "PARAMETER_AXES", "reproduction_pdf", "save", "stray_light_figure", "stray_light_study_figure"]
@@ -619,6 +620,7 @@ def paper_comparison_figure(rows, *, title="Regenerated numbers against the pape
     high = candidates[candidates >= reach.max()].min(initial=candidates[-1])
     ticks = candidates[(candidates >= low) & (candidates <= high)]
     ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # within a decade matplotlib labels the minor ticks over them
     ax.set_xlim(low / 1.2, high * 1.2)
     ax.set_yticks(y, [f"{r['quantity']} ({r['dataset']})" for r in records], fontsize=7)
     ax.set_xlabel("ours / paper's\nblue: numerical simulations; orange: experimental section, on the simulated bench")
@@ -1017,4 +1019,127 @@ def stray_light_study_figure(datasets, *, title="Coherent stray light: a pair's 
         ax.set_ylabel("rms error against truth [pixel]")
         ax.legend(fontsize=7)
     fig.suptitle(title, fontsize=11)
+    return fig
+
+
+def chromatic_figure(ds, detector, *, title="Calibration across wavelength"):
+    """Each wavelength's offsets and sensitivity against the reference wavelength's (calibration/chromatic.nc).
+
+    One row per wavelength other than the reference: dx and dy minus the reference's (1e-3 pixel) and the
+    sensitivity's ratio to the reference's minus 1 (1e-3; blank without laser flats at both). Last row: the rms
+    over the science area of each change against wavelength, each point a calibration wavelength.
+    """
+    wavelengths = ds["wavelength"].values
+    reference = float(ds.attrs["reference_wavelength"])
+    ref = int(np.argmin(np.abs(wavelengths - reference)))
+    others = [i for i in range(wavelengths.size) if i != ref]
+    fig, axes = plt.subplots(len(others) + 1, 3, figsize=(14, 4.2 * (len(others) + 1)), constrained_layout=True,
+                             squeeze=False)
+    mask = detector.science_mask()
+    changes = {"dx": [], "dy": [], "sensitivity": []}
+    for row, i in enumerate(others):
+        nm = f"{wavelengths[i] * 1e9:g} nm"
+        for j, name in enumerate(changes):
+            if name == "sensitivity":
+                change = ds[name].values[i] / ds[name].values[ref] - 1
+            else:
+                change = ds[name].values[i] - ds[name].values[ref]
+            finite = np.isfinite(change) & mask
+            rms = float(np.sqrt(np.mean(change[finite] ** 2))) if finite.any() else float("nan")
+            changes[name].append(rms)
+            if finite.any():
+                _show_map(axes[row, j], fig, change, detector, scale=1e3, symmetric=True,
+                          units=f"{'ratio - 1' if name == 'sensitivity' else name + ' change'} [1e-3"
+                                f"{'' if name == 'sensitivity' else ' pixel'}]",
+                          title=f"{name} at {nm} against {reference * 1e9:g} nm, rms {rms:.2e}")
+            else:
+                axes[row, j].set_axis_off()
+                axes[row, j].set_title(f"{name} at {nm}: no laser flat", fontsize=9)
+    last = axes[-1, 0]
+    order = np.argsort(wavelengths[others])
+    for name, values in changes.items():
+        values = np.array(values)[order]
+        if np.isfinite(values).any():
+            last.plot(wavelengths[others][order] * 1e9, values, "o-", label=name)
+    last.axvline(reference * 1e9, color="0.6", ls=":", label="reference")
+    last.set_xlabel("wavelength [nm]")
+    last.set_ylabel("rms change from the reference [pixel, or 1]")
+    last.set_yscale("log")
+    last.legend(fontsize=8)
+    last.set_title("the detector's change with wavelength", fontsize=9)
+    for ax in axes[-1, 1:]:
+        ax.set_axis_off()
+    fig.suptitle(f"{title}: pairs {', '.join(map(str, ds['pair'].values))}", fontsize=11)
+    return fig
+
+
+#: The paper's gain of flat and metrology over raw, (p) (its accuracy table: 2.1e-4 / 9.7e-5).
+PAPER_CALIBRATION_GAIN = 2.2
+
+
+def chromatic_study_figure(datasets, *, title="Broadband stars on a chromatic detector"):
+    """A chromatic sweep (:func:`dice_core.studies.chromatic_accuracy` points): what colour costs each calibration.
+
+    Top, one panel per star spectrum: the chromatic mode's (p) accuracy (pixel, with its Monte Carlo error)
+    against the number of calibration wavelengths (1: 633 nm alone, the paper's calibration), one line per
+    chromatic amplitude; dashed, the achromatic twin's flat+metrology (the same noise draws), dotted, the photon
+    limit a position. Bottom left: the flat+metrology gain over raw (p) at 633 nm alone against the amplitude (0:
+    the twin), one line per spectrum, beside the paper's 2.2; bottom middle: the chromatic mode's (p) accuracy over
+    the twin's flat+metrology's against the number of wavelengths, every point, beside 1.2.
+    """
+    spectra = [s for s in ("flat", "warm", "cool") if any(ds.attrs["spectrum"] == s for ds in datasets)]
+    spectra += sorted({ds.attrs["spectrum"] for ds in datasets} - set(spectra))
+    amplitudes = sorted({float(ds.attrs["amplitude"]) for ds in datasets})
+    fig = plt.figure(figsize=(4.6 * max(len(spectra), 2), 8.6), constrained_layout=True)
+    grid = fig.add_gridspec(2, max(len(spectra), 2))
+    top = [fig.add_subplot(grid[0, j]) for j in range(len(spectra))]
+    for ax, spectrum in zip(top, spectra):
+        chosen = [ds for ds in datasets if ds.attrs["spectrum"] == spectrum]
+        for k, amplitude in enumerate(amplitudes):
+            for ds in (d for d in chosen if float(d.attrs["amplitude"]) == amplitude):
+                n = ds["wavelengths"].values
+                ax.errorbar(n, ds["chromatic_accuracy_position"].values, yerr=ds["chromatic_error_position"].values,
+                            fmt="o-", color=f"C{k}", capsize=2, label=f"chromatic mode, amplitude {amplitude:g}")
+        twin = chosen[0]
+        fm = float(twin["accuracy_position"].sel(mode="achromatic flat+metrology"))
+        error = float(twin["error_position"].sel(mode="achromatic flat+metrology"))
+        ax.axhline(fm, color="k", ls="--", label="achromatic twin, flat+metrology")
+        ax.axhspan(fm - error, fm + error, color="k", alpha=0.08)
+        ax.axhline(float(twin["photon_limit"]), color="0.5", ls=":", label="photon limit a position")
+        ax.set_yscale("log")
+        ax.set_xticks(sorted({int(n) for ds in chosen for n in ds["wavelengths"].values}))
+        ax.set_xlabel("calibration wavelengths (1: 633 nm alone)")
+        ax.set_ylabel("accuracy (p) [pixel]")
+        ax.set_title(f"{spectrum} stars", fontsize=10)
+        ax.grid(True, which="both", alpha=0.3)
+    top[0].legend(fontsize=7)
+    gains = fig.add_subplot(grid[1, 0])
+    for j, spectrum in enumerate(spectra):
+        chosen = sorted((d for d in datasets if d.attrs["spectrum"] == spectrum), key=lambda d: d.attrs["amplitude"])
+        x = [0.0, *(float(d.attrs["amplitude"]) for d in chosen)]
+        y = [float(chosen[0]["achromatic_gain"]), *(float(d["gain"]) for d in chosen)]
+        gains.plot(x, y, "o-", color=f"C{j + 3}", label=f"{spectrum} stars")
+    gains.axhline(PAPER_CALIBRATION_GAIN, color="k", ls="--", label=f"the paper's {PAPER_CALIBRATION_GAIN}")
+    gains.set_xlabel("chromatic amplitude (0: the achromatic twin)")
+    gains.set_ylabel("raw / flat+metrology at 633 nm, (p)")
+    gains.set_title("what a 633 nm calibration gains", fontsize=10)
+    gains.grid(True, alpha=0.3)
+    gains.legend(fontsize=7)
+    ratios = fig.add_subplot(grid[1, 1])
+    for j, spectrum in enumerate(spectra):
+        for k, amplitude in enumerate(amplitudes):
+            for ds in (d for d in datasets if d.attrs["spectrum"] == spectrum and float(d.attrs["amplitude"]) == amplitude):
+                ratios.plot(ds["wavelengths"].values, ds["chromatic_over_achromatic"].values, "os^D"[k % 4] + "-",
+                            color=f"C{j + 3}", label=f"{spectrum} stars, amplitude {amplitude:g}")
+    ratios.axhline(1.2, color="k", ls="--", label="1.2")
+    ratios.axhline(1.0, color="0.6", ls=":")
+    ratios.set_yscale("log")
+    ratios.set_xlabel("calibration wavelengths (1: 633 nm alone)")
+    ratios.set_ylabel("chromatic mode / twin's flat+metrology, (p)")
+    ratios.set_title("how close colour's correction comes to the achromatic twin", fontsize=10)
+    ratios.grid(True, which="both", alpha=0.3)
+    ratios.legend(fontsize=7)
+    first = datasets[0]
+    fig.suptitle(f"{title}: {first.attrs.get('positions', '?')} positions, {first.attrs.get('method', '')} "
+                 "centroids, perfect calibrations at each wavelength", fontsize=11)
     return fig

@@ -200,6 +200,20 @@ _PRODUCTS = [
                        _V("phase_error", RC, "rad", "phase error the components make, in the fitted phase's "
                                                     "sense (NaN outside the fit)"),
                        _V("offset_error", RC, "pixel", "the components' sum in the projected offsets"))),
+    Product("chromatic", "calibration/chromatic.nc", "chromatic_calibration", "netcdf", stable=True,
+            stage="metrology",
+            meaning="every wavelength's calibration (format 1.2, datasets with pairs at several wavelengths): its "
+                    "reference pair's offsets, its baselines' PRF widths and its laser flat's PRNU, with the model "
+                    "the chromatic mode interpolates them with across wavelength (attribute model; "
+                    "docs/centroids.md, \"Chromatic pixels\")",
+            variables=(_V("dx", "wavelength row col", "pixel", "pixel offset along x at each wavelength"),
+                       _V("dy", "wavelength row col", "pixel", "pixel offset along y at each wavelength"),
+                       _V("sensitivity", "wavelength row col", "1", "relative sensitivity at each wavelength, from "
+                                                                    "its laser flat (NaN: none)"),
+                       _V("width_x", "wavelength row col", "pixel", "PRF standard deviation along x at each "
+                                                                    "wavelength"),
+                       _V("width_y", "wavelength row col", "pixel", "PRF standard deviation along y at each "
+                                                                    "wavelength"))),
     Product("offsets_difference", "calibration/offsets_difference_{pair}.nc", "compare_pairs", "netcdf",
             stage="metrology", meaning="a pair's offsets minus the reference pair's (the manifest's first)",
             variables=(_V("ddx", RC, "pixel", "dx difference"), _V("ddy", RC, "pixel", "dy difference"),
@@ -252,6 +266,9 @@ _PRODUCTS = [
     Product("sweep_accuracy_figure", "{sweep}/accuracy", "plot_star_accuracy", "figure", base="sweeps",
             stage="sweeps", extra=("reduction_sweep_summary",),
             meaning="accuracy against the swept parameter (star_accuracy and reduction sweeps)"),
+    Product("chromatic_study_figure", "{sweep}/chromatic", "plot_chromatic_study", "figure", base="sweeps",
+            stage="sweeps", meaning="broadband stars' accuracy against the number of calibration wavelengths, and the "
+                                    "633 nm calibration's gain against the paper's 2.2 (chromatic sweeps)"),
     Product("tip_tilt_figure", "{sweep}/tip_tilt", "plot_tip_tilt", "figure", base="sweeps", stage="sweeps",
             meaning="each superimposition against tip-tilt (tip_tilt sweeps)"),
     Product("error_propagation", "tables/error_propagation.csv", "error_propagation_table", "csv", stable=True,
@@ -286,6 +303,8 @@ _FIGURES = [
      "a baseline's offset spectrum with the stray-light components found, and the phase-error map they make",
      "metrology"),
     ("figure_prf", "figures/prf", "plot_prf", "the PRF width maps and their errors", "metrology"),
+    ("figure_chromatic", "figures/chromatic", "plot_chromatic", "each wavelength's offsets and sensitivity against "
+     "the reference wavelength's, and what a spectrum takes of each wavelength", "metrology"),
     ("figure_centroids", "figures/centroids_{mode}", "plot_centroids", "a mode's centroids and precisions",
      "pseudo stars"),
     ("figure_procrustes_residuals", "figures/procrustes_residuals", "plot_procrustes_residuals",

@@ -116,8 +116,12 @@ COSTS: dict[str, StepCost] = {
                                 s_per_gsample=17.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),
     "measure_centroids": StepCost(base_mb=170.0, start_s=5.0, s_per_position=0.1),
-    # the studies' own benches, whatever the dataset: the largest point measured (offset bias, 22 s)
-    "sweep_point": StepCost(base_mb=240.0, start_s=25.0),
+    # every wavelength's products read and its width maps made, one wavelength at a time: linear in the
+    # wavelengths; sized for 5, measured 754 MB and 52.6 s on 512x512 (BENCHMARKS.md, "Several wavelengths")
+    "chromatic_calibration": StepCost(base_mb=250.0, mb_per_mpixel=2000.0, start_s=5.0, s_per_mpixel=200.0),
+    # the studies' own benches, whatever the dataset: the largest point measured (a chromatic point: 58-105 s and
+    # 189 MB on 2 shared cores, two at a time; an offset-bias point 22 s)
+    "sweep_point": StepCost(base_mb=240.0, start_s=110.0),
 }
 
 #: A step that reads products only (figures, tables, comparisons): the interpreter with matplotlib and xarray.

@@ -3,13 +3,13 @@ share of it.
 
 The schema (``workflow/schemas/config.schema.yaml``) describes every key with
 its type, description and default. Where a key's values are names the library
-defines (calibration modes, centroid methods, superimpositions, studies), the schema
+defines (calibration modes, centroid methods, superimpositions, studies, named spectra), the schema
 says ``x-dice-choices: <table>`` instead of listing them, and
 :func:`config_schema` fills the enum (and ``x-dice-default: <table>``, a
 default of every name) from the table: the names are listed once, in
 :data:`dice_core.centroids.MODES`, :data:`~dice_core.centroids.METHODS`,
-:data:`dice_core.superimposition.SUPERIMPOSITIONS` and :data:`dice_core.studies.STUDIES`
-(with ``reduction``, the whole workflow per point).
+:data:`dice_core.superimposition.SUPERIMPOSITIONS`, :data:`dice_core.studies.STUDIES`
+(with ``reduction``, the whole workflow per point) and :data:`dice_core.chromatic.SPECTRA`.
 
 A step reads only its own settings (:func:`select`, from the step table
 :mod:`dice_core.steps`), which its product records and whose change re-runs
@@ -38,10 +38,11 @@ class SettingsError(ValueError):
 
 def choices() -> dict[str, tuple[str, ...]]:
     """The tables of names a configuration may choose from: {table: names}."""
-    from dice_core import centroids, studies, superimposition
+    from dice_core import centroids, chromatic, studies, superimposition
 
     return {"modes": tuple(centroids.MODES), "methods": tuple(centroids.METHODS),
-            "superimpositions": tuple(superimposition.SUPERIMPOSITIONS), "studies": (*studies.STUDIES, "reduction")}
+            "superimpositions": tuple(superimposition.SUPERIMPOSITIONS), "studies": (*studies.STUDIES, "reduction"),
+            "spectra": tuple(chromatic.SPECTRA)}
 
 
 def config_schema(path) -> dict:

@@ -18,6 +18,10 @@ The numerical model follows the paper's section "Numerical simulations":
   centres at each detector position come from an exact 3-D projection of fixed
   star directions through the detector pose (translation, tip, tilt, roll), so
   tip-tilt produces the paper's non-homogeneous scale (appendix D).
+- **Chromatic pixels** (off by default; docs/simulation.md, "Chromatic pixels"):
+  each pixel's sensitivity, offsets and PRF widths change with wavelength
+  (:mod:`dice_core.chromatic`); lasers at several wavelengths, laser flats and
+  broadband stars, summed over their spectrum (format 1.2).
 
 Every random quantity comes from a generator seeded by ``(seed, name)``, so a
 configuration always gives the same dataset. Frames are generated and written
@@ -66,6 +70,12 @@ __all__ = [
     "project_stars",
     "fiber_tips",
     "two_source_phase",
+    "metrology_baselines",
+    "metrology_pairs",
+    "flat_acquisitions",
+    "is_chromatic",
+    "wavelength_grid",
+    "wavelength_tag",
 ]
 
 log = logging.getLogger(__name__)
@@ -174,6 +184,11 @@ class FlatConfig:
         "fiber_a": {"gradient": [0.015, -0.008]},
         "fiber_b": {"gradient": [-0.010, 0.012]},
     })
+    # A chromatic detector (section chromatic): the fibers' flats are white light of this detected spectrum
+    # (dice_core.chromatic.SPECTRA), and each of these wavelengths (m) adds a laser flat, laser_<nm>, under the
+    # first fiber's illumination (format 1.2: the flat states its wavelength)
+    spectrum: str = "flat"
+    wavelengths: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -240,6 +255,10 @@ class MetrologyConfig:
         "V2V4": {"period": 4.0, "angle_deg": 88.5},
     })
     pairs: dict = field(default_factory=lambda: {"P14": ["H1H4", "V1V4"], "P24": ["H2H4", "V2V4"]})
+    # Lasers of several wavelengths (m; format 1.2): every baseline and pair above at each, those at `wavelength`
+    # under their own names, the others as <name>_<nm> (H1H4_450, P14_450), each of the configured period (a
+    # bench sets each laser's fiber tips for it); empty: the one laser at `wavelength`, no wavelength stated
+    wavelengths: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -258,6 +277,40 @@ class StarsConfig:
     roll_rms: float = 1e-4             # rad
     distance: float = 25000.0          # pixel, mirror to detector (600 mm / 24 um)
     off_axis_deg: float = 2.0          # degrees, off-axis angle of the star field
+    # The pseudo stars' detected spectrum (dice_core.chromatic.SPECTRA: flat, warm, cool), over the paper's
+    # 400-800 nm band, each star the sum of its monochromatic images on a chromatic detector (section
+    # chromatic); written to the manifest (format 1.2). None: the stars see the detector at metrology.wavelength
+    spectrum: str | None = None
+
+
+@dataclass(frozen=True)
+class ChromaticConfig:
+    """The detector's response against wavelength (docs/simulation.md, "Chromatic pixels"; :mod:`dice_core.chromatic`).
+
+    Each pixel's sensitivity, PRF centre and PRF scale are their values at ``metrology.wavelength`` plus two
+    depth profiles' changes (the drift and surface kernels), each a white pixel-to-pixel field. ``amplitude``
+    scales them all; the rms values are the changes from metrology.wavelength to 400 nm at amplitude 1 (the
+    default bench's PRNU, offsets and width spread). 0 (the default): an achromatic detector, today's.
+    """
+
+    amplitude: float = 0.0
+    sensitivity_rms: float = 2e-3      # relative
+    offset_rms: float = 1e-3           # pixel, each axis
+    width_rms: float = 0.01            # relative, of each PRF scale
+    width_trend: float = 0.05          # relative: every PRF's scale wider at 400 nm by this much (drift kernel)
+    surface_share: float = 0.5         # of each change's variance at 400 nm, from the surface kernel
+    thickness: float = 16.0e-6         # m, the silicon from the entrance surface to the wells
+    surface_depth: float = 0.3e-6      # m, of the entrance surface's layer
+
+    def __post_init__(self):
+        for key in ("amplitude", "sensitivity_rms", "offset_rms", "width_rms"):
+            if not getattr(self, key) >= 0:
+                raise ValueError(f"simulation config chromatic: {key} must be >= 0, got {getattr(self, key)!r}")
+        if not 0 <= self.surface_share <= 1:
+            raise ValueError(f"simulation config chromatic: surface_share must be in [0, 1], got {self.surface_share!r}")
+        if not (1e-6 <= self.thickness <= 1e-3 and 1e-9 <= self.surface_depth <= self.thickness):
+            raise ValueError("simulation config chromatic: thickness and surface_depth are in metres (thickness "
+                             f"1e-6 to 1e-3, surface_depth below it), got {self.thickness!r}, {self.surface_depth!r}")
 
 
 @dataclass(frozen=True)
@@ -299,12 +352,14 @@ class SimulationConfig:
     metrology: MetrologyConfig = field(default_factory=MetrologyConfig)
     stars: StarsConfig = field(default_factory=StarsConfig)
     stray_light: StrayLightConfig = field(default_factory=StrayLightConfig)
+    chromatic: ChromaticConfig = field(default_factory=ChromaticConfig)
 
     @classmethod
     def from_dict(cls, values: dict) -> "SimulationConfig":
         values = dict(values or {})
         sections = {"detector": DetectorConfig, "dark": DarkConfig, "flats": FlatConfig,
-                    "metrology": MetrologyConfig, "stars": StarsConfig, "stray_light": StrayLightConfig}
+                    "metrology": MetrologyConfig, "stars": StarsConfig, "stray_light": StrayLightConfig,
+                    "chromatic": ChromaticConfig}
         built = {key: _build(sub, values.pop(key, {}), key) for key, sub in sections.items()}
         top = _build(cls, values, "(top level)")
         cfg = dataclasses.replace(top, **built)
@@ -320,6 +375,7 @@ class SimulationConfig:
             if unknown:
                 raise ValueError(f"simulation config metrology.pairs.{pair}: unknown baseline(s) {unknown}")
         _check_stray_light(cfg)
+        _check_wavelengths(cfg)
         return cfg
 
     @property
@@ -330,16 +386,23 @@ class SimulationConfig:
                    for src in s.sources)
 
     def to_dict(self) -> dict:
-        """The configuration as plain JSON types; the keys added after the presets (stray_light, tip_shift)
-        only where they differ from their defaults, so that a preset's truth and records stay as they were."""
+        """The configuration as plain JSON types; the keys added after the presets (:data:`_LATER_KEYS`) only
+        where they differ from their defaults, so that a preset's truth and records stay as they were."""
         values = json.loads(json.dumps(dataclasses.asdict(self)))
-        if self.stray_light == StrayLightConfig():
-            del values["stray_light"]
-        if not any(self.metrology.tip_shift):
-            del values["metrology"]["tip_shift"]
-        if not self.metrology.acquisition:
-            del values["metrology"]["acquisition"]
+        defaults = json.loads(json.dumps(dataclasses.asdict(SimulationConfig())))
+        for *sections, key in _LATER_KEYS:
+            here, default = values, defaults
+            for section in sections:
+                here, default = here[section], default[section]
+            if here[key] == default[key]:
+                del here[key]
         return values
+
+
+#: The configuration's keys added after the first presets (stray light, fiber-tip shifts, acquisitions,
+#: wavelengths, the chromatic detector), as paths of sections.
+_LATER_KEYS = (("stray_light",), ("metrology", "tip_shift"), ("metrology", "acquisition"), ("chromatic",),
+               ("metrology", "wavelengths"), ("flats", "wavelengths"), ("flats", "spectrum"), ("stars", "spectrum"))
 
 
 def _check_stray_light(cfg: SimulationConfig) -> None:
@@ -364,6 +427,10 @@ def _check_stray_light(cfg: SimulationConfig) -> None:
     if s.coherence_length is not None and not s.coherence_length > 0:
         raise ValueError(f"simulation config stray_light.coherence_length must be > 0 (m) or null, got "
                          f"{s.coherence_length!r}")
+    if cfg.metrology.wavelengths and (cfg.has_stray_light or s.coherence_length is not None):
+        # the stray waves' fringes are drawn at metrology.wavelength, for the baselines of one laser
+        raise ValueError("simulation config stray_light: stray light and a finite coherence length are simulated "
+                         "for one laser wavelength; metrology.wavelengths lists several (not simulated together)")
 
 
 def load_preset(path, overrides: dict | None = None) -> SimulationConfig:
@@ -396,6 +463,101 @@ def load_preset(path, overrides: dict | None = None) -> SimulationConfig:
         raise ValueError(f"{path}{where}: {exc}") from None
 
 
+# --------------------------------------------------------------------------- wavelengths (format 1.2)
+
+def _check_wavelengths(cfg: SimulationConfig) -> None:
+    """Refuse wavelengths that are not metres in the silicon table, a repeated one, or unknown spectra."""
+    from dice_core.chromatic import SPECTRA, absorption_length
+
+    lists = {"metrology.wavelengths": cfg.metrology.wavelengths, "flats.wavelengths": cfg.flats.wavelengths,
+             "metrology.wavelength": (cfg.metrology.wavelength,)}
+    for key, values in lists.items():
+        for value in values:
+            try:
+                absorption_length(value)
+            except (TypeError, ValueError):
+                raise ValueError(f"simulation config {key}: {value!r} is not a wavelength in metres within 380-1000 "
+                                 "nm (the silicon absorption table)") from None
+        if len({wavelength_tag(v) for v in values}) != len(values):
+            raise ValueError(f"simulation config {key}: a wavelength is listed twice (to the nm): {list(values)}")
+    for key, name in (("stars.spectrum", cfg.stars.spectrum), ("flats.spectrum", cfg.flats.spectrum)):
+        if name is not None and name not in SPECTRA:
+            raise ValueError(f"simulation config {key}: unknown spectrum {name!r}; spectra are {', '.join(SPECTRA)}")
+
+
+def wavelength_tag(wavelength: float) -> str:
+    """A wavelength (m) as the names of its acquisitions spell it: nanometres, rounded (``450``)."""
+    return f"{round(wavelength * 1e9):d}"
+
+
+def _laser_order(cfg: SimulationConfig) -> list[float]:
+    """The lasers' wavelengths (m): metrology.wavelength first where listed, so that its pairs come first
+    (the manifest's first pair is the reference), then the others in the configured order."""
+    m = cfg.metrology
+    listed = list(m.wavelengths)
+    return sorted(listed, key=lambda w: wavelength_tag(w) != wavelength_tag(m.wavelength))
+
+
+def _at(name: str, wavelength: float, cfg: SimulationConfig) -> str:
+    same = wavelength_tag(wavelength) == wavelength_tag(cfg.metrology.wavelength)
+    return name if same else f"{name}_{wavelength_tag(wavelength)}"
+
+
+def metrology_baselines(cfg: SimulationConfig) -> dict:
+    """Every simulated baseline: name -> (its entry of metrology.baselines, its wavelength in m or None).
+
+    Without metrology.wavelengths, the configured baselines with no stated wavelength; with them, every
+    configured baseline at each wavelength (:class:`MetrologyConfig`), metrology.wavelength's first.
+    """
+    m = cfg.metrology
+    if not m.wavelengths:
+        return {name: (b, None) for name, b in m.baselines.items()}
+    return {_at(name, w, cfg): (b, float(w)) for w in _laser_order(cfg) for name, b in m.baselines.items()}
+
+
+def metrology_pairs(cfg: SimulationConfig) -> dict:
+    """Every simulated pair: name -> its two baselines, each configured pair at each wavelength."""
+    m = cfg.metrology
+    if not m.wavelengths:
+        return {pair: list(members) for pair, members in m.pairs.items()}
+    return {_at(pair, w, cfg): [_at(b, w, cfg) for b in members] for w in _laser_order(cfg)
+            for pair, members in m.pairs.items()}
+
+
+def flat_acquisitions(cfg: SimulationConfig) -> dict:
+    """Every simulated flat: name -> (its fiber's illumination entry, its wavelength in m or None): the fibers'
+    white-light flats, then a laser flat ``laser_<nm>`` per flats.wavelengths under the first fiber's light."""
+    out = {name: (fiber, None) for name, fiber in cfg.flats.fibers.items()}
+    first = next(iter(cfg.flats.fibers.values()), {})
+    out.update({f"laser_{wavelength_tag(w)}": (first, float(w)) for w in cfg.flats.wavelengths})
+    return out
+
+
+def is_chromatic(cfg: SimulationConfig) -> bool:
+    """Whether the simulation involves wavelengths beyond today's single one: a chromatic detector, several
+    lasers, laser flats or broadband stars. Its truth then holds the response at each wavelength."""
+    return bool(cfg.chromatic.amplitude or cfg.metrology.wavelengths or cfg.flats.wavelengths
+                or cfg.stars.spectrum is not None)
+
+
+def wavelength_grid(cfg: SimulationConfig) -> np.ndarray:
+    """The wavelengths (m, increasing) the truth holds the response at: metrology.wavelength, every laser's and
+    laser flat's, and the samples of the stars' and the white flats' spectra (dice_core.chromatic)."""
+    from dice_core.chromatic import named_spectrum
+
+    values = [cfg.metrology.wavelength, *cfg.metrology.wavelengths, *cfg.flats.wavelengths]
+    if _broadband(cfg):
+        for name in {cfg.stars.spectrum, cfg.flats.spectrum} - {None}:
+            values += list(named_spectrum(name)[0])
+    return np.array(sorted({round(float(v) * 1e9, 6): float(v) for v in values}.values()))
+
+
+def _broadband(cfg: SimulationConfig) -> bool:
+    """Whether the simulation integrates over spectra: broadband stars, or a chromatic detector (whose white
+    flats then see the lamp's spectrum)."""
+    return bool(cfg.chromatic.amplitude) or cfg.stars.spectrum is not None
+
+
 # --------------------------------------------------------------------------- layout
 
 def _n_files(frames: int, per_file: int) -> int:
@@ -409,8 +571,8 @@ def _file_frames(frames: int, per_file: int) -> list[tuple[int, int]]:
 def _acquisitions(cfg: SimulationConfig):
     """(kind, name, frames, relative file stem) of every acquisition, in manifest order."""
     out = [("dark", "dark", cfg.dark.frames, "dark/dark")]
-    out += [("flat", f, cfg.flats.frames, f"flat/{f}") for f in cfg.flats.fibers]
-    out += [("baseline", b, cfg.metrology.frames, f"metrology/{b}") for b in cfg.metrology.baselines]
+    out += [("flat", f, cfg.flats.frames, f"flat/{f}") for f in flat_acquisitions(cfg)]
+    out += [("baseline", b, cfg.metrology.frames, f"metrology/{b}") for b in metrology_baselines(cfg)]
     return out
 
 
@@ -445,7 +607,7 @@ def _manifest_geometry(cfg: SimulationConfig) -> dict:
     _, nominal = fiber_tips(cfg)
     return {"wavelength": cfg.metrology.wavelength, "pixel_pitch": cfg.metrology.pixel_pitch,
             "fibers": {f: [float(v) for v in xyz] for f, xyz in nominal.items()},
-            "baseline_fibers": {b: [b + "a", b + "b"] for b in cfg.metrology.baselines}}
+            "baseline_fibers": {b: [b + "a", b + "b"] for b in metrology_baselines(cfg)}}
 
 
 def dataset_layout(cfg: SimulationConfig) -> dict:
@@ -468,18 +630,36 @@ def dataset_layout(cfg: SimulationConfig) -> dict:
             "frame_rate": d.frame_rate,
         },
         "dark": {"files": acquisition_files(cfg, "dark", name="dark")},
-        "flats": {f: {"files": acquisition_files(cfg, "flat", name=f)} for f in cfg.flats.fibers},
+        "flats": {f: {"files": acquisition_files(cfg, "flat", name=f), **_stated(w)}
+                  for f, (_, w) in flat_acquisitions(cfg).items()},
         "metrology": {
-            "baselines": {b: {"files": acquisition_files(cfg, "baseline", name=b)} for b in cfg.metrology.baselines},
-            "pairs": {p: list(m) for p, m in cfg.metrology.pairs.items()},
+            "baselines": {b: {"files": acquisition_files(cfg, "baseline", name=b), **_stated(w)}
+                          for b, (_, w) in metrology_baselines(cfg).items()},
+            "pairs": metrology_pairs(cfg),
             **({} if not cfg.metrology.spherical else {"geometry": _manifest_geometry(cfg)}),
         },
         "stars": {
             "approx": [[round(float(y), 1), round(float(x), 1)] for x, y in first],
             "positions": [{"index": i + 1, "files": acquisition_files(cfg, "position", name=i + 1)}
                           for i in range(cfg.stars.positions)],
+            **_manifest_spectrum(cfg),
         },
     }
+
+
+def _stated(wavelength) -> dict:
+    """An acquisition's ``wavelength`` key (format 1.2), where it states one."""
+    return {} if wavelength is None else {"wavelength": wavelength}
+
+
+def _manifest_spectrum(cfg: SimulationConfig) -> dict:
+    """The manifest's ``stars.spectrum`` (format 1.2), where the stars are broadband."""
+    if cfg.stars.spectrum is None:
+        return {}
+    from dice_core.chromatic import named_spectrum
+
+    wavelength, weight = named_spectrum(cfg.stars.spectrum)
+    return {"spectrum": {"wavelength": [float(w) for w in wavelength], "weight": [round(float(w), 6) for w in weight]}}
 
 
 # --------------------------------------------------------------------------- geometry of the stars
@@ -653,8 +833,9 @@ def fiber_tips(cfg: SimulationConfig, *, shifted: bool = True) -> tuple[dict, di
     centre_px = np.array([(cols - 1) / 2, (rows - 1) / 2])
     centre = centre_px * m.pixel_pitch
     true, nominal = {}, {}
-    for name, b in m.baselines.items():
+    for name, (b, own) in metrology_baselines(cfg).items():
         b = _build(BaselineConfig, b, f"metrology.baselines.{name}")
+        wavelength = m.wavelength if own is None else own  # each laser's tips set for the configured period
         direction = np.array([math.cos(math.radians(b.angle_deg)), math.sin(math.radians(b.angle_deg))])
         mid = centre + np.asarray(b.midpoint, float)
 
@@ -663,8 +844,8 @@ def fiber_tips(cfg: SimulationConfig, *, shifted: bool = True) -> tuple[dict, di
 
         # on the normal the period is wavelength x distance / (length x pitch); off it, the obliquity
         # shortens the projected baseline: rescale once so that the period at the centre is the asked one
-        length = m.wavelength * m.fiber_distance / (b.period * m.pixel_pitch)
-        _, kx, ky = two_source_phase(*centre_px, *tips(length), wavelength=m.wavelength, pixel_pitch=m.pixel_pitch)
+        length = wavelength * m.fiber_distance / (b.period * m.pixel_pitch)
+        _, kx, ky = two_source_phase(*centre_px, *tips(length), wavelength=wavelength, pixel_pitch=m.pixel_pitch)
         length *= (2 * np.pi / b.period) / float(np.hypot(kx, ky))
         rng = _rng(cfg, "fiber tips", name)
         for suffix, tip in zip("ab", tips(length)):
@@ -736,21 +917,24 @@ def _envelope_and_visibility(cfg: SimulationConfig, x0, y0, mask) -> tuple[np.nd
     return envelope, visibility
 
 
-def _wavevectors(cfg: SimulationConfig, x0, y0, mask) -> tuple[np.ndarray, dict, dict]:
+def _wavevectors(cfg: SimulationConfig, centres, mask) -> tuple[np.ndarray, dict, dict]:
     """Each baseline's wavevector (baseline, 2), rad/pixel; with spherical waves also each baseline's phase
     surface at the pixels' true centres (:func:`dice_core.geometry.two_source_phase`) and the true fiber
-    tips (empty dicts for plane waves)."""
+    tips (empty dicts for plane waves). ``centres(wavelength)`` gives the pixels' true centres (x0, y0)
+    (row, col) at a baseline's wavelength (None: metrology.wavelength)."""
     m = cfg.metrology
+    baselines = metrology_baselines(cfg)
     kvec = np.array([[2 * np.pi / b["period"] * math.cos(math.radians(b["angle_deg"])),
                       2 * np.pi / b["period"] * math.sin(math.radians(b["angle_deg"]))]
-                     for b in m.baselines.values()]).reshape(-1, 2)
+                     for b, _ in baselines.values()]).reshape(-1, 2)
     spherical, tips = {}, {}
     if m.spherical:
         tips, _ = fiber_tips(cfg)
-        design = np.column_stack([np.ones(mask.sum()), x0[mask], y0[mask]])  # coefficients in rad/pixel
-        for i, name in enumerate(m.baselines):
-            surface = two_source_phase(x0, y0, tips[name + "a"], tips[name + "b"], wavelength=m.wavelength,
-                                       pixel_pitch=m.pixel_pitch)
+        for i, (name, (_, own)) in enumerate(baselines.items()):
+            x0, y0 = centres(own)
+            design = np.column_stack([np.ones(mask.sum()), x0[mask], y0[mask]])  # coefficients in rad/pixel
+            surface = two_source_phase(x0, y0, tips[name + "a"], tips[name + "b"],
+                                       wavelength=m.wavelength if own is None else own, pixel_pitch=m.pixel_pitch)
             spherical[name] = surface
             # the contract's kx, ky: the best plane of the phase over the science area
             kvec[i] = np.linalg.lstsq(design, surface[0][mask], rcond=None)[0][1:]
@@ -761,11 +945,12 @@ def _fringe_histories(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray, np
     """Each baseline's fringe phase phi(t) (rad), level B(t) and amplitude A(t) (adu) and the stray-light
     fringe's phase (rad), all (baseline, frame)."""
     m = cfg.metrology
-    phase = np.empty((len(m.baselines), m.frames))
+    names = list(metrology_baselines(cfg))
+    phase = np.empty((len(names), m.frames))
     level = np.empty_like(phase)
     amplitude = np.empty_like(phase)
     stray_phase = np.empty_like(phase)
-    for i, name in enumerate(m.baselines):
+    for i, name in enumerate(names):
         rng = _rng(cfg, "metrology", name, *_acquisition(cfg))
         phase[i] = _phase_history(cfg, name, rng)
         laser = 1 + m.laser_rsd * rng.standard_normal(m.frames)
@@ -786,9 +971,10 @@ def _laser_response(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray]:
     chromatic = np.ones(d.shape)
     if m.chromatic_prnu_rms:
         chromatic += m.chromatic_prnu_rms * _rng(cfg, "chromatic prnu").standard_normal(d.shape)
-    speckle = np.ones((len(m.baselines), *d.shape))
+    names = list(metrology_baselines(cfg))
+    speckle = np.ones((len(names), *d.shape))
     if m.speckle_rms:
-        for i, name in enumerate(m.baselines):
+        for i, name in enumerate(names):
             grains = gaussian_filter(_rng(cfg, "speckle", name).standard_normal(d.shape), m.speckle_grain,
                                      mode="wrap")
             speckle[i] = 1 + m.speckle_rms * (grains - grains.mean()) / grains.std()
@@ -799,9 +985,10 @@ def _flat_illuminations(cfg: SimulationConfig, x0, y0) -> np.ndarray:
     """Each flat fiber's relative illumination (flat, row, col) at the pixels' true centres ``x0``, ``y0``."""
     rows, cols = cfg.detector.shape
     xc, yc = (cols - 1) / 2, (rows - 1) / 2
-    illumination = np.empty((len(cfg.flats.fibers), rows, cols))
-    for i, f in enumerate(cfg.flats.fibers):
-        fib = _build(FiberConfig, cfg.flats.fibers[f], f"flats.fibers.{f}")
+    flats = flat_acquisitions(cfg)
+    illumination = np.empty((len(flats), rows, cols))
+    for i, (f, (fiber, _)) in enumerate(flats.items()):
+        fib = _build(FiberConfig, fiber, f"flats.fibers.{f}")
         corner2 = (cols / 2) ** 2 + (rows / 2) ** 2
         illumination[i] = (1 + fib.gradient[0] * (x0 - xc) / cols + fib.gradient[1] * (y0 - yc) / rows
                            + fib.curvature * ((x0 - xc) ** 2 + (y0 - yc) ** 2) / corner2)
@@ -878,11 +1065,12 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
     bias, read_noise = _bias_and_read_noise(cfg, defects)
     x0, y0 = prf.centres()
     envelope, visibility = _envelope_and_visibility(cfg, x0, y0, mask)
-    names = list(m.baselines)
-    kvec, spherical, tips = _wavevectors(cfg, x0, y0, mask)
+    names = list(metrology_baselines(cfg))
+    response = _chromatic_truth(cfg, prf, mask) if is_chromatic(cfg) else None
+    kvec, spherical, tips = _wavevectors(cfg, lambda wavelength: _centres_at(prf, response, wavelength), mask)
     phase, level, amplitude, stray_phase = _fringe_histories(cfg)
     chromatic, speckle = _laser_response(cfg)
-    fibers = list(cfg.flats.fibers)
+    fibers = list(flat_acquisitions(cfg))
     illumination = _flat_illuminations(cfg, x0, y0)
     poses, stars = _stage_poses(cfg)
 
@@ -951,16 +1139,33 @@ def make_truth(cfg: SimulationConfig) -> xr.Dataset:
         },
     )
     if cfg.has_stray_light:
-        ds = ds.assign(_stray_truth(cfg, prf, tips, mask))
-    if cfg.has_stray_light and cfg.stray_light.coherent_flats:
+        ds = _with_stray_truth(ds, cfg, prf, tips, mask)
+    if response is not None:
+        ds.update(response)
+        ds["baseline_wavelength"] = (("baseline",), [np.nan if w is None else w for _, w in
+                                                      metrology_baselines(cfg).values()],
+                                     {"units": "m", "long_name": "each baseline's laser wavelength (NaN: unstated, "
+                                                                 "metrology.wavelength's)"})
+        ds["flat_wavelength"] = (("flat",), [np.nan if w is None else w for _, w in flat_acquisitions(cfg).values()],
+                                 {"units": "m", "long_name": "each flat's laser wavelength (NaN: white light)"})
+    ds.attrs.update({"prf_order": d.prf_order, "prf_half_width": d.prf_half_width,
+                     "simulation": json.dumps(cfg.to_dict(), sort_keys=True)})
+    return ds
+
+
+def _with_stray_truth(ds: xr.Dataset, cfg: SimulationConfig, prf: PixelResponse, tips: dict,
+                      mask: np.ndarray) -> xr.Dataset:
+    """The truth ``ds`` with the stray light's (:func:`_stray_truth`) and, for the flats lit coherently, their
+    stray patterns in the flat illumination."""
+    ds = ds.assign(_stray_truth(cfg, prf, tips, mask))
+    if cfg.stray_light.coherent_flats:
+        flats = ds["flat"].values
         speckle = np.stack([_coherent_speckle(cfg, prf, tips, cfg.stray_light.coherent_flats[f])
-                            if f in cfg.stray_light.coherent_flats else np.zeros(d.shape) for f in fibers])
+                            if f in cfg.stray_light.coherent_flats else np.zeros(cfg.detector.shape) for f in flats])
         ds["flat_illumination"] = ds["flat_illumination"] * (1 + speckle)
         ds["coherent_speckle"] = (("flat", "row", "col"), speckle,
                                   {"units": "1", "long_name": "relative pattern of the stray waves in a flat lit "
                                                               "coherently (zero: an incoherent flat)"})
-    ds.attrs.update({"prf_order": d.prf_order, "prf_half_width": d.prf_half_width,
-                     "simulation": json.dumps(cfg.to_dict(), sort_keys=True)})
     return ds
 
 
@@ -1030,12 +1235,77 @@ def _stray_truth(cfg: SimulationConfig, prf: PixelResponse, tips: dict, mask: np
     }
 
 
-def pixel_response(truth: xr.Dataset) -> PixelResponse:
-    """The detector's :class:`PixelResponse` from a truth dataset."""
+_PER_WAVELENGTH = {  # truth variable -> (its chromatic_response map, units, what it is)
+    "sensitivity_wavelength": ("sensitivity", "1", "relative quantum efficiency at each wavelength, mean 1 over "
+                                                   "the science area"),
+    "dx_wavelength": ("dx", "pixel", "true pixel offset along x at each wavelength"),
+    "dy_wavelength": ("dy", "pixel", "true pixel offset along y at each wavelength"),
+    "prf_sigma_x_wavelength": ("sigma_x", "pixel", "hyper-Gaussian scale of the PRF along x at each wavelength"),
+    "prf_sigma_y_wavelength": ("sigma_y", "pixel", "hyper-Gaussian scale of the PRF along y at each wavelength"),
+}
+
+
+def _chromatic_truth(cfg: SimulationConfig, prf: PixelResponse, mask) -> xr.Dataset:
+    """The pixel response at each wavelength of :func:`wavelength_grid` (dice_core.chromatic.chromatic_response)
+    and the spectra's quadrature weights on that grid, as truth variables on the coordinate ``wavelength``."""
+    from dice_core import chromatic
+    from dice_core.detector import hyper_gaussian_std
+
+    c, d = cfg.chromatic, cfg.detector
+    grid = wavelength_grid(cfg)
+    fields = {}
+    if c.amplitude:
+        for name in ("sensitivity", "dx", "dy", "sigma_x", "sigma_y"):
+            pair = _rng(cfg, "chromatic", name).standard_normal((2, *d.shape))
+            fields[name] = [_remove_affine(f, mask) for f in pair] if name in ("dx", "dy") else list(pair)
+    maps = chromatic.chromatic_response(
+        prf, grid, fields=fields, reference=cfg.metrology.wavelength, amplitude=c.amplitude,
+        sensitivity_rms=c.sensitivity_rms, offset_rms=c.offset_rms, width_rms=c.width_rms,
+        width_trend=c.width_trend, thickness=c.thickness, surface_depth=c.surface_depth,
+        surface_share=c.surface_share, mask=mask)
+    dims = ("wavelength", "row", "col")
+    ds = xr.Dataset({name: (dims, maps[key], {"units": units, "long_name": what})
+                     for name, (key, units, what) in _PER_WAVELENGTH.items()},
+                    coords={"wavelength": ("wavelength", grid, {"units": "m"})})
+    for axis in "xy":  # one wavelength at a time: the quadrature's temporaries are 64 maps
+        ds[f"width_{axis}_wavelength"] = (dims, np.stack([
+            hyper_gaussian_std(sigma, order=d.prf_order, half_width=d.prf_half_width)
+            for sigma in maps[f"sigma_{axis}"]]), {"units": "pixel", "long_name": f"PRF standard deviation along "
+                                                                                 f"{axis} at each wavelength"})
+    spectra = {"star_spectrum_weight": cfg.stars.spectrum, "flat_spectrum_weight": cfg.flats.spectrum}
+    for key, name in spectra.items() if _broadband(cfg) else ():
+        if name is not None:
+            weights = chromatic.quadrature_weights(grid, chromatic.named_spectrum(name))
+            ds[key] = (("wavelength",), weights, {"units": "1", "long_name": f"the {name} spectrum's share of the "
+                                                                            "light at each wavelength (sum 1)",
+                                                  "spectrum": name})
+    return ds
+
+
+def _centres_at(prf: PixelResponse, response, wavelength):
+    """The pixels' true centres (x0, y0) at ``wavelength`` (m; None: metrology.wavelength's, the base)."""
+    if wavelength is None or response is None:
+        return prf.centres()
+    rows, cols = np.indices(prf.shape)
+    at = response.sel(wavelength=wavelength, method="nearest")
+    return cols + at["dx_wavelength"].values, rows + at["dy_wavelength"].values
+
+
+def pixel_response(truth: xr.Dataset, wavelength: float | None = None) -> PixelResponse:
+    """The detector's :class:`PixelResponse` from a truth dataset: at metrology.wavelength (its ``dx``...), or
+    at ``wavelength`` (m), one of the truth's ``wavelength`` coordinate (its ``*_wavelength`` maps)."""
     slopes = [truth[v].values if v in truth else None for v in ("prf_slope_x", "prf_slope_y")]
-    return PixelResponse(truth["sensitivity"].values, truth["dx"].values, truth["dy"].values,
-                         truth["prf_sigma_x"].values, truth["prf_sigma_y"].values,
-                         float(truth.attrs["prf_order"]), float(truth.attrs["prf_half_width"]), *slopes)
+    maps = [truth[v] for v in ("sensitivity", "dx", "dy", "prf_sigma_x", "prf_sigma_y")]
+    if wavelength is not None:
+        if "wavelength" not in truth.coords:
+            raise ValueError(f"the truth holds no response at {wavelength * 1e9:g} nm: its simulation is achromatic")
+        nearest = float(truth["wavelength"].sel(wavelength=wavelength, method="nearest"))
+        if abs(nearest - wavelength) > 1e-12:
+            raise ValueError(f"the truth holds no response at {wavelength * 1e9:g} nm (nearest {nearest * 1e9:g} nm)")
+        maps = [truth[f"{v}_wavelength"].sel(wavelength=nearest) for v in
+                ("sensitivity", "dx", "dy", "prf_sigma_x", "prf_sigma_y")]
+    return PixelResponse(*(m.values for m in maps), float(truth.attrs["prf_order"]),
+                         float(truth.attrs["prf_half_width"]), *slopes)
 
 
 # --------------------------------------------------------------------------- frames
@@ -1092,6 +1362,50 @@ def simulation_chunk_frames(cfg: SimulationConfig) -> int:
     return max(1, min(cfg.chunk_frames, SIMULATION_CHUNK_SAMPLES // pixels))
 
 
+def _stated_wavelength(entry: xr.Dataset, variable: str) -> float | None:
+    """An acquisition's wavelength (m) from the truth's ``baseline_wavelength`` or ``flat_wavelength``; None
+    where unstated (NaN) or the truth has none."""
+    if variable not in entry:
+        return None
+    value = float(entry[variable])
+    return None if np.isnan(value) else value
+
+
+def _flat_sensitivity(truth: xr.Dataset, name: str, prf: PixelResponse) -> np.ndarray:
+    """The sensitivities a flat sees (row, col): a laser flat's at its wavelength; a white flat's, on a chromatic
+    detector, weighted by the lamp's spectrum; otherwise the detector's."""
+    entry = truth.sel(flat=name)
+    wavelength = _stated_wavelength(entry, "flat_wavelength")
+    if wavelength is not None:
+        return pixel_response(truth, wavelength).sensitivity
+    if "flat_spectrum_weight" in truth:
+        return np.tensordot(truth["flat_spectrum_weight"].values, truth["sensitivity_wavelength"].values, axes=1)
+    return prf.sensitivity
+
+
+def _broadband_stars(truth: xr.Dataset, position: xr.Dataset, stars) -> np.ndarray:
+    """Every star's image at one position (row, col), adu: at each wavelength of the truth's grid, the star's
+    share of light there (``star_spectrum_weight``) through the detector's response at that wavelength. Each star
+    is integrated over a window reaching 8 PSF sigma (its light beyond is below 1e-13 of it)."""
+    shape = truth["sensitivity"].shape
+    image = np.zeros(shape)
+    reach = int(np.ceil(8 * stars.psf_sigma)) + 1
+    weights = truth["star_spectrum_weight"].values
+    maps = [truth[f"{v}_wavelength"].values for v in ("sensitivity", "dx", "dy", "prf_sigma_x", "prf_sigma_y")]
+    slopes = [truth[v].values if v in truth else None for v in ("prf_slope_x", "prf_slope_y")]
+    for j, weight in enumerate(weights):
+        if weight == 0:
+            continue
+        prf = PixelResponse(*(m[j] for m in maps), float(truth.attrs["prf_order"]),
+                            float(truth.attrs["prf_half_width"]), *slopes)
+        for x, y in zip(position["star_x"].values, position["star_y"].values):
+            rows = slice(max(0, int(y) - reach), min(shape[0], int(y) + reach + 1))
+            cols = slice(max(0, int(x) - reach), min(shape[1], int(x) + reach + 1))
+            image[rows, cols] += stars.flux * weight * prf.gaussian_response(float(x), float(y), stars.psf_sigma,
+                                                                           rows=rows, cols=cols)
+    return image
+
+
 def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, name, start: int, stop: int):
     """Yield raw frames [start, stop) of one acquisition, in chunks of :func:`simulation_chunk_frames`.
 
@@ -1114,10 +1428,14 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, n
     shape = cfg.detector.shape
     prf = pixel_response(truth)
     if kind == "flat":
-        signal_map = cfg.flats.level * prf.sensitivity * truth["flat_illumination"].sel(flat=name).values
+        signal_map = cfg.flats.level * _flat_sensitivity(truth, name, prf) * truth["flat_illumination"].sel(
+            flat=name).values
         flux = 1 + cfg.flats.flux_rsd * _rng(cfg, "flat flux", name).standard_normal(cfg.flats.frames)
     elif kind == "baseline":
         b = truth.sel(baseline=name)
+        wavelength = _stated_wavelength(b, "baseline_wavelength")
+        if wavelength is not None:  # format 1.2: the detector as this laser sees it
+            prf = pixel_response(truth, wavelength)
         envelope = truth["envelope"].values
         if "chromatic_sensitivity" in truth:  # the laser's own sensitivities, and its speckle
             envelope = envelope * truth["chromatic_sensitivity"].values * b["speckle"].values
@@ -1125,9 +1443,9 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, n
         if cfg.metrology.spherical:  # each pixel under the plane wave of its local wavevector
             tips = dict(zip(truth["fiber"].values, truth["fiber_position"].values))
             x0, y0 = prf.centres()
-            phase_map, kx_map, ky_map = two_source_phase(x0, y0, tips[name + "a"], tips[name + "b"],
-                                                         wavelength=cfg.metrology.wavelength,
-                                                         pixel_pitch=cfg.metrology.pixel_pitch)
+            phase_map, kx_map, ky_map = two_source_phase(
+                x0, y0, tips[name + "a"], tips[name + "b"], pixel_pitch=cfg.metrology.pixel_pitch,
+                wavelength=cfg.metrology.wavelength if wavelength is None else wavelength)
             fringe = prf.fringe_response(kx_map, ky_map, phase=phase_map)
             if _coherence_matters(cfg):  # the stray waves' fringes beside the direct one, and their level
                 direct, stray, static = _stray_fringes(cfg, prf, tips, name)
@@ -1146,8 +1464,11 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, n
     elif kind == "position":
         p = truth.sel(position=int(name))
         st = cfg.stars
-        image = st.background + sum(st.flux * prf.gaussian_response(float(x), float(y), st.psf_sigma)
-                                    for x, y in zip(p["star_x"].values, p["star_y"].values))
+        if "star_spectrum_weight" in truth:  # broadband: the sum of the stars' monochromatic images
+            image = st.background + _broadband_stars(truth, p, st)
+        else:
+            image = st.background + sum(st.flux * prf.gaussian_response(float(x), float(y), st.psf_sigma)
+                                        for x, y in zip(p["star_x"].values, p["star_y"].values))
         flux = 1 + st.flux_rsd * _rng(cfg, "star flux", name).standard_normal(st.frames)
     elif kind != "dark":
         raise ValueError(f"unknown acquisition kind {kind!r}")

@@ -37,7 +37,9 @@ from dice_core.overrides import apply_dotted
 from dice_core.paper_method import fit_baseline_paper
 
 __all__ = ["OFFSET_BIAS_BENCH", "STAR_ACCURACY_BENCH", "TIP_TILT_BENCH", "STRAY_LIGHT_BENCH", "STRAY_LIGHT_VANES",
-           "STUDIES", "star_accuracy", "tip_tilt", "stray_light", "offsets_error", "simulate_and_fit",
+           "CHROMATIC_BENCH", "CALIBRATION_WAVELENGTHS", "CHROMATIC_MODES", "STUDIES", "star_accuracy", "tip_tilt",
+           "stray_light", "chromatic_accuracy", "true_calibrations", "simulated_stacks", "offsets_error",
+           "simulate_and_fit",
            "flat_metrology_centroids", "apply_overrides", "offset_bias", "affine_free", "error_propagation",
            "sweep_dataset", "sweep_from_dataset", "run_point"]
 
@@ -281,7 +283,9 @@ STAR_ACCURACY_BENCH = {
     "stars": {"positions": 12, "frames": 16, "tip_tilt_pv": 0.0},  # a roll only: Procrustes absorbs it
 }
 
-STAR_ACCURACY_MODES = tuple(centroids.MODES)
+# the modes a perfect flat, offsets and widths calibrate (the chromatic ones have a study of their own)
+STAR_ACCURACY_MODES = tuple(name for name, mode in centroids.MODES.items() if mode.needs <= {"flat", "offsets",
+                                                                                              "widths"})
 
 
 def _position_chunks(cfg, truth, index: int):
@@ -296,22 +300,37 @@ def _position_chunks(cfg, truth, index: int):
         start += frames.shape[0]
 
 
-def _measurable_variances(truth, detector, *, degree: int = 6):
-    """The true PRF variances (x, y) minus their smooth polynomial over the science area, pixel^2.
+def simulated_stacks(settings: dict, *, batches: int = 4, label: str = "bench"):
+    """A bench's star positions simulated in memory: (config, truth, manifest, position indices, stacks)."""
+    from dice_core import stacks
+    from dice_core.manifest import parse_manifest
 
-    What :func:`dice_core.prf.width_maps` can measure (the mean and smooth part are the fringe visibility's),
-    without its photon noise: the width mode's perfect calibration.
-    """
+    cfg = simulation.SimulationConfig.from_dict(settings)
+    truth = simulation.make_truth(cfg)
+    manifest = parse_manifest(simulation.dataset_layout(cfg), Path.cwd() / f"{label}.yaml")
+    positions = [p.index for p in manifest.positions]
+    position_stacks = [stacks.stack_position(_position_chunks(cfg, truth, i), cfg.stars.frames, n_batches=batches,
+                                             position=i, label=f"position {i}") for i in positions]
+    return cfg, truth, manifest, positions, position_stacks
+
+
+def pixel_scale_map(values, mask, *, degree: int = 6) -> np.ndarray:
+    """A map (row, col) less its least-squares polynomial of ``degree`` over ``mask`` (zero outside): what
+    :func:`dice_core.prf.width_maps` can measure of a width or variance map (the mean and the smooth part are the
+    fringe visibility's)."""
     from dice_core import prf
 
-    mask = detector.science_mask()
     rows, cols = np.nonzero(mask)
-    out = []
-    for axis in "xy":
-        variance = np.zeros(mask.shape)
-        variance[mask] = prf.pixel_scale(truth[f"width_{axis}"].values[mask] ** 2, cols, rows, degree=degree)
-        out.append(variance)
+    out = np.zeros(mask.shape)
+    out[mask] = prf.pixel_scale(np.asarray(values)[mask], cols, rows, degree=degree)
     return out
+
+
+def _measurable_variances(truth, detector, *, degree: int = 6):
+    """The true PRF variances (x, y) minus their smooth polynomial over the science area, pixel^2, without the
+    maps' photon noise: the width mode's perfect calibration."""
+    mask = detector.science_mask()
+    return [pixel_scale_map(truth[f"width_{axis}"].values ** 2, mask, degree=degree) for axis in "xy"]
 
 
 def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "gaussian", half_size: int = 7,
@@ -335,16 +354,11 @@ def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "g
         ``error_position``, ``accuracy_group``, ``error_group`` (the accuracy
         table's Procrustes numbers, pixel).
     """
-    from dice_core import accuracies, centroids, stacks
-    from dice_core.manifest import parse_manifest
+    from dice_core import accuracies, centroids
 
-    cfg = simulation.SimulationConfig.from_dict(settings)
-    truth = simulation.make_truth(cfg)
-    manifest = parse_manifest(simulation.dataset_layout(cfg), Path.cwd() / "star-accuracy.yaml")
-    positions = [p.index for p in manifest.positions]
     t0 = time.perf_counter()
-    position_stacks = [stacks.stack_position(_position_chunks(cfg, truth, i), cfg.stars.frames, n_batches=batches,
-                                             position=i, label=f"position {i}") for i in positions]
+    cfg, truth, manifest, positions, position_stacks = simulated_stacks(settings, batches=batches,
+                                                                        label="star-accuracy")
     log.info("simulated %d positions of %d frames in %.1f s (PRF width spread %.3g, photon noise %s)",
              len(positions), cfg.stars.frames, time.perf_counter() - t0, cfg.detector.prf_width_spread,
              cfg.detector.photon_noise)
@@ -364,8 +378,13 @@ def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "g
         errors = np.stack([result.x - truth["star_x"].values, result.y - truth["star_y"].values])
         errors -= np.nanmean(errors, axis=2, keepdims=True)  # each position's common displacement
         truth_errors.append(float(np.sqrt(np.nanmean(errors**2))))
-    rows, _ = accuracies.mode_accuracies(datasets, groups=groups, trials=trials)
-    table = {(r["mode"], r["grouping"]): r for r in rows}
+    table = {}
+    for mode, found in datasets.items():  # accuracies.mode_accuracies, for names that are not all modes
+        configurations = accuracies.select_positions(found)[0]
+        for grouping, data in (("position", configurations),
+                               ("group", accuracies.group_means(configurations, groups))):
+            result = accuracies.accuracy(data, trials=trials)
+            table[mode, grouping] = {"accuracy": result.accuracy, "error": result.error}
     dims = ("mode",)
     ds = xr.Dataset({"truth_error": (dims, truth_errors, {"units": "pixel", "long_name": "rms centroid error against "
                                                           "truth, each position's mean displacement removed"})},
@@ -402,15 +421,9 @@ def flat_metrology_centroids(settings: dict, *, method: str = "gaussian", half_s
     geometry : dice_core.superimposition.PoseGeometry
         The simulated bench's distance, off-axis angle and detector centre.
     """
-    from dice_core import centroids, stacks, superimposition
-    from dice_core.manifest import parse_manifest
+    from dice_core import centroids, superimposition
 
-    cfg = simulation.SimulationConfig.from_dict(settings)
-    truth = simulation.make_truth(cfg)
-    manifest = parse_manifest(simulation.dataset_layout(cfg), Path.cwd() / "tip-tilt.yaml")
-    positions = [p.index for p in manifest.positions]
-    position_stacks = [stacks.stack_position(_position_chunks(cfg, truth, i), cfg.stars.frames, n_batches=batches, position=i,
-                                             label=f"position {i}") for i in positions]
+    cfg, truth, manifest, positions, position_stacks = simulated_stacks(settings, batches=batches, label="tip-tilt")
     result = centroids.measure_positions(
         position_stacks, positions, approx=manifest.star_approx, detector=manifest.detector, dark=truth["bias"].values,
         read_noise=np.maximum(truth["read_noise"].values, 1e-3), prnu=truth["sensitivity"].values,
@@ -708,11 +721,187 @@ def stray_light(settings: dict, *, workdir, tip_positions: int = 1, tip_step: fl
     return ds
 
 
+# --------------------------------------------------------------------------- chromatic pixels (issue 26)
+
+#: The calibration wavelengths (m) of the chromatic study by their number: 633 nm alone (the paper's HeNe), then
+#: a blue one, a red one and two more spread over the band (docs/centroids.md, "Chromatic pixels").
+CALIBRATION_WAVELENGTHS = {1: (633e-9,), 2: (450e-9, 633e-9), 3: (450e-9, 633e-9, 800e-9),
+                           5: (420e-9, 500e-9, 633e-9, 700e-9, 800e-9)}
+
+#: The chromatic study's bench: the default detector (PRNU 2e-3, offsets 1e-3 pixel, PRF width spread 1%) made
+#: chromatic (amplitude 5: the changes from 633 to 400 nm five times those, dice_core.chromatic), broadband
+#: stars (flat spectrum, 400-800 nm) at the paper's geometry and photon limit: 33 positions 0.17 pixel apart,
+#: about 3e-5 pixel a position (16 frames of stars 54 times the default's flux: float32 frames, the saturation
+#: out of reach), no tip-tilt. Every calibration wavelength of :data:`CALIBRATION_WAVELENGTHS` is on the truth's
+#: grid (as laser flats), so that every number of wavelengths sees the same frames; every sample's photon noise is
+#: a normal draw (gaussian_photons_above 0), so that the achromatic twin draws exactly the same noise.
+CHROMATIC_BENCH = {
+    "name": "chromatic",
+    "seed": 20150926,
+    "detector": {"shape": [80, 84], "science_rows": [2, 79], "science_cols": [10, 83], "prnu_rms": 2.0e-3,
+                 "offset_rms": 1.0e-3, "prf_width_spread": 0.01, "saturation": 1.0e9, "dtype": "float32",
+                 "gaussian_photons_above": 0.0},
+    "dark": {"frames": 2},
+    "flats": {"frames": 2, "wavelengths": sorted({w for ws in CALIBRATION_WAVELENGTHS.values() for w in ws})},
+    "metrology": {"frames": 2, "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}},  # unused
+    "stars": {"positions": 33, "frames": 16, "flux": 1.35e7, "tip_tilt_pv": 0.0, "spectrum": "flat"},
+    "chromatic": {"amplitude": 5.0},
+}
+
+#: The chromatic study's modes besides the chromatic one: the paper's at 633 nm on the chromatic detector, and the
+#: achromatic twin's raw and flat+metrology.
+CHROMATIC_MODES = ("raw", "flat", "flat+metrology", "achromatic raw", "achromatic flat+metrology")
+
+
+def true_calibrations(truth: xr.Dataset, wavelength_sets: dict, *, spectrum, mask) -> dict:
+    """Perfect calibrations of a simulated bench, by mode: measure_positions' prnu, dx, dy (and variances).
+
+    The flat is the white flat's sensitivity (the lamp's spectrum, ``flat_spectrum_weight``), the offsets are
+    those at metrology.wavelength (the truth's dx, dy), and the chromatic mode's, one per entry of
+    ``wavelength_sets`` (a name -> calibration wavelengths, m; the mode ``chromatic <name>``), are the effective
+    response to ``spectrum`` (samples, weights) of the true maps at those wavelengths
+    (:func:`dice_core.chromatic.effective_response`): the sensitivities from them where there are two or more
+    (laser flats), else the white flat's, and the PRF variances' change from metrology.wavelength's as the width
+    maps measure it (its pixel-scale part over ``mask``, the science area).
+    """
+    from dice_core import chromatic
+
+    white = np.tensordot(truth["flat_spectrum_weight"].values, truth["sensitivity_wavelength"].values, axes=1)
+    out = {"raw": {}, "flat": {"prnu": white},
+           "flat+metrology": {"prnu": white, "dx": truth["dx"].values, "dy": truth["dy"].values}}
+    for name, wavelengths in wavelength_sets.items():
+        at = truth.sel(wavelength=list(wavelengths), method="nearest")
+        several = len(wavelengths) >= 2
+        effective = chromatic.effective_response(
+            wavelengths, {n: at[f"{n}_wavelength"].values for n in ("dx", "dy", "width_x", "width_y")},
+            spectrum=spectrum, sensitivity=at["sensitivity_wavelength"].values if several else white,
+            sensitivity_wavelengths=wavelengths if several else None)
+        change = {f"variance_{axis}": pixel_scale_map(getattr(effective, f"variance_{axis}")
+                                                      - truth[f"width_{axis}"].values ** 2, mask) for axis in "xy"}
+        out[f"chromatic {name}"] = {"prnu": effective.sensitivity, "dx": effective.dx, "dy": effective.dy, **change}
+    return out
+
+
+def _mode_centroids(truth, manifest, positions, position_stacks, calibrations: dict, *, method, half_size, label):
+    """{mode: its centroids dataset} and {mode: its rms error against truth (each position's mean displacement
+    removed), pixel} of a simulated bench under the given calibrations (mode -> measure_positions' maps)."""
+    from dice_core import centroids
+
+    datasets, errors = {}, {}
+    read_noise = np.maximum(truth["read_noise"].values, 1e-3)  # the noise weights need a floor
+    for mode, calibration in calibrations.items():
+        result = centroids.measure_positions(
+            position_stacks, positions, approx=manifest.star_approx, detector=manifest.detector,
+            dark=truth["bias"].values, read_noise=read_noise, method=method, half_size=half_size,
+            label=f"{label} {mode}", **calibration)
+        datasets[mode] = centroids.centroids_dataset(result, positions, mode=mode, method=method)
+        error = np.stack([result.x - truth["star_x"].values, result.y - truth["star_y"].values])
+        error -= np.nanmean(error, axis=2, keepdims=True)
+        errors[mode] = float(np.sqrt(np.nanmean(error**2)))
+    return datasets, errors
+
+
+def _accuracy_table(datasets: dict, *, groups: int, trials: int) -> dict:
+    """{(name, grouping): (accuracy, error)} of centroid datasets by any name (accuracies.mode_accuracies takes
+    modes only), Procrustes over positions and over groups of positions, pixel."""
+    from dice_core import accuracies
+
+    table = {}
+    for name, found in datasets.items():
+        configurations = accuracies.select_positions(found)[0]
+        for grouping, data in (("position", configurations),
+                               ("group", accuracies.group_means(configurations, groups))):
+            result = accuracies.accuracy(data, trials=trials)
+            table[name, grouping] = (result.accuracy, result.error)
+    return table
+
+
+def chromatic_accuracy(settings: dict, *, wavelengths=tuple(CALIBRATION_WAVELENGTHS), method: str = "gaussian",
+                       half_size: int = 7, batches: int = 4, groups: int = 3, trials: int = 500,
+                       modes=CHROMATIC_MODES) -> xr.Dataset:
+    """Broadband stars' accuracy on a chromatic detector against the number of calibration wavelengths.
+
+    The bench ``settings`` (:data:`CHROMATIC_BENCH` with a point's overrides) is simulated in memory twice with
+    the same seed, hence the same noise draws: as set, and as its achromatic twin (``chromatic.amplitude`` 0,
+    the detector at metrology.wavelength at every wavelength). Each is calibrated perfectly
+    (:func:`true_calibrations`): the white flat, the offsets at 633 nm, and the chromatic mode from the true
+    maps at each number of calibration wavelengths of ``wavelengths`` (keys of :data:`CALIBRATION_WAVELENGTHS`),
+    evaluated for the stars' spectrum as the manifest gives it. What is left is what colour does to each
+    calibration. ``modes`` (of :data:`CHROMATIC_MODES`) restricts the other modes measured; the scalars whose
+    modes are left out are NaN.
+
+    Returns
+    -------
+    xarray.Dataset
+        Per mode (``modes``): ``accuracy_position``, ``error_position``, ``accuracy_group``, ``error_group``
+        (Procrustes, pixel) and ``truth_error`` (rms against truth, each position's mean displacement removed,
+        pixel). The same per number of calibration wavelengths (dim ``wavelengths``) for the chromatic mode,
+        ``chromatic_*``, and ``chromatic_over_achromatic``: its (p) accuracy over the twin's flat+metrology's.
+        Scalars: ``gain`` and ``achromatic_gain`` (raw over flat+metrology, (p), on each detector),
+        ``photon_limit`` (rms Cramer-Rao bound a position, pixel).
+    """
+    unknown = [n for n in wavelengths if n not in CALIBRATION_WAVELENGTHS]
+    if unknown:
+        raise ValueError(f"wavelengths {unknown}: the study knows {sorted(CALIBRATION_WAVELENGTHS)} numbers of "
+                         "calibration wavelengths (CALIBRATION_WAVELENGTHS)")
+    sets = {n: CALIBRATION_WAVELENGTHS[n] for n in wavelengths}
+    twin = apply_overrides(settings, {"chromatic.amplitude": 0.0})
+    datasets, errors, configs = {}, {}, {}
+    for name, bench in (("", settings), ("achromatic ", twin)):
+        cfg, truth, manifest, positions, position_stacks = simulated_stacks(bench, batches=batches,
+                                                                            label=f"{name}chromatic")
+        if manifest.spectrum is None:
+            raise ValueError("the chromatic study's stars need a spectrum (stars.spectrum)")
+        configs[name] = cfg
+        calibrations = true_calibrations(truth, {} if name else sets, spectrum=(manifest.spectrum.wavelength,
+                                                                                manifest.spectrum.weight),
+                                         mask=manifest.detector.science_mask())
+        calibrations = {mode: c for mode, c in calibrations.items() if mode.startswith("chromatic ")
+                        or (name + mode in modes and (not name or mode in ("raw", "flat+metrology")))}
+        found, found_errors = _mode_centroids(truth, manifest, positions, position_stacks, calibrations,
+                                              method=method, half_size=half_size, label=name + "bench")
+        datasets.update({name + mode: ds for mode, ds in found.items()})
+        errors.update({name + mode: value for mode, value in found_errors.items()})
+    table = _accuracy_table(datasets, groups=groups, trials=trials)
+    modes = [m for m in CHROMATIC_MODES if m in modes]
+    ds = xr.Dataset(coords={"mode": modes, "wavelengths": list(sets)})
+    for prefix, dim, names in (("", "mode", modes), ("chromatic_", "wavelengths", [f"chromatic {n}" for n in sets])):
+        what = "the chromatic mode's " if prefix else ""
+        ds[f"{prefix}truth_error"] = ((dim,), [errors[m] for m in names], {
+            "units": "pixel", "long_name": f"{what}rms centroid error against truth, each position's mean "
+                                           "displacement removed"})
+        for grouping in ("position", "group"):
+            for k, (field_, text) in enumerate((("accuracy", "corrected Procrustes accuracy"),
+                                                ("error", "its 1-sigma error"))):
+                ds[f"{prefix}{field_}_{grouping}"] = ((dim,), [table[m, grouping][k] for m in names], {
+                    "units": "pixel", "long_name": f"{what}{text} over {grouping}s"})
+    p = {m: table[m, "position"][0] if (m, "position") in table else np.nan for m in CHROMATIC_MODES}
+    ds["chromatic_over_achromatic"] = (("wavelengths",), [table[f"chromatic {n}", "position"][0]
+                                                          / p["achromatic flat+metrology"] for n in sets], {
+        "units": "1", "long_name": "the chromatic mode's (p) accuracy over the twin's flat+metrology's"})
+    limit = next(iter(datasets.values()))[["photon_limit_x", "photon_limit_y"]].to_array()
+    for key, value, what in (
+            ("gain", p["raw"] / p["flat+metrology"], "raw over flat+metrology (p), chromatic detector, 633 nm"),
+            ("achromatic_gain", p["achromatic raw"] / p["achromatic flat+metrology"],
+             "raw over flat+metrology (p), the achromatic twin"),
+            ("photon_limit", float(np.sqrt(np.nanmean(limit.values**2))), "rms Cramer-Rao bound a position")):
+        ds[key] = ((), value, {"units": "pixel" if key == "photon_limit" else "1", "long_name": what})
+    chromatic_cfg = configs[""]
+    ds.attrs.update({"method": method, "positions": len(next(iter(datasets.values()))["position"]),
+                     "amplitude": float(chromatic_cfg.chromatic.amplitude), "spectrum": chromatic_cfg.stars.spectrum,
+                     **{f"calibration_wavelengths_{n}": [float(w) for w in sets[n]] for n in sets}})
+    log.info("chromatic amplitude %g, %s stars: gain %.2f (achromatic %.2f); the chromatic mode over the twin's "
+             "flat+metrology (p): %s", chromatic_cfg.chromatic.amplitude, chromatic_cfg.stars.spectrum,
+             float(ds["gain"]), float(ds["achromatic_gain"]),
+             ", ".join(f"{n} wavelength(s) {float(v):.2f}" for n, v in zip(sets, ds["chromatic_over_achromatic"].values)))
+    return ds
+
+
 # --------------------------------------------------------------------------- sweeps
 
 #: Each study's runner: point and settings -> dataset. ``bench`` holds dotted keys of the
 #: study's simulated bench, ``options`` its keyword options; a point's parameters are either.
-STUDIES = ("offset_bias", "error_propagation", "star_accuracy", "tip_tilt", "stray_light")
+STUDIES = ("offset_bias", "error_propagation", "star_accuracy", "tip_tilt", "stray_light", "chromatic")
 
 
 def run_point(study: str, point: dict, *, bench: dict | None = None, options: dict | None = None,
@@ -757,6 +946,8 @@ def run_point(study: str, point: dict, *, bench: dict | None = None, options: di
     elif study == "stray_light":
         with tempfile.TemporaryDirectory(prefix="stray-light-", dir=workdir) as folder:
             ds = stray_light(apply_overrides(STRAY_LIGHT_BENCH, bench), workdir=folder, **options)
+    elif study == "chromatic":
+        ds = chromatic_accuracy(apply_overrides(CHROMATIC_BENCH, bench), **options)
     else:
         raise ValueError(f"unknown study {study!r}; studies are {', '.join(STUDIES)}")
     ds.attrs.update({"study": study, "point": json.dumps(point)})

@@ -192,3 +192,73 @@ def test_a_key_given_twice_is_refused_at_any_level_naming_it_and_its_lines(layou
     path.write_text(text + "name: other\n")
     with pytest.raises(DatasetError, match="manifest key name is given twice"):
         load_manifest(path, check_files=False)
+
+
+# ------------------------------------------------------------------ format 1.2: several wavelengths
+
+SPECTRUM = {"wavelength": [400.0e-9, 500.0e-9, 600.0e-9, 700.0e-9], "weight": [0.6, 1.0, 0.95, 0.7]}
+
+
+def several_wavelengths(layout):
+    """The layout with P14 at 633 nm (its baselines' own wavelength), P24 at 450 nm, a laser flat at 450 nm
+    and the stars' spectrum: the example of docs/dataset-format.md."""
+    document = copy.deepcopy(layout)
+    baselines = document["metrology"]["baselines"]
+    for name, wavelength in (("H1H4", 633e-9), ("V1V4", 633e-9), ("H2H4", 450e-9), ("V2V4", 450e-9)):
+        baselines[name]["wavelength"] = wavelength
+    document["flats"]["fiber_b"]["wavelength"] = 450e-9
+    document["stars"]["spectrum"] = copy.deepcopy(SPECTRUM)
+    return document
+
+
+def test_format_1_2_wavelengths_and_spectrum_are_read(layout, tmp_path):
+    manifest = parse_manifest(several_wavelengths(layout), tmp_path / "dataset.yaml")
+    assert manifest.baselines["H2H4"].wavelength == 450e-9 and manifest.baseline_wavelength("H1H4") == 633e-9
+    assert manifest.pair_wavelength("P24") == 450e-9
+    assert manifest.wavelengths == (633e-9, 450e-9)  # in the order of their first pair
+    assert manifest.pairs_at(450e-9) == ["P24"] and manifest.flats_at(450e-9) == ["fiber_b"]
+    assert manifest.flats["fiber_a"].wavelength is None  # broadband
+    assert manifest.spectrum.wavelength == tuple(SPECTRUM["wavelength"])
+    assert manifest.spectrum.weight == tuple(SPECTRUM["weight"])
+    # formats 1 and 1.1 state none
+    plain = parse_manifest(layout, tmp_path / "dataset.yaml")
+    assert plain.wavelengths == () and plain.spectrum is None and plain.baseline_wavelength("H1H4") is None
+
+
+def test_a_baseline_without_a_wavelength_takes_the_geometry_s(layout, tmp_path):
+    document = several_wavelengths(layout)
+    document["metrology"]["geometry"] = copy.deepcopy(GEOMETRY)
+    del document["metrology"]["baselines"]["V1V4"]["wavelength"]  # the geometry's 633 nm: P14 still one wavelength
+    manifest = parse_manifest(document, tmp_path / "dataset.yaml")
+    assert manifest.baseline_wavelength("V1V4") == 633e-9 and manifest.wavelengths == (633e-9, 450e-9)
+
+
+@pytest.mark.parametrize("edit, expected", [
+    # a pair mixing wavelengths, the issue's first case; a stated and an unstated one mix too
+    (lambda d: d["metrology"]["baselines"]["V1V4"].update(wavelength=450e-9),
+     r"metrology.pairs.P14 mixes wavelengths: H1H4 at 633 nm, V1V4 at 450 nm; both baselines of a pair must "
+     r"share one$"),
+    (lambda d: d["metrology"]["baselines"]["V1V4"].pop("wavelength"),
+     "metrology.pairs.P14 mixes wavelengths: H1H4 at 633 nm, V1V4 at no stated wavelength"),
+    # a spectrum without wavelengths, the second
+    (lambda d: d["stars"]["spectrum"].pop("wavelength"),
+     r"at stars.spectrum: 'wavelength' is a required property$"),
+    (lambda d: d["stars"]["spectrum"].update(weight=[1.0, 1.0]), "stars.spectrum gives 4 wavelength.s. and 2 "
+                                                                 "weight.s.; one weight per wavelength"),
+    (lambda d: d["stars"]["spectrum"].update(wavelength=[400, 500, 600, 700]),
+     r"stars.spectrum.wavelength 400 is not in metres"),
+    (lambda d: d["stars"]["spectrum"].update(wavelength=[400e-9, 600e-9, 500e-9, 700e-9]),
+     "stars.spectrum.wavelength is not strictly increasing"),
+    (lambda d: d["stars"]["spectrum"].update(weight=[0, 0, 0, 0]), "stars.spectrum.weight is zero everywhere"),
+    (lambda d: d["stars"]["spectrum"].update(weight=[1, -1, 1, 1]), r"at stars.spectrum.weight.1: -1 is less"),
+    (lambda d: d["metrology"]["baselines"]["H2H4"].update(wavelength=450.0),
+     r"metrology.baselines.H2H4.wavelength 450.0 is not in metres"),
+    (lambda d: d["flats"]["fiber_b"].update(wavelength=0.45), r"flats.fiber_b.wavelength 0.45 is not in metres"),
+    (lambda d: d["dark"].update(wavelength=450e-9), "at dark: Additional properties"),  # a dark has none
+])
+def test_a_bad_format_1_2_manifest_gets_one_line_naming_the_key(layout, tmp_path, edit, expected):
+    document = several_wavelengths(layout)
+    edit(document)
+    with pytest.raises(DatasetError, match=expected) as info:
+        parse_manifest(document, tmp_path / "dataset.yaml")
+    assert "\n" not in str(info.value)

@@ -1,6 +1,7 @@
 """dice_core.planning: what a run makes of a dataset and a configuration, without the workflow engine."""
 
 import copy
+from pathlib import Path
 
 import pytest
 import yaml
@@ -51,7 +52,8 @@ def test_what_a_dataset_lacks_is_skipped_and_said_once():
                          "skipping centroid mode flat: the dataset has no flat field",
                          "skipping centroid mode metrology: the dataset names no pair of metrology baselines",
                          "skipping centroid mode flat+metrology: the dataset has no flat field",
-                         "skipping centroid mode flat+metrology+width: the dataset has no flat field"]
+                         "skipping centroid mode flat+metrology+width: the dataset has no flat field",
+                         "skipping centroid mode flat+metrology+chromatic: the dataset has no flat field"]
 
 
 @pytest.mark.parametrize("config, expected", [
@@ -134,3 +136,54 @@ def test_a_reduction_point_is_the_run_s_config_with_its_keys_set():
         simulated = planning.plan_sweep("r", {"study": "reduction", "parameter": "simulation.seed", "values": [1]})
         planning.reduction_point_config(CONFIG, simulated, index=0, simulated=False, raw="x",
                                         sweeps_root="results/sweeps")
+
+
+# ------------------------------------------------------------------ several wavelengths (format 1.2, issue 26)
+
+def chromatic_layout(**stars):
+    """small_config's bench with lasers at 633 and 450 nm (both pairs each) and a laser flat at 450 nm."""
+    return dataset_layout(small_config(metrology={"wavelengths": [633e-9, 450e-9]}, flats={"wavelengths": [450e-9]},
+                                       stars=stars))
+
+
+def test_a_single_wavelength_dataset_plans_what_it_did():
+    """No calibration across wavelength, the chromatic mode skipped and said why; the PRF widths of every
+    baseline and the reference flat for every baseline's gauge, as before format 1.2."""
+    p = plan()
+    targets = p.default_targets()
+    assert not any("chromatic" in t for t in targets)
+    assert p.prf_baselines() == ["H1H4", "V1V4", "H2H4", "V2V4"]
+    assert all(p.prnu_for_metrology(b) == ["results/sim-test/calibration/prnu.nc"] for b in p.manifest.baselines)
+    assert ("skipping centroid mode flat+metrology+chromatic: no calibration across wavelength: /data/bench/"
+            "dataset.yaml has its pairs at no stated wavelength (format 1.2 gives each baseline its own)") in p.skipped
+
+
+def test_several_wavelengths_plan_the_chromatic_calibration_and_mode():
+    p = plan(chromatic_layout(spectrum="warm"))
+    targets = p.default_targets()
+    assert {"results/sim-test/calibration/chromatic.nc", "results/sim-test/figures/chromatic.png",
+            "results/sim-test/centroids/flat+metrology+chromatic.nc"} <= set(targets)
+    # each wavelength's pairs reduced as a single wavelength's are
+    assert {"results/sim-test/calibration/offsets_P14_450.nc", "results/sim-test/metrology/V2V4_450.nc"} <= set(targets)
+    assert p.centroid_calibrations("flat+metrology+chromatic")["chromatic"] == "results/sim-test/calibration/chromatic.nc"
+    inputs = p.chromatic_inputs()
+    assert inputs["offsets"] == ["results/sim-test/calibration/offsets_P14.nc",
+                                 "results/sim-test/calibration/offsets_P14_450.nc"]  # each wavelength's reference pair
+    assert len(inputs["metrology"]) == 8 and inputs["flats"] == ["results/sim-test/calibration/flats/prnu_laser_450.nc"]
+    # the PRF widths of the reference wavelength's baselines; a 450 nm baseline's gauge takes the 450 nm flat
+    assert p.prf_baselines() == ["H1H4", "V1V4", "H2H4", "V2V4"]
+    assert p.prnu_for_metrology("H1H4_450") == ["results/sim-test/calibration/flats/prnu_laser_450.nc"]
+    assert p.prnu_for_metrology("H1H4") == ["results/sim-test/calibration/prnu.nc"]
+
+
+def test_the_chromatic_mode_needs_a_spectrum_of_the_stars():
+    p = plan(chromatic_layout())
+    assert "flat+metrology+chromatic" not in p.centroid_modes()
+    assert any("no spectrum of the stars" in line and "centroids.spectrum is null" in line for line in p.skipped)
+    assert "flat+metrology+chromatic" in plan(chromatic_layout(), centroids={"spectrum": "cool"}).centroid_modes()
+
+
+def test_the_reproduction_report_has_the_chromatic_study_s_page():
+    pages = planning.paper_pdf_pages(plan(), REPO / "workflow" / "report")
+    assert ("results/sweeps/chromatic/chromatic.png", str(REPO / "workflow" / "report" / "chromatic_study.rst")) in pages
+    assert all(Path(caption).is_file() for _, caption in pages)

@@ -1,5 +1,6 @@
 """The simulated testbed: format, determinism, statistics of each acquisition, and the star geometry."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -214,7 +215,7 @@ def test_unknown_config_keys_are_refused():
         simulation.SimulationConfig.from_dict({"detector": {"science_rows": [0, 200]}})
 
 
-@pytest.mark.parametrize("preset", ["default", "ci", "paper", "large"])
+@pytest.mark.parametrize("preset", ["default", "ci", "paper", "large", "chromatic"])
 def test_presets_load_and_lay_out_a_valid_manifest(preset, tmp_path):
     from dice_core.manifest import parse_manifest
 
@@ -296,3 +297,168 @@ def test_spherical_fringes_are_those_of_two_point_sources(tmp_path):
                      + truth["bias"].values[r, c])
             miss = np.max(np.abs(frames[:, r, c] - model))
             assert (miss < 2e-2) if close else (miss > 1.0), (r, c, miss)
+
+
+# ------------------------------------------------------------------ chromatic pixels (issue 26)
+
+#: Digests of the presets' truth (every variable's values), of the first 40 frames of each kind of acquisition
+#: (every baseline) and of the manifest, computed with the code before issue 26 (commit 450decf): the chromatic
+#: simulator, off by default, must leave today's datasets as they were, bit for bit.
+BEFORE_ISSUE_26 = {"ci": ("efd7bd394db3ec1f", "296c15efaf9c6b58", "bd634d34dc91f2f2"),
+                   "default": ("586f99ac881785b3", "3c9c489b2ab5a55b", "ee49d94105099f6a"),
+                   "paper": ("46aad7a4939c1b25", "1fe6f546f613ffd6", "3ffc0f8d2f251258")}
+
+
+def digests(cfg):
+    """(truth, frames, manifest) digests of a simulation, as BEFORE_ISSUE_26 holds them."""
+    import hashlib
+    import json
+
+    truth = simulation.make_truth(cfg)
+    values = hashlib.sha256()
+    for name in sorted(truth.data_vars):
+        values.update(name.encode())
+        values.update(np.ascontiguousarray(truth[name].values).tobytes())
+    frames, seen = hashlib.sha256(), set()
+    for kind, name, start, stop in simulation.file_jobs(cfg).values():
+        if kind in seen and kind != "baseline":
+            continue
+        seen.add(kind)
+        for chunk in simulation.acquisition_chunks(cfg, truth, kind=kind, name=name, start=start,
+                                                   stop=min(stop, start + 40)):
+            frames.update(np.ascontiguousarray(chunk, dtype=np.float64).tobytes())
+    layout = hashlib.sha256(json.dumps(simulation.dataset_layout(cfg), sort_keys=True).encode())
+    return values.hexdigest()[:16], frames.hexdigest()[:16], layout.hexdigest()[:16]
+
+
+@pytest.mark.parametrize("preset", sorted(BEFORE_ISSUE_26))
+def test_today_s_presets_are_simulated_bit_for_bit_as_before_the_chromatic_simulator(preset):
+    cfg = simulation.load_preset(Path(__file__).parents[1] / "config" / "presets" / f"{preset}.yaml")
+    assert not simulation.is_chromatic(cfg)
+    assert digests(cfg) == BEFORE_ISSUE_26[preset]
+
+
+def chromatic_config(**chromatic):
+    """A small chromatic bench: noiseless float frames, lasers at 633 and 450 nm (one pair each), a laser flat
+    at 450 nm, warm broadband stars."""
+    return small_config(detector={"photon_noise": False, "read_noise": 0.0, "dtype": "float32"},
+                        metrology={"wavelengths": [633e-9, 450e-9], "spherical": True,
+                                   "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0, "midpoint": [0.01, 0.0]},
+                                                 "V1V4": {"period": 2.4, "angle_deg": 93.0}},
+                                   "pairs": {"P14": ["H1H4", "V1V4"]}},
+                        flats={"wavelengths": [450e-9]}, stars={"spectrum": "warm"},
+                        chromatic={"amplitude": 3.0, **chromatic})
+
+
+def test_a_chromatic_bench_writes_format_1_2_and_the_response_at_each_wavelength(tmp_path):
+    from dice_core.chromatic import named_spectrum
+    from dice_core.manifest import parse_manifest
+
+    cfg = chromatic_config()
+    manifest = parse_manifest(simulation.dataset_layout(cfg), tmp_path / "dataset.yaml")
+    assert list(manifest.pairs) == ["P14", "P14_450"] and manifest.wavelengths == (633e-9, 450e-9)
+    assert manifest.pairs["P14_450"] == ("H1H4_450", "V1V4_450") and manifest.flats_at(450e-9) == ["laser_450"]
+    assert manifest.flats["fiber_a"].wavelength is None
+    wavelength, weight = named_spectrum("warm")
+    np.testing.assert_allclose(manifest.spectrum.wavelength, wavelength)
+    np.testing.assert_allclose(manifest.spectrum.weight, weight, rtol=1e-5)
+    # each laser's fiber tips give the configured period at its own wavelength
+    assert set(manifest.geometry.baseline_fibers) == {"H1H4", "V1V4", "H1H4_450", "V1V4_450"}
+    truth = simulation.make_truth(cfg)
+    np.testing.assert_allclose(2 * np.pi / np.hypot(truth["kx"], truth["ky"]).values, 2.4, rtol=0.02)
+    assert 450e-9 in truth["wavelength"].values and 633e-9 in truth["wavelength"].values
+    for name in ("dx", "dy", "sensitivity", "width_x", "width_y"):
+        assert truth[f"{name}_wavelength"].dims == ("wavelength", "row", "col")
+        # the contract's variables are the response at metrology.wavelength
+        np.testing.assert_array_equal(truth[f"{name}_wavelength"].sel(wavelength=633e-9).values, truth[name].values)
+    sl = manifest.detector.science_slices
+    change = (truth["dx_wavelength"].sel(wavelength=400e-9) - truth["dx"]).values[sl]
+    assert np.std(change) == pytest.approx(3.0 * 1e-3, rel=0.1)  # the configured change to 400 nm
+
+
+def test_each_acquisition_sees_the_detector_at_its_own_wavelength():
+    cfg = chromatic_config()
+    truth = simulation.make_truth(cfg)
+    bias, sl = truth["bias"].values, (slice(2, 39), slice(3, 43))
+
+    def mean_frame(kind, name):
+        frames = np.concatenate(list(simulation.acquisition_chunks(cfg, truth, kind=kind, name=name, start=0,
+                                                                   stop=4)))
+        return frames.mean(axis=0) - bias
+
+    at = {w: simulation.pixel_response(truth, w) for w in (450e-9, 633e-9)}
+    # the laser flat follows the sensitivity at 450 nm, the white one the lamp's spectrum-weighted sensitivity
+    laser = mean_frame("flat", "laser_450") / truth["flat_illumination"].sel(flat="laser_450").values
+    white = mean_frame("flat", "fiber_a") / truth["flat_illumination"].sel(flat="fiber_a").values
+    lamp = np.tensordot(truth["flat_spectrum_weight"].values, truth["sensitivity_wavelength"].values, axes=1)
+    for flat, expected in ((laser, at[450e-9].sensitivity), (white, lamp)):
+        ratio = (flat / expected)[sl]
+        assert np.std(ratio / ratio.mean()) < 2e-4  # the flux fluctuations' 5e-4 / sqrt(4) are common to all pixels
+    assert np.std((laser / at[633e-9].sensitivity)[sl]) > 3e-3  # and not the 633 nm one
+    # a 450 nm baseline's level is the sensitivity at 450 nm, its fringe the PRF there
+    b = truth.sel(baseline="H1H4_450")
+    frames = np.concatenate(list(simulation.acquisition_chunks(cfg, truth, kind="baseline", name="H1H4_450", start=0,
+                                                               stop=3)))
+    tips = dict(zip(truth["fiber"].values, truth["fiber_position"].values))
+    prf = at[450e-9]
+    phase, kx, ky = simulation.two_source_phase(*prf.centres(), tips["H1H4_450a"], tips["H1H4_450b"],
+                                                wavelength=450e-9, pixel_pitch=cfg.metrology.pixel_pitch)
+    envelope = truth["envelope"].values * truth["speckle"].sel(baseline="H1H4_450").values
+    response = prf.fringe_response(kx, ky, phase=phase) * envelope * truth["visibility"].values
+    model = (b["fringe_level"].values[:3, None, None] * prf.sensitivity * envelope
+             + b["fringe_amplitude"].values[:3, None, None] * np.imag(response * np.exp(1j * b["phase"].values[:3,
+                                                                                                         None, None])))
+    np.testing.assert_allclose((frames - bias)[:, sl[0], sl[1]], model[:, sl[0], sl[1]], rtol=0, atol=2e-3)
+
+
+def test_a_broadband_star_is_the_sum_of_its_monochromatic_images():
+    cfg = chromatic_config()
+    truth = simulation.make_truth(cfg)
+    image = next(simulation.acquisition_chunks(cfg, truth, kind="position", name=2, start=0, stop=1))[0]
+    image = (image - truth["bias"].values) / (1 + cfg.stars.flux_rsd * simulation._rng(cfg, "star flux", 2)
+                                              .standard_normal(cfg.stars.frames)[0]) - cfg.stars.background
+    p = truth.sel(position=2)
+    expected = np.zeros_like(image)
+    for w, share in zip(truth["wavelength"].values, truth["star_spectrum_weight"].values):
+        prf = simulation.pixel_response(truth, float(w))
+        expected += share * sum(cfg.stars.flux * prf.gaussian_response(float(x), float(y), cfg.stars.psf_sigma)
+                                for x, y in zip(p["star_x"].values, p["star_y"].values))
+    np.testing.assert_allclose(image, expected, rtol=0, atol=1e-6 * expected.max())
+    # and not the image at 633 nm: the warm stars see the red side of the detector
+    prf = simulation.pixel_response(truth)
+    monochromatic = sum(cfg.stars.flux * prf.gaussian_response(float(x), float(y), cfg.stars.psf_sigma)
+                        for x, y in zip(p["star_x"].values, p["star_y"].values))
+    assert np.max(np.abs(monochromatic - expected)) > 1e-3 * expected.max()
+
+
+def test_the_achromatic_twin_draws_the_same_noise():
+    """The twin (amplitude 0, all else equal) differs from the chromatic bench by the response alone: the same
+    photon and read noise draws, so that a comparison of the two sees colour, not noise. Every sample's photon
+    noise is then a normal draw (gaussian_photons_above 0, as the chromatic study's bench has it): a Poisson
+    draw's stream of random numbers depends on its mean, and the faint pixels' would not be the same."""
+
+    def star_frames(amplitude, noisy):
+        cfg = chromatic_config(amplitude=amplitude)
+        if noisy:
+            cfg = dataclasses.replace(cfg, detector=dataclasses.replace(cfg.detector, photon_noise=True,
+                                                                        read_noise=4.0, gaussian_photons_above=0.0))
+        return next(simulation.acquisition_chunks(cfg, simulation.make_truth(cfg), kind="position", name=1, start=0,
+                                                  stop=2))
+
+    noisy = star_frames(3.0, True) - star_frames(0.0, True)
+    noiseless = star_frames(3.0, False) - star_frames(0.0, False)
+    assert np.max(np.abs(noiseless)) > 10  # colour: tens of adu at the stars' peaks of 2e4 adu
+    # the same draws: what is left of the noise is its amplitude's change with the signal, a fraction of an adu
+    # (a difference of 40 adu in 2e4 changes sqrt(S / g) by 0.05 of a draw), against 49 adu for independent draws
+    assert np.max(np.abs(noisy - noiseless)) < 1.0
+
+
+def test_chromatic_keys_are_checked():
+    with pytest.raises(ValueError, match=r"metrology.wavelengths: 633 is not a wavelength in metres"):
+        simulation.SimulationConfig.from_dict({"metrology": {"wavelengths": [633]}})
+    with pytest.raises(ValueError, match="stars.spectrum: unknown spectrum 'red'"):
+        simulation.SimulationConfig.from_dict({"stars": {"spectrum": "red"}})
+    with pytest.raises(ValueError, match="listed twice"):
+        simulation.SimulationConfig.from_dict({"flats": {"wavelengths": [450e-9, 450.2e-9]}})
+    with pytest.raises(ValueError, match="chromatic: surface_share"):
+        simulation.SimulationConfig.from_dict({"chromatic": {"surface_share": 2.0}})

@@ -418,17 +418,21 @@ OTHER_VALUES = {
     "metrology.stray_light": "remove",
     "prf.order": 6.0, "prf.half_width": 0.45, "prf.sigma": 0.32, "centroids.modes": ["raw", "flat"],
     "centroids.method": "gaussian", "centroids.methods": ["fourier"], "centroids.half_size": 6,
-    "centroids.batches": 3, "centroids.pair": "P24", "astrometry.positions": [1, 3], "astrometry.groups": 2,
+    "centroids.batches": 3, "centroids.pair": "P24", "centroids.spectrum": "warm", "astrometry.positions": [1, 3],
+    "astrometry.groups": 2,
     "astrometry.trials": 1000, "astrometry.superimposition": "projective", "astrometry.pose.distance": 30000.0,
     "astrometry.pose.off_axis_deg": 3.0, "astrometry.pose.centre": [20.0, 20.0],
     "paper.offset_bias": "offset_bias_causes", "paper.error_propagation": "error_propagation_sources",
     "paper.stray_light": "stray_light_small",
+    "paper.chromatic": "chromatic_cool",
 }
-# the second error_propagation sweep paper.error_propagation may name
+# the second error_propagation, stray_light and chromatic sweeps paper.error_propagation, paper.stray_light
+# and paper.chromatic may name
 EXTRA_SWEEP = {"sweeps": {"error_propagation_sources": {"study": "error_propagation", "parameter": "source",
                                                         "values": ["prnu", "read"], "options": {"trials": 50}},
                           "stray_light_small": {"study": "stray_light", "parameter": "stray_light.field_ratio",
-                                                "values": [1.0e-3], "bench": {"metrology.frames": 300}}}}
+                                                "values": [1.0e-3], "bench": {"metrology.frames": 300}},
+                          "chromatic_cool": {"study": "chromatic", "parameter": "stars.spectrum", "values": ["cool"]}}}
 
 
 def nested(key, value):
@@ -475,6 +479,22 @@ def rules_of(workdir):
     return set(listed)
 
 
+def has_jobs_on_ci(name):
+    """Whether step ``name`` has jobs in the ci preset's default target: a step whose products all lack wildcards
+    has one only where the plan makes them (calibration/chromatic.nc: datasets of several wavelengths)."""
+    from dice_core import planning, products, settings, steps
+
+    schema = settings.config_schema(REPO / "workflow" / "schemas" / "config.schema.yaml")
+    config = settings.with_defaults({**yaml.safe_load((REPO / "config" / "config.yaml").read_text()),
+                                     "dataset": "ci"}, schema)
+    manifest, _ = planning.load_dataset("ci", presets=REPO / "config" / "presets", results="results")
+    targets = set(planning.Plan(manifest, config, "results/sim-ci", "results/sweeps").default_targets())
+    written = [products.entry(key) for key in steps.step(name).writes]
+    return any(p.wildcards for p in written) or any(
+        products.path_of(p.key, dataset_root="results/sim-ci", sweeps_root="results/sweeps",
+                         suffix=".png" if p.kind == "figure" else "") in targets for p in written)
+
+
 def check_key_triggers_its_steps(workdir, key, tmp_path, configfile=None):
     """After a complete run, ``key`` set to another value on the command line plans exactly the steps that
     declare it (dice_core.steps) and what follows from them, for the default target and for those steps' own
@@ -495,8 +515,9 @@ def check_key_triggers_its_steps(workdir, key, tmp_path, configfile=None):
         rerun = {job for job, reason in natural.items() if "Params have changed" in reason or "Code has" in reason}
         assert {rule for rule, _ in rerun} <= set(declaring), (key, what, rerun)
 
-    # the default target's steps: forcing a step of the run as a whole (the paper's) would add it to the plan
-    in_default = [name for name in declaring if not steps.step(name).whole_run]
+    # the default target's steps: forcing a step of the run as a whole (the paper's), or one this dataset has no
+    # job of (calibration/chromatic.nc on a single wavelength), would add it to the plan
+    in_default = [name for name in declaring if not steps.step(name).whole_run and has_jobs_on_ci(name)]
     natural, forced_plan = plans_of(workdir, args, [*args, *(["--forcerun", *in_default] if in_default else [])])
     same_plans(natural, forced_plan, "default target")
     forced = ["--forcerun", *declaring] if declaring else []
@@ -824,10 +845,52 @@ def test_a_bench_geometry_plans_the_metrology_and_every_mode(workdir, out, tmp_p
     manifest.write_text(yaml.safe_dump(document))
     result = snakemake(workdir, "-n", "--config", f"dataset={manifest}")
     said = result.stdout + result.stderr
-    assert "skipping" not in said
+    # the one mode it cannot have: a single wavelength has no calibration across wavelength (format 1.2)
+    assert [line for line in said.splitlines() if "skipping" in line] == [
+        f"dice: skipping centroid mode flat+metrology+chromatic: no calibration across wavelength: {manifest} has "
+        "its pairs at one wavelength (format 1.2 gives each baseline its own)"]
     for planned in ("rule fit_fringes", "rule allan_deviation", "rule deproject_offsets", "metrology/H1H4.nc",
                     "calibration/offsets_", "centroids/metrology.nc", "centroids/flat+metrology.nc"):
         assert planned in said, planned
+
+
+def test_a_dataset_of_several_wavelengths_plans_its_calibration_across_wavelength_and_the_chromatic_mode(workdir):
+    """The chromatic preset (format 1.2: lasers at 633, 450 and 800 nm, a laser flat at each, broadband stars): every
+    wavelength's pairs reduced as a single wavelength's, calibration/chromatic.nc from them, the chromatic mode and
+    its figure; nothing skipped. (The reduction itself is the slow test below.)"""
+    result = snakemake(workdir, "-n", "--config", "dataset=chromatic")
+    said = result.stdout + result.stderr
+    assert "skipping" not in said
+    for planned in ("rule chromatic_calibration", "calibration/chromatic.nc", "figures/chromatic.png",
+                    "metrology/H1H4_450.nc", "calibration/offsets_P14_800.nc", "calibration/flats/prnu_laser_450.nc",
+                    "centroids/flat+metrology+chromatic.nc", "centroids/gaussian/flat+metrology+chromatic.nc"):
+        assert planned in said, planned
+
+
+@pytest.mark.slow  # 4 min 45 s on 2 shared cores (load 5; 2026-12-05): 109 jobs
+def test_a_dataset_of_several_wavelengths_is_reduced_wavelength_by_wavelength_and_across(tmp_path):
+    """The chromatic preset through the workflow: each wavelength's offsets against the truth at that wavelength
+    within 1.2 of their photon floor (measured 1.0), calibration/chromatic.nc holding each wavelength's
+    calibration, and the chromatic mode's rows in the accuracy table."""
+    root = copy_repository(tmp_path)
+    snakemake(root, "--config", "dataset=chromatic", timeout=1800)
+    out = root / "results" / "sim-chromatic"
+    truth = read_product(out / "raw" / "truth.nc")
+    product = read_product(out / "calibration" / "chromatic.nc")
+    assert list(product["pair"].values) == ["P14", "P14_450", "P14_800"]
+    np.testing.assert_allclose(product["wavelength"].values, [633e-9, 450e-9, 800e-9])
+    assert product.attrs["reference_wavelength"] == 633e-9 and "absorption length" in product.attrs["model"]
+    for pair, wavelength in zip(product["pair"].values, product["wavelength"].values):
+        offsets = read_product(out / "calibration" / f"offsets_{pair}.nc")
+        at = truth.sel(wavelength=wavelength)
+        ratios = pair_errors_over_floors(offsets, {"dx": at["dx_wavelength"], "dy": at["dy_wavelength"]})
+        assert max(ratios) < 1.2, (pair, ratios)
+        np.testing.assert_array_equal(product["dx"].sel(wavelength=wavelength).values, offsets["dx"].values)
+        flat = read_product(out / "calibration" / "flats" / f"prnu_laser_{round(wavelength * 1e9)}.nc")
+        np.testing.assert_array_equal(product["sensitivity"].sel(wavelength=wavelength).values, flat["prnu"].values)
+    rows = read_accuracy_table(out / "tables" / "accuracy.csv")
+    assert {r["grouping"] for r in rows if r["mode"] == "flat+metrology+chromatic"} == {"position", "group"}
+    assert "Metrology + chromatic" in (out / "tables" / "accuracy.tex").read_text()
 
 
 @pytest.mark.slow
@@ -1036,9 +1099,11 @@ def test_a_sweep_point_added_runs_only_its_job_and_one_removed_touches_no_other(
 @pytest.mark.slow  # 12 s dry run (2 idle cores, 2026-12-02): pytest -m slow
 def test_the_paper_target_plans_the_studies_and_the_comparison(workdir):
     plan = snakemake(workdir, "paper", "-n", "--config", "dataset=ci").stdout
-    for rule in ("sweep_point", "sweep_summary", "plot_offset_bias", "error_propagation_table", "paper_comparison"):
+    for rule in ("sweep_point", "sweep_summary", "plot_offset_bias", "error_propagation_table", "paper_comparison",
+                 "plot_chromatic_study"):
         assert f"rule {rule}:" in plan
-    assert plan.count("rule sweep_point:") == 10  # 2 PRNU levels, 4 sources x 2 weightings
+    # 2 PRNU levels, 4 sources x 2 weightings, 2 chromatic amplitudes x 3 spectra
+    assert plan.count("rule sweep_point:") == 16
     assert "rule fit_fringes:" not in plan  # the ci reduction is done: the paper target adds only its own jobs
 
 

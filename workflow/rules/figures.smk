@@ -56,6 +56,24 @@ rule plot_prnu_difference:
         "../scripts/plot_prnu_difference.py"
 
 
+rule plot_chromatic:
+    input:
+        chromatic=output_of("chromatic"),
+        manifest=MANIFEST_FILE,
+    output:
+        **figure_of("figure_chromatic", category="Metrology", caption="chromatic"),
+    log:
+        f"{OUT}/logs/plot_chromatic.log",
+    conda:
+        "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_chromatic"),
+    params:
+        **step_params("plot_chromatic"),
+    script:
+        "../scripts/plot_chromatic.py"
+
+
 rule plot_metrology:
     input:
         metrology=output_of("metrology"),

@@ -14,7 +14,7 @@ if config["metrology"]["split"]:
         input:
             manifest=MANIFEST_FILE,
             dark=output_of("dark"),
-            prnu=lambda w: PLAN.prnu_for_metrology(),
+            prnu=lambda w: PLAN.prnu_for_metrology(w.baseline),
             bad_pixels=lambda w: PLAN.bad_pixel_mask(),
             cubes=baseline_files,
         output:
@@ -85,7 +85,7 @@ if config["metrology"]["split"]:
         input:
             manifest=MANIFEST_FILE,
             dark=output_of("dark"),
-            prnu=lambda w: PLAN.prnu_for_metrology(),
+            prnu=lambda w: PLAN.prnu_for_metrology(w.baseline),
             bad_pixels=lambda w: PLAN.bad_pixel_mask(),
             state=lambda w: fit_state(w, PASSES),
             # not read (their checksums come from pass 1's parts), but declared: the states and parts are
@@ -116,7 +116,7 @@ else:
         input:
             manifest=MANIFEST_FILE,
             dark=output_of("dark"),
-            prnu=lambda w: PLAN.prnu_for_metrology(),
+            prnu=lambda w: PLAN.prnu_for_metrology(w.baseline),
             bad_pixels=lambda w: PLAN.bad_pixel_mask(),
             cubes=baseline_files,
         output:
@@ -173,6 +173,31 @@ rule find_stray_light:
         **step_params("find_stray_light"),
     script:
         "../scripts/find_stray_light.py"
+
+
+# Several wavelengths (format 1.2): every wavelength's reference pair's offsets, PRF widths and laser flat
+# gathered into one calibration across wavelength (docs/centroids.md, "Chromatic pixels").
+rule chromatic_calibration:
+    input:
+        manifest=MANIFEST_FILE,
+        dark=output_of("dark"),
+        offsets=lambda w: PLAN.chromatic_inputs()["offsets"],
+        metrology=lambda w: PLAN.chromatic_inputs()["metrology"],
+        flats=lambda w: PLAN.chromatic_inputs()["flats"],
+    output:
+        chromatic=output_of("chromatic"),
+    log:
+        f"{OUT}/logs/chromatic_calibration.log",
+    benchmark:
+        f"{OUT}/benchmarks/chromatic_calibration.tsv"
+    conda:
+        "../envs/dice.yaml"
+    resources:
+        **step_resources("chromatic_calibration"),
+    params:
+        **step_params("chromatic_calibration"),
+    script:
+        "../scripts/chromatic_calibration.py"
 
 
 rule deproject_offsets:

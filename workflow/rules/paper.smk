@@ -134,6 +134,25 @@ rule plot_tip_tilt:
         "../scripts/plot_tip_tilt.py"
 
 
+rule plot_chromatic_study:
+    input:
+        points=lambda w: PLAN.sweep_points(w.sweep),
+    output:
+        **figure_of("chromatic_study_figure", category="Sweeps", caption="chromatic_study"),
+    log:
+        f"{SWEEP_ROOT}/{{sweep}}/chromatic.log",
+    wildcard_constraints:
+        sweep=sweeps_of("chromatic"),
+    conda:
+        "../envs/dice.yaml"
+    resources:
+        **step_resources("plot_chromatic_study"),
+    params:
+        **step_params("plot_chromatic_study"),
+    script:
+        "../scripts/plot_chromatic_study.py"
+
+
 rule plot_offset_bias:
     input:
         points=PLAN.sweep_points(PAPER_SWEEPS["offset_bias"]),
@@ -269,3 +288,4 @@ rule paper:
         rules.plot_error_propagation.output,
         rules.paper_comparison.output,
         [PLAN.path("sweep_summary", sweep=name) for name in PAPER_SWEEPS.values()],
+        PLAN.figure("chromatic_study_figure", sweep=PAPER_SWEEPS["chromatic"]),

@@ -12,7 +12,8 @@ def fit_finish(manifest_path, dark_path, prnu_paths, bad_pixel_paths, state_path
     dark = io.read_product(dark_path)
     options = config["metrology"]
     geometry = None if manifest.geometry is None else BaselineGeometry.of_baseline(
-        manifest.geometry, baseline, tip_sigma=options["tip_sigma"])
+        manifest.geometry, baseline, tip_sigma=options["tip_sigma"],
+        wavelength=manifest.baseline_wavelength(baseline))  # format 1.2: the baseline's own laser
     state_product = io.read_product(state_path)
     fringe_fit.check_state_options(state_product, tolerance=options["tolerance"],
                                    max_passes=options["max_passes"], smooth_degree=options["smooth_degree"])

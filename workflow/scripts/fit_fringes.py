@@ -17,7 +17,8 @@ def fit_fringes(manifest_path, dark_path, prnu_paths, bad_pixel_paths, baseline,
                                          chunk_frames=config["chunk_frames"])
     options = config["metrology"]
     geometry = None if manifest.geometry is None else BaselineGeometry.of_baseline(
-        manifest.geometry, baseline, tip_sigma=options["tip_sigma"])
+        manifest.geometry, baseline, tip_sigma=options["tip_sigma"],
+        wavelength=manifest.baseline_wavelength(baseline))  # format 1.2: the baseline's own laser
     log.info("baseline %s: %d frames in %d file(s); flat %s; %s", baseline, stream.n_frames, len(stream.cubes),
              "used for the gauge" if flat is not None else "not used",
              "plane waves" if geometry is None else

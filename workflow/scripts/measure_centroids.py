@@ -3,7 +3,7 @@
 import logging
 
 import dice_core
-from dice_core import centroids, io, stacks
+from dice_core import centroids, chromatic, io, stacks
 from dice_core.manifest import load_manifest
 
 
@@ -14,7 +14,7 @@ def read_stacks(paths):
 
 
 def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pixel_paths, stack_paths, mode, output,
-                      settings, method, prf_path=None):
+                      settings, method, prf_path=None, chromatic_path=None):
     """``settings``: the step's configuration (centroids.half_size...), which the product records; ``method``:
     the centroid method, the configured one or, for centroids/<method>/<mode>.nc, the path's (the product's
     attribute ``method``)."""
@@ -33,6 +33,10 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pix
     if use_widths:  # each pixel's PRF variance minus the mean one (NaN where not measured: none)
         widths = io.read_product(prf_path)
         variance_x, variance_y = (widths[f"variance_deviation_{axis}"].values for axis in "xy")
+    if "chromatic" in centroids.mode_needs(mode):  # the flat, the offsets and the widths' change the spectrum sees
+        spectrum = chromatic.stars_spectrum(options.get("spectrum"), manifest.spectrum)
+        found = chromatic.star_calibration(io.read_product(chromatic_path), spectrum, white_prnu=prnu, log=log)
+        prnu, dx, dy, variance_x, variance_y = (found[k] for k in ("prnu", "dx", "dy", "variance_x", "variance_y"))
     # dead, hot and column defects are left out or refuse a star; dust pixels are the flat's to correct
     bad_pixels = io.read_product(bad_pixel_paths[0])["bad_pixel"].values if bad_pixel_paths else None
     positions = [p.index for p in manifest.positions]
@@ -47,7 +51,7 @@ def measure_centroids(manifest_path, dark_path, prnu_path, offsets_path, bad_pix
         variance_x=variance_x, variance_y=variance_y)
     product = centroids.centroids_dataset(result, positions, mode=mode, method=options["method"])
     inputs = [manifest.path, dark_path, *([prnu_path] if use_flat else []), *([offsets_path] if use_metrology else []),
-              *([prf_path] if use_widths else []),
+              *([prf_path] if use_widths else []), *([chromatic_path] if chromatic_path else []),
               *bad_pixel_paths, *stack_paths]
     io.write_product(product, output, title=f"pseudo-star centroids of {manifest.name}, mode {mode}",
                      config=settings, inputs=inputs)
@@ -58,5 +62,5 @@ dice_core.run_logged(snakemake.log[0], measure_centroids, snakemake.input.manife
                      list(snakemake.input.get("bad_pixels", [])), list(snakemake.input.stacks),
                      snakemake.wildcards.mode,
                      snakemake.output.centroids, snakemake.params.settings, snakemake.params.method,
-                     snakemake.input.get("prf"),
+                     snakemake.input.get("prf"), snakemake.input.get("chromatic"),
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})

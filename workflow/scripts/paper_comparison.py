@@ -24,6 +24,7 @@ def paper_comparison(inputs, csv_path, png, pdf, dataset, positions, method, str
         points[prnu] = ds
     rows = reproduction.offset_bias_rows(points)
     rows += reproduction.error_propagation_rows(read_csv(inputs["error_propagation"]))
+    rows += reproduction.chromatic_rows([io.read_product(path) for path in inputs["chromatic"]])
     (deflation,) = read_csv(inputs["deflation"])
     rows.append(reproduction.Row("deflation", float(deflation["factor"]), float(deflation["error"]), "nominal geometry",
                                  f"{deflation['trials']} Monte Carlo trials of white jitter"))
