@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from dice_core import products
-from dice_core.centroids import mode_needs
+from dice_core.centroids import MODES, mode_needs
 
 __all__ = ["PlanningError", "Plan", "Sweep", "plan_sweep", "folder_value", "reduction_point_config",
            "module_name", "SWEEPS_FOLDER", "load_dataset", "point_dataset_name"]
@@ -236,9 +236,14 @@ class Plan:
         problem = science_area_problem(m.detector, self.config["centroids"]["half_size"])
         if problem is not None:
             raise PlanningError(f"{m.path}: {problem}")
-        modes = []
-        for mode in self.config["centroids"]["modes"]:
+        modes, configured = [], self.config["centroids"]["modes"]
+        # every mode (the default) means every mode the dataset can have: a dataset that states no wavelength
+        # (before format 1.2) is not told, on every run, that it has no calibration across wavelength
+        every_mode = list(configured) == list(MODES)
+        for mode in configured:
             needs = mode_needs(mode)
+            if "chromatic" in needs and every_mode and not m.wavelengths:
+                continue
             if "flat" in needs and not m.flats:
                 self.skip(f"centroid mode {mode}", "the dataset has no flat field")
             elif "offsets" in needs and self.centroid_pair() is None:
