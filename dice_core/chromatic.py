@@ -112,6 +112,36 @@ def absorption_length(wavelength):
     return np.exp(np.interp(wavelength, table, np.log(lengths)))
 
 
+#: The wavelengths the per-pixel model across wavelength covers, m: silicon's absorption table's.
+MODEL_RANGE = (380e-9, 1000e-9)
+
+
+def wavelength_problem(wavelength: float) -> str | None:
+    """Why the per-pixel model cannot use ``wavelength`` (m), or None."""
+    low, high = MODEL_RANGE
+    if not low - 1e-15 <= wavelength <= high + 1e-15:
+        return (f"{wavelength:.4g} m is outside the per-pixel model's {low * 1e9:g}-{high * 1e9:g} nm (silicon's "
+                "absorption table)")
+    return None
+
+
+def spectrum_problem(wavelength, weight) -> str | None:
+    """Why a stars' spectrum (samples in m, relative photons per unit wavelength) cannot be used, or None:
+    lengths that differ, wavelengths not increasing or outside :data:`MODEL_RANGE` (one in nm, say), weights
+    negative, not finite or zero everywhere."""
+    wavelength, weight = np.asarray(wavelength, float), np.asarray(weight, float)
+    if wavelength.ndim != 1 or wavelength.shape != weight.shape or wavelength.size < 2:
+        return "needs one weight per wavelength, at least two"
+    if np.any(np.diff(wavelength) <= 0):
+        return "its wavelengths do not increase"
+    if not np.all(np.isfinite(weight)) or np.any(weight < 0) or not weight.sum() > 0:
+        return "its weights must be finite, non-negative and not all zero"
+    for value in (wavelength[0], wavelength[-1]):
+        if (problem := wavelength_problem(float(value))) is not None:
+            return f"wavelength {problem} (wavelengths are in m)"
+    return None
+
+
 def depth_kernels(wavelength, *, thickness: float, surface_depth: float):
     """The two depth profiles' means over the absorption profile at ``wavelength``: (drift, surface).
 
@@ -582,21 +612,46 @@ def star_calibration(product: xr.Dataset, spectrum, *, white_prnu, log=None) -> 
     if log is not None:
         log.info("chromatic: the stars' effective offsets from %s",
                  ", ".join(f"{w * 1e9:g} nm x {share:.3f}" for w, share in effective.weights.items()))
+        if (warning := extrapolation_warning(wavelengths, spectrum, shares=effective.weights)) is not None:
+            log.warning("chromatic: %s", warning)
     return {"prnu": effective.sensitivity, "dx": effective.dx, "dy": effective.dy, **variances}
 
 
-def calibration_from_products(manifest, *, offsets, metrology, flats, gain: float, read_noise=None, shape=None,
-                              smooth_degree: int = 6, log=None) -> xr.Dataset:
+def extrapolation_warning(calibration, spectrum, *, shares: dict) -> str | None:
+    """What to warn of when the model is extrapolated for a spectrum, or None: light beyond the calibration
+    wavelengths (m) or, with them, shares of the calibration maps whose absolute sum passes 1.5 (the maps'
+    noise then grows by that sum at the most), and a straight line from two wavelengths, which the docs find
+    can do worse than one (docs/centroids.md, "Chromatic pixels")."""
+    samples, density = (np.asarray(v, float) for v in spectrum)
+    lit = samples[density > 0]
+    low, high = min(calibration), max(calibration)
+    said = []
+    if lit.size and (lit[0] < low - 1e-12 or lit[-1] > high + 1e-12):
+        said.append(f"the spectrum's light at {lit[0] * 1e9:g}-{lit[-1] * 1e9:g} nm reaches beyond the calibration "
+                    f"wavelengths' {low * 1e9:g}-{high * 1e9:g} nm: the model is extrapolated")
+    amplification = float(sum(abs(v) for v in shares.values()))
+    if amplification > 1.5:
+        said.append(f"the maps' shares sum to {amplification:.2f} in absolute value: their noise grows as much")
+    if len(calibration) == 2:
+        said.append("two calibration wavelengths make the model a straight line in ln(absorption length)")
+    return "; ".join(said) or None
+
+
+def calibration_from_products(manifest, *, offsets: dict, metrology: dict, flats: dict, read, gain: float,
+                              read_noise=None, shape=None, smooth_degree: int = 6, log=None) -> xr.Dataset:
     """``calibration/chromatic.nc`` of a dataset with pairs at several wavelengths, from its products.
 
     Parameters
     ----------
     manifest : dice_core.manifest.Manifest
         Format 1.2: its pairs' wavelengths say which products belong together.
-    offsets, metrology, flats : iterable of xarray.Dataset
-        Each wavelength's reference pair's ``calibration/offsets_<pair>.nc`` (attribute ``pair``), the
-        ``metrology/<baseline>.nc`` of every baseline of its pairs (``baseline``) and its laser flats'
-        ``calibration/flats/prnu_<flat>.nc`` (``flat``).
+    offsets, metrology, flats : dict
+        Pair -> its ``calibration/offsets_<pair>.nc`` (each wavelength's reference pair), baseline -> its
+        ``metrology/<baseline>.nc`` (every baseline of those pairs), flat -> its
+        ``calibration/flats/prnu_<flat>.nc`` (the laser flats): whatever ``read`` takes (paths).
+    read : callable
+        Reads one product (:func:`dice_core.io.read_product`). Each wavelength's are read when it is reached
+        and let go after: memory is one wavelength's products and every wavelength's result maps.
     gain, read_noise, shape, smooth_degree :
         The PRF width maps' (:func:`dice_core.prf.width_maps`), one set per wavelength of that wavelength's
         baselines.
@@ -608,23 +663,23 @@ def calibration_from_products(manifest, *, offsets, metrology, flats, gain: floa
     """
     from dice_core import prf
 
-    by_pair = {ds.attrs["pair"]: ds for ds in offsets}
-    by_baseline = {ds.attrs["baseline"]: ds for ds in metrology}
-    by_flat = {ds.attrs["flat"]: ds for ds in flats}
     found = {"offsets": {}, "widths": {}, "sensitivity": {}, "pairs": {}, "flats": {}}
     for wavelength in manifest.wavelengths:
         pairs = manifest.pairs_at(wavelength)
         baselines = list(dict.fromkeys(b for p in pairs for b in manifest.pairs[p]))
-        missing = [p for p in pairs[:1] if p not in by_pair] + [b for b in baselines if b not in by_baseline]
+        missing = [p for p in pairs[:1] if p not in offsets] + [b for b in baselines if b not in metrology]
         if missing:
             raise ValueError(f"{wavelength * 1e9:g} nm: no product for {missing}")
-        found["offsets"][wavelength], found["pairs"][wavelength] = by_pair[pairs[0]], pairs[0]
-        found["widths"][wavelength] = prf.width_maps({b: by_baseline[b] for b in baselines}, gain=gain,
+        pair_offsets = read(offsets[pairs[0]])
+        kept = [n for n in ("dx", "dy", "dx_photon_noise_floor", "dy_photon_noise_floor") if n in pair_offsets]
+        found["offsets"][wavelength] = pair_offsets[kept].load()  # the maps the product takes, the rest let go
+        found["pairs"][wavelength] = pairs[0]
+        found["widths"][wavelength] = prf.width_maps({b: read(metrology[b]) for b in baselines}, gain=gain,
                                                      read_noise=read_noise, shape=shape, smooth_degree=smooth_degree,
                                                      science=manifest.detector.science_mask(), log=log)
-        laser = [f for f in manifest.flats_at(wavelength) if f in by_flat]
+        laser = [f for f in manifest.flats_at(wavelength) if f in flats]
         if laser:
-            found["sensitivity"][wavelength] = by_flat[laser[0]]["prnu"].values
+            found["sensitivity"][wavelength] = read(flats[laser[0]])["prnu"].values
             found["flats"][wavelength] = laser[0]
         if log is not None:
             log.info("%g nm: pair %s, PRF widths from %s, %s", wavelength * 1e9, pairs[0], ", ".join(baselines),
@@ -652,6 +707,6 @@ def stars_spectrum(configured, manifest_spectrum):
     if isinstance(configured, str):
         return named_spectrum(configured)
     wavelength, weight = (np.asarray(configured[k], float) for k in ("wavelength", "weight"))
-    if wavelength.shape != weight.shape or np.any(np.diff(wavelength) <= 0):
-        raise ValueError("config centroids.spectrum: one weight per wavelength, the wavelengths increasing (m)")
+    if (problem := spectrum_problem(wavelength, weight)) is not None:
+        raise ValueError(f"config centroids.spectrum: {problem}")
     return wavelength, weight

@@ -15,6 +15,7 @@ baselines of a pair must share one wavelength.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -35,6 +36,7 @@ __all__ = [
     "StarPosition",
     "Spectrum",
     "load_manifest",
+    "same_wavelength",
     "parse_manifest",
     "FORMAT",
     "NAME_PATTERN",
@@ -215,18 +217,21 @@ class Manifest:
 
     @property
     def wavelengths(self) -> tuple[float, ...]:
-        """The distinct wavelengths of the pairs, m, in the order their first pair is listed; empty where no
-        pair states one (formats 1 and 1.1)."""
-        found = [self.pair_wavelength(p) for p in self.pairs]
-        return tuple(dict.fromkeys(w for w in found if w is not None))
+        """The distinct wavelengths of the pairs (to the picometre: :func:`same_wavelength`), m, in the order
+        their first pair is listed; empty where no pair states one (formats 1 and 1.1)."""
+        found = {}
+        for w in (self.pair_wavelength(p) for p in self.pairs):
+            if w is not None:
+                found.setdefault(_picometres(w), w)
+        return tuple(found.values())
 
     def pairs_at(self, wavelength: float) -> list[str]:
         """The pairs at ``wavelength`` (m), in manifest order (the first is that wavelength's reference)."""
-        return [p for p in self.pairs if self.pair_wavelength(p) == wavelength]
+        return [p for p in self.pairs if same_wavelength(self.pair_wavelength(p), wavelength)]
 
     def flats_at(self, wavelength: float) -> list[str]:
         """The flats that state ``wavelength`` (m), in manifest order."""
-        return [f for f, acquisition in self.flats.items() if acquisition.wavelength == wavelength]
+        return [f for f, acquisition in self.flats.items() if same_wavelength(acquisition.wavelength, wavelength)]
 
     def acquisitions(self) -> list[Acquisition]:
         """Every acquisition (dark, flats, baselines, star positions), in manifest order."""
@@ -276,15 +281,27 @@ def _check_wavelength(path, key, value):
     return float(value)
 
 
+def _picometres(wavelength: float) -> int:
+    return round(wavelength * 1e12)
+
+
+def same_wavelength(a: float | None, b: float | None) -> bool:
+    """Whether two wavelengths (m; None: unstated) are the same laser's: equal to the picometre (a manifest
+    written by another program may give 633e-9 as 6.330000000001e-07), or both unstated."""
+    if a is None or b is None:
+        return a is None and b is None
+    return _picometres(a) == _picometres(b)
+
+
 def _nm(wavelength) -> str:
-    return "no stated wavelength" if wavelength is None else f"{wavelength * 1e9:g} nm"
+    return "no stated wavelength" if wavelength is None else f"{wavelength * 1e9:.12g} nm"
 
 
 def _check_pair_wavelengths(path, manifest) -> None:
     """Refuse a pair whose two baselines differ in wavelength (one stated and one not included)."""
     for pair, (first, second) in manifest.pairs.items():
         w1, w2 = manifest.baseline_wavelength(first), manifest.baseline_wavelength(second)
-        if w1 != w2:
+        if not same_wavelength(w1, w2):
             _fail(path, f"metrology.pairs.{pair} mixes wavelengths: {first} at {_nm(w1)}, {second} at {_nm(w2)}; "
                         "both baselines of a pair must share one")
 
@@ -298,6 +315,8 @@ def _spectrum(path, entry) -> Spectrum:
     values = [_check_wavelength(path, "stars.spectrum.wavelength", w) for w in wavelength]
     if any(b <= a for a, b in zip(values, values[1:])):
         _fail(path, "stars.spectrum.wavelength is not strictly increasing")
+    if not all(math.isfinite(w) and w >= 0 for w in weight):
+        _fail(path, f"stars.spectrum.weight holds a value that is not finite and non-negative: {_shown(weight)}")
     if not sum(weight) > 0:
         _fail(path, "stars.spectrum.weight is zero everywhere: no light")
     return Spectrum(tuple(values), tuple(float(w) for w in weight))
@@ -428,4 +447,7 @@ def parse_manifest(document, path) -> Manifest:
     manifest = Manifest(path, document["name"], detector, dark, flats, baselines, pairs,
                         approx, positions, geometry, spectrum)
     _check_pair_wavelengths(path, manifest)
+    if spectrum is not None and not any(manifest.baseline_wavelength(b) is not None for b in baselines):
+        _fail(path, "stars.spectrum is given but no baseline states a wavelength (format 1.2: each baseline's "
+                    "wavelength, or metrology.geometry.wavelength): the spectrum has no calibration to go with")
     return manifest

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from dice_core import products
 from dice_core.centroids import MODES, mode_needs
+from dice_core.manifest import same_wavelength
 
 __all__ = ["PlanningError", "Plan", "Sweep", "plan_sweep", "folder_value", "reduction_point_config",
            "module_name", "SWEEPS_FOLDER", "load_dataset", "point_dataset_name"]
@@ -96,12 +97,43 @@ class Plan:
         targets += [self.path("prnu"), self.path("bad_pixels")]
         for flat in m.flats:
             targets += self.figure("figure_prnu", flat=flat)
-        others = list(m.flats)[1:]
+        others = self.compared_flats()
         for flat in others:
             targets += [self.path("prnu_difference", flat=flat), *self.figure("figure_prnu_difference", flat=flat)]
         if not others:
-            self.skip("PRNU difference", "the dataset has a single flat")
+            self.skip("PRNU difference", "the dataset has no two flats of one light (white, or one laser's)")
         return targets
+
+    def compared_flats(self) -> dict:
+        """Flat -> the flat its PRNU is compared with: the first of the same light (white flats with the first
+        white one, a laser's with its wavelength's first; format 1.2), which the difference's photon-noise
+        check needs (a laser flat against a white one would measure colour, not noise)."""
+        m, first, out = self.manifest, {}, {}
+        for flat, acquisition in m.flats.items():
+            key = None if acquisition.wavelength is None else round(acquisition.wavelength * 1e12)
+            if key in first:
+                out[flat] = first[key]
+            else:
+                first[key] = flat
+        return out
+
+    def prnu_compared_with(self, flat: str) -> str:
+        """The PRNU product flat ``flat``'s is compared with (:meth:`compared_flats`): the reference PRNU where
+        that is the reference flat's."""
+        reference = self.compared_flats()[flat]
+        return self.path("prnu") if reference == self.manifest.reference_flat else self.path("flat_prnu",
+                                                                                             flat=reference)
+
+    def compared_pairs(self) -> dict:
+        """Pair -> the pair its offsets are compared with: its wavelength's first pair (the reference pair for a
+        single wavelength), so that the true offsets cancel in the difference."""
+        m = self.manifest
+        out = {}
+        for pair in m.pairs:
+            reference = m.pairs_at(m.pair_wavelength(pair))[0]
+            if reference != pair:
+                out[pair] = reference
+        return out
 
     def prnu_for_metrology(self, baseline: str | None = None) -> list[str]:
         """The PRNU that tells a baseline's fringe solution the intensity map from the fringe, if used: a laser
@@ -133,10 +165,10 @@ class Plan:
         baselines state wavelengths (format 1.2), those at the reference pair's (each wavelength's PRFs are its
         own: calibration/chromatic.nc holds them)."""
         m = self.manifest
-        if not m.pairs or m.pair_wavelength(m.reference_pair) is None:
+        if not m.pairs:
             return list(m.baselines)
-        reference = m.pair_wavelength(m.reference_pair)
-        return [b for b in m.baselines if m.baseline_wavelength(b) == reference]
+        reference = m.pair_wavelength(m.reference_pair)  # None: the baselines that state none
+        return [b for b in m.baselines if same_wavelength(m.baseline_wavelength(b), reference)]
 
     def metrology_products(self) -> list[str]:
         """The metrology products the PRF widths use (:meth:`prf_baselines`)."""
@@ -150,6 +182,11 @@ class Plan:
         if len(wavelengths) < 2:
             at = "one wavelength" if wavelengths else "no stated wavelength"
             return f"{self.manifest.path} has its pairs at {at} (format 1.2 gives each baseline its own)"
+        from dice_core.chromatic import wavelength_problem
+
+        for pair in self.manifest.pairs:
+            if (problem := wavelength_problem(self.manifest.pair_wavelength(pair))) is not None:
+                return f"{self.manifest.path}: pair {pair}'s wavelength {problem}"
         return None
 
     def chromatic_inputs(self) -> dict:
@@ -178,7 +215,7 @@ class Plan:
         pairs = list(self.manifest.pairs)
         for pair in pairs:
             targets += [self.path("offsets", pair=pair), *self.figure("figure_offsets", pair=pair)]
-        for pair in pairs[1:]:
+        for pair in self.compared_pairs():
             targets += [self.path("offsets_difference", pair=pair),
                         *self.figure("figure_offsets_difference", pair=pair)]
         if not pairs:
@@ -237,12 +274,12 @@ class Plan:
         if problem is not None:
             raise PlanningError(f"{m.path}: {problem}")
         modes, configured = [], self.config["centroids"]["modes"]
-        # every mode (the default) means every mode the dataset can have: a dataset that states no wavelength
-        # (before format 1.2) is not told, on every run, that it has no calibration across wavelength
+        # every mode (the default) means every mode the dataset can have: a dataset of one wavelength is not
+        # told, on every run, that it has no calibration across wavelength
         every_mode = list(configured) == list(MODES)
         for mode in configured:
             needs = mode_needs(mode)
-            if "chromatic" in needs and every_mode and not m.wavelengths:
+            if "chromatic" in needs and every_mode and len(m.wavelengths) < 2:
                 continue
             if "flat" in needs and not m.flats:
                 self.skip(f"centroid mode {mode}", "the dataset has no flat field")
@@ -255,9 +292,28 @@ class Plan:
             elif "chromatic" in needs and m.spectrum is None and self.config["centroids"]["spectrum"] is None:
                 self.skip(f"centroid mode {mode}", f"no spectrum of the stars ({m.path} has no stars.spectrum and "
                                                    "config centroids.spectrum is null)")
+            elif "chromatic" in needs and (why := self.spectrum_problem()) is not None:
+                self.skip(f"centroid mode {mode}", why)
             else:
                 modes.append(mode)
         return modes
+
+    def spectrum_problem(self) -> str | None:
+        """Why the stars' spectrum cannot be used by the chromatic mode (the manifest's, where config
+        centroids.spectrum does not replace it), or None. A configured one that cannot be is a configuration
+        error (:class:`PlanningError`)."""
+        from dice_core import chromatic
+
+        configured = self.config["centroids"]["spectrum"]
+        if configured is not None:
+            try:
+                chromatic.stars_spectrum(configured, None)
+            except ValueError as exc:
+                raise PlanningError(str(exc)) from None
+            return None
+        spectrum = self.manifest.spectrum
+        problem = chromatic.spectrum_problem(spectrum.wavelength, spectrum.weight)
+        return None if problem is None else f"{self.manifest.path}: stars.spectrum {problem}"
 
     def centroid_products(self) -> list[str]:
         """Every centroid product: each allowed mode with centroids.method, then with each other method."""

@@ -108,7 +108,8 @@ _PRODUCTS = [
                                           "area"),
                        _V("photon_noise_limit", RC, "1", "1-sigma photon-noise error of the PRNU"))),
     Product("prnu_difference", "calibration/prnu_difference_{flat}.nc", "compare_prnu", "netcdf", stable=True,
-            stage="dark and flat field", meaning="another flat's PRNU minus the reference's",
+            stage="dark and flat field", meaning="another flat's PRNU minus the first flat's of the same light (white, or the same laser's wavelength: "
+                                                "format 1.2)",
             variables=(_V("difference", RC, "1", "flat <flat>'s PRNU minus the reference's"),
                        _V("photon_noise_limit", RC, "1", "1-sigma photon-noise error of the difference"),
                        _V("photon_noise_limit_rms", "", "1", "rms of photon_noise_limit over the science area"))),
@@ -172,7 +173,9 @@ _PRODUCTS = [
                        _V("unobservable_dx", "mode row col", "1", "smooth offset modes beyond the affine part that the "
                                                                 "metrology cannot see, x part (with spherical waves: "
                                                                 "those refining the fiber tips absorbs); dx, dy are "
-                                                                "orthogonal to them. Absent when there are none",
+                                                                "orthogonal to them; with metrology.stray_light: "
+                                                                "remove, also the removed stray-light components' "
+                                                                "directions. Absent when there are none",
                          optional=True),
                        _V("unobservable_dy", "mode row col", "1", "the same modes, y part", optional=True))),
     Product("stray_light", "calibration/stray_light_{baseline}.nc", "find_stray_light", "netcdf", stable=True,
@@ -189,6 +192,9 @@ _PRODUCTS = [
                        _V("threshold", "", "1", "detection threshold over the white level"),
                        _V("false_alarm", "", "1", "probability that offsets without stray light show a component "
                                                   "(at most)"),
+                       _V("n_components", "", "1", "number of components found"),
+                       _V("excluded_frequency", "excluded axis", "1/pixel", "frequencies left out of the search: "
+                                                                            "the fringes' own K and 2K (x, y)"),
                        _V("component_frequency_x", "component", "1/pixel", "spatial frequency along x, aliased "
                                                                            "into [-1/2, 1/2), f_x >= 0"),
                        _V("component_frequency_y", "component", "1/pixel", "spatial frequency along y"),
@@ -197,6 +203,10 @@ _PRODUCTS = [
                        _V("component_phase", "component", "rad", "phase at the reference pixel"),
                        _V("component_frequency_x_error", "component", "1/pixel", "1-sigma error (and so for the "
                                                                                  "other component_*_error)"),
+                       _V("component_significance", "component", "1", "peak power over the white level"),
+                       _V("stray_mode", "stray_mode row col", "1", "the offsets' directions that removing the "
+                                                                   "components takes (5 a component: amplitude, "
+                                                                   "phase, frequency x, y, chirp)"),
                        _V("phase_error", RC, "rad", "phase error the components make, in the fitted phase's "
                                                     "sense (NaN outside the fit)"),
                        _V("offset_error", RC, "pixel", "the components' sum in the projected offsets"))),
@@ -215,7 +225,10 @@ _PRODUCTS = [
                        _V("width_y", "wavelength row col", "pixel", "PRF standard deviation along y at each "
                                                                     "wavelength"))),
     Product("offsets_difference", "calibration/offsets_difference_{pair}.nc", "compare_pairs", "netcdf",
-            stage="metrology", meaning="a pair's offsets minus the reference pair's (the manifest's first)",
+            stage="metrology",
+            meaning="a pair's offsets minus the reference pair's (the manifest's first at the pair's wavelength); "
+                    "unless metrology.stray_light is off, each difference's stray-light diagnosis, the variables of "
+                    "calibration/stray_light_<baseline>.nc prefixed ddx_ and ddy_ (dims too: ddx_component...)",
             variables=(_V("ddx", RC, "pixel", "dx difference"), _V("ddy", RC, "pixel", "dy difference"),
                        _V("ddx_photon_noise_floor", "", "pixel", "photon-noise floor of ddx's standard deviation"),
                        _V("ddy_photon_noise_floor", "", "pixel", "photon-noise floor of ddy's standard deviation"))),

@@ -119,6 +119,11 @@ COSTS: dict[str, StepCost] = {
     # every wavelength's products read and its width maps made, one wavelength at a time: linear in the
     # wavelengths; sized for 5, measured 754 MB and 52.6 s on 512x512 (BENCHMARKS.md, "Several wavelengths")
     "chromatic_calibration": StepCost(base_mb=250.0, mb_per_mpixel=2000.0, start_s=5.0, s_per_mpixel=200.0),
+    # the stray-light search (dice_core.stray_light.diagnose): a white 512x512 map's one pass took 4.5 s and
+    # 86 MB above the interpreter on 2 shared cores (load 8); a pass more for each component found, 7 at most;
+    # the metrology product read beside it. compare_pairs searches both differences, ddx and ddy.
+    "find_stray_light": StepCost(base_mb=250.0, mb_per_mpixel=500.0, start_s=5.0, s_per_mpixel=150.0),
+    "compare_pairs": StepCost(base_mb=250.0, mb_per_mpixel=700.0, start_s=5.0, s_per_mpixel=300.0),
     # the studies' own benches, whatever the dataset: the largest point measured (a chromatic point: 58-105 s and
     # 189 MB on 2 shared cores, two at a time; an offset-bias point 22 s)
     "sweep_point": StepCost(base_mb=240.0, start_s=110.0),

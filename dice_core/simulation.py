@@ -633,7 +633,9 @@ def dataset_layout(cfg: SimulationConfig) -> dict:
         "flats": {f: {"files": acquisition_files(cfg, "flat", name=f), **_stated(w)}
                   for f, (_, w) in flat_acquisitions(cfg).items()},
         "metrology": {
-            "baselines": {b: {"files": acquisition_files(cfg, "baseline", name=b), **_stated(w)}
+            # broadband stars' spectrum goes with the lasers' wavelength (format 1.2): stated even for one laser
+            "baselines": {b: {"files": acquisition_files(cfg, "baseline", name=b),
+                              **_stated(cfg.metrology.wavelength if w is None and cfg.stars.spectrum else w)}
                           for b, (_, w) in metrology_baselines(cfg).items()},
             "pairs": metrology_pairs(cfg),
             **({} if not cfg.metrology.spherical else {"geometry": _manifest_geometry(cfg)}),

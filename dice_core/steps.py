@@ -86,7 +86,7 @@ _STEPS = [
          stands_for=("fit_start", "fit_part", "fit_reduce")),
     Step("prf_widths", ("prf.order", "prf.half_width", "prf.sigma", "metrology.smooth_degree")),
     Step("find_stray_light"),
-    Step("deproject_offsets", ("metrology.stray_light",)),
+    Step("deproject_offsets"),  # metrology.stray_light: remove gives it the stray-light products as inputs
     Step("chromatic_calibration", ("prf.order", "prf.half_width", "prf.sigma", "metrology.smooth_degree")),
     Step("compare_pairs", ("metrology.stray_light",)),
     Step("allan_deviation", _STREAM),

@@ -276,3 +276,44 @@ def test_a_wavelength_s_offsets_reach_their_floor_with_its_own_flat_as_the_gauge
         error -= design @ np.linalg.lstsq(design, error, rcond=None)[0]
         ratios[name] = float(np.sqrt(np.mean(error**2) / np.mean(solution.photon_floor**2)))
     assert ratios["450 nm"] < 1.2 < 1.5 < ratios["white"]
+
+
+def test_three_wavelengths_hold_over_the_thicknesses_and_surface_layers_the_docs_advise_for():
+    """docs/centroids.md's advice rests on this: over silicon 10, 16 and 40 um thick and surface layers of 0.1,
+    0.3 and 1 um, each depth kernel and spectrum taken alone, the model's error for what a spectrum sees over
+    633 nm alone's is at most 0.29 with 450, 633 and 800 nm (measured 0.279), 0.66 with the five wavelengths
+    (0.655: they end at 800 nm too, their extra points no help for 40 um), and reaches 5 with 450 and 633 nm."""
+    sets = {"three": (450e-9, 633e-9, 800e-9), "five": (420e-9, 500e-9, 633e-9, 700e-9, 800e-9),
+            "two": (450e-9, 633e-9)}
+    worst = dict.fromkeys(sets, 0.0)
+    for key, calibration in sets.items():
+        for thickness in (10e-6, 16e-6, 40e-6):
+            for surface in (0.1e-6, 0.3e-6, 1e-6):
+                kernels_at = np.array(chromatic.depth_kernels(np.array(calibration), thickness=thickness,
+                                                              surface_depth=surface))
+                alone = np.array(chromatic.depth_kernels(633e-9, thickness=thickness, surface_depth=surface))
+                for name in ("flat", "warm", "cool"):
+                    spectrum = chromatic.named_spectrum(name)
+                    grid = chromatic.spectrum_grid(spectrum[0], calibration=calibration)
+                    a = chromatic.quadrature_weights(grid, spectrum)
+                    model = a @ chromatic.model_weights(calibration, grid)
+                    seen = a @ np.array(chromatic.depth_kernels(grid, thickness=thickness, surface_depth=surface)).T
+                    ratio = np.abs(kernels_at @ model - seen) / np.abs(alone - seen)
+                    worst[key] = max(worst[key], float(ratio.max()))
+    assert worst["three"] < 0.29 and worst["five"] < 0.66 and worst["two"] > 4
+
+
+def test_a_spectrum_beyond_the_calibration_wavelengths_is_warned_of():
+    """Extrapolation, shares whose absolute sum passes 1.5 and a straight line from two wavelengths are said;
+    a spectrum inside three wavelengths is not."""
+    inside = chromatic.named_spectrum("flat", band=(450e-9, 800e-9))
+    grid = chromatic.spectrum_grid(inside[0], calibration=(450e-9, 633e-9, 800e-9))
+    shares = dict(zip((450e-9, 633e-9, 800e-9), chromatic.quadrature_weights(grid, inside) @ chromatic.model_weights(
+        (450e-9, 633e-9, 800e-9), grid)))
+    assert chromatic.extrapolation_warning((450e-9, 633e-9, 800e-9), inside, shares=shares) is None
+    red = (np.array([850e-9, 1000e-9]), np.array([1.0, 1.0]))
+    said = chromatic.extrapolation_warning((450e-9, 633e-9, 800e-9), red, shares={450e-9: 0.57, 633e-9: -2.54,
+                                                                                 800e-9: 2.97})
+    assert "850-1000 nm reaches beyond the calibration wavelengths' 450-800 nm" in said and "sum to 6.08" in said
+    assert "straight line" in chromatic.extrapolation_warning((450e-9, 633e-9), inside, shares={450e-9: 0.4,
+                                                                                                633e-9: 0.6})

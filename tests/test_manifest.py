@@ -225,6 +225,18 @@ def test_format_1_2_wavelengths_and_spectrum_are_read(layout, tmp_path):
     assert plain.wavelengths == () and plain.spectrum is None and plain.baseline_wavelength("H1H4") is None
 
 
+def test_wavelengths_equal_to_the_picometre_are_one_laser_s(layout, tmp_path):
+    """Another program may write 633e-9 as 6.330000000001e-07: the same laser, not a pair mixing wavelengths."""
+    document = several_wavelengths(layout)
+    document["metrology"]["baselines"]["V1V4"]["wavelength"] = 633.0000000001e-9
+    document["flats"]["fiber_b"]["wavelength"] = 449.9999999999e-9
+    manifest = parse_manifest(document, tmp_path / "dataset.yaml")
+    assert manifest.wavelengths == (633e-9, 450e-9) and manifest.flats_at(450e-9) == ["fiber_b"]
+    document["metrology"]["baselines"]["V1V4"]["wavelength"] = 633.002e-9  # 2 pm: another laser, said so
+    with pytest.raises(DatasetError, match="H1H4 at 633 nm, V1V4 at 633.002 nm"):
+        parse_manifest(document, tmp_path / "dataset.yaml")
+
+
 def test_a_baseline_without_a_wavelength_takes_the_geometry_s(layout, tmp_path):
     document = several_wavelengths(layout)
     document["metrology"]["geometry"] = copy.deepcopy(GEOMETRY)
@@ -255,6 +267,11 @@ def test_a_baseline_without_a_wavelength_takes_the_geometry_s(layout, tmp_path):
      r"metrology.baselines.H2H4.wavelength 450.0 is not in metres"),
     (lambda d: d["flats"]["fiber_b"].update(wavelength=0.45), r"flats.fiber_b.wavelength 0.45 is not in metres"),
     (lambda d: d["dark"].update(wavelength=450e-9), "at dark: Additional properties"),  # a dark has none
+    (lambda d: d["stars"]["spectrum"].update(weight=[1, float("inf"), 1, 1]),
+     r"stars.spectrum.weight holds a value that is not finite and non-negative"),
+    # a spectrum with no stated wavelength of the lasers to go with: the issue's second case, read the other way
+    (lambda d: [b.pop("wavelength") for b in d["metrology"]["baselines"].values()],
+     r"stars.spectrum is given but no baseline states a wavelength"),
 ])
 def test_a_bad_format_1_2_manifest_gets_one_line_naming_the_key(layout, tmp_path, edit, expected):
     document = several_wavelengths(layout)

@@ -182,6 +182,40 @@ def test_several_wavelengths_plan_the_chromatic_calibration_and_mode():
     assert p.prnu_for_metrology("H1H4") == ["results/sim-test/calibration/prnu.nc"]
 
 
+def test_pairs_and_flats_are_compared_within_their_own_light():
+    """A difference's photon-noise check needs the true offsets (or PRNU) to cancel: each pair is compared
+    with its wavelength's first pair, each flat with the first of its own light, never across wavelengths."""
+    p = plan(chromatic_layout(spectrum="warm"))
+    assert p.compared_pairs() == {"P24": "P14", "P24_450": "P14_450"}
+    assert p.compared_flats() == {"fiber_b": "fiber_a"}  # laser_450 is its light's first: no difference
+    assert p.prnu_compared_with("fiber_b") == "results/sim-test/calibration/prnu.nc"
+    targets = p.default_targets()
+    assert "results/sim-test/calibration/offsets_difference_P24_450.nc" in targets
+    assert not any("offsets_difference_P14_450" in t or "prnu_difference_laser_450" in t for t in targets)
+    single = plan()  # one wavelength: the reference pair and flat, as before format 1.2
+    assert single.compared_pairs() == {"P24": "P14"} and single.compared_flats() == {"fiber_b": "fiber_a"}
+
+
+def test_wavelengths_and_spectra_the_model_cannot_use_are_said_in_one_line():
+    """The per-pixel model covers silicon's 380-1000 nm: a laser or a spectrum beyond it skips the chromatic
+    calibration or mode, saying why; a configured spectrum that cannot be one (nm for m) is refused."""
+    layout = chromatic_layout(spectrum="warm")
+    for baseline in ("H1H4_450", "V1V4_450", "H2H4_450", "V2V4_450"):
+        layout["metrology"]["baselines"][baseline]["wavelength"] = 1064e-9
+    p = plan(layout)
+    assert p.chromatic_unavailable().endswith("pair P14_450's wavelength 1.064e-06 m is outside the per-pixel model's "
+                                              "380-1000 nm (silicon's absorption table)")
+    assert not any("chromatic" in t for t in p.default_targets())
+    layout = chromatic_layout(spectrum="warm")
+    layout["stars"]["spectrum"]["wavelength"][0] = 300e-9
+    p = plan(layout)
+    assert "flat+metrology+chromatic" not in p.centroid_modes()
+    assert any("stars.spectrum wavelength 3e-07 m is outside the per-pixel model's" in line for line in p.skipped)
+    with pytest.raises(planning.PlanningError, match=r"^config centroids.spectrum: wavelength 400 m is outside .* "
+                                                     r"\(wavelengths are in m\)$"):
+        plan(chromatic_layout(), centroids={"spectrum": {"wavelength": [400, 800], "weight": [1, 1]}}).centroid_modes()
+
+
 def test_the_chromatic_mode_needs_a_spectrum_of_the_stars():
     p = plan(chromatic_layout())
     assert "flat+metrology+chromatic" not in p.centroid_modes()

@@ -481,34 +481,35 @@ def rules_of(workdir):
     return set(listed)
 
 
-def has_jobs_on_ci(name):
-    """Whether step ``name`` has jobs in the ci preset's default target: a step whose products all lack wildcards
+def has_jobs_on(name, dataset="ci"):
+    """Whether step ``name`` has jobs in preset ``dataset``'s default target: a step whose products all lack wildcards
     has one only where the plan makes them (calibration/chromatic.nc: datasets of several wavelengths)."""
     from dice_core import planning, products, settings, steps
 
     schema = settings.config_schema(REPO / "workflow" / "schemas" / "config.schema.yaml")
     config = settings.with_defaults({**yaml.safe_load((REPO / "config" / "config.yaml").read_text()),
-                                     "dataset": "ci"}, schema)
-    manifest, _ = planning.load_dataset("ci", presets=REPO / "config" / "presets", results="results")
-    targets = set(planning.Plan(manifest, config, "results/sim-ci", "results/sweeps").default_targets())
+                                     "dataset": dataset}, schema)
+    manifest, _ = planning.load_dataset(dataset, presets=REPO / "config" / "presets", results="results")
+    targets = set(planning.Plan(manifest, config, f"results/sim-{dataset}", "results/sweeps").default_targets())
     written = [products.entry(key) for key in steps.step(name).writes]
     return any(p.wildcards for p in written) or any(
-        products.path_of(p.key, dataset_root="results/sim-ci", sweeps_root="results/sweeps",
+        products.path_of(p.key, dataset_root=f"results/sim-{dataset}", sweeps_root="results/sweeps",
                          suffix=".png" if p.kind == "figure" else "") in targets for p in written)
 
 
-def check_key_triggers_its_steps(workdir, key, tmp_path, configfile=None):
+def check_key_triggers_its_steps(workdir, key, tmp_path, configfile=None, dataset="ci"):
     """After a complete run, ``key`` set to another value on the command line plans exactly the steps that
     declare it (dice_core.steps) and what follows from them, for the default target and for those steps' own
     products: the same jobs as a run that forces those steps, and no job re-run for its parameters but theirs.
-    ``configfile``: more configuration, as the complete run had it (the paper's sweeps)."""
+    ``configfile``: more configuration, as the complete run had it (the paper's sweeps); ``dataset``: the
+    preset the complete run reduced."""
     from dice_core import products, steps
 
     rules = rules_of(workdir)  # the split fit's steps are rules only with metrology.split
     declaring = [name for name, step in steps.STEPS.items() if key in steps.settings_keys(name) and name in rules]
     extra = tmp_path / "more.yaml"
     extra.write_text(yaml.safe_dump(merged(EXTRA_SWEEP, configfile or {})))
-    args = ["--configfile", str(extra), "--config", "dataset=ci", command_line(key, OTHER_VALUES[key])]
+    args = ["--configfile", str(extra), "--config", f"dataset={dataset}", command_line(key, OTHER_VALUES[key])]
 
     def same_plans(natural, forced_plan, what):
         assert natural.keys() == forced_plan.keys(), (key, what, set(natural) ^ set(forced_plan))
@@ -519,12 +520,12 @@ def check_key_triggers_its_steps(workdir, key, tmp_path, configfile=None):
 
     # the default target's steps: forcing a step of the run as a whole (the paper's), or one this dataset has no
     # job of (calibration/chromatic.nc on a single wavelength), would add it to the plan
-    in_default = [name for name in declaring if not steps.step(name).whole_run and has_jobs_on_ci(name)]
+    in_default = [name for name in declaring if not steps.step(name).whole_run and has_jobs_on(name, dataset)]
     natural, forced_plan = plans_of(workdir, args, [*args, *(["--forcerun", *in_default] if in_default else [])])
     same_plans(natural, forced_plan, "default target")
     forced = ["--forcerun", *declaring] if declaring else []
     own = sorted({out for (rule, outputs) in forced_plan if rule in declaring for out in outputs.split(", ")} | {
-        products.path_of(p, dataset_root="results/sim-ci", sweeps_root="results/sweeps",
+        products.path_of(p, dataset_root=f"results/sim-{dataset}", sweeps_root="results/sweeps",
                          suffix=".png" if products.entry(p).kind == "figure" else "")
         for name in declaring for p in steps.step(name).writes if not products.entry(p).wildcards})
     if own:
@@ -848,10 +849,8 @@ def test_a_bench_geometry_plans_the_metrology_and_every_mode(workdir, out, tmp_p
     manifest.write_text(yaml.safe_dump(document))
     result = snakemake(workdir, "-n", "--config", f"dataset={manifest}")
     said = result.stdout + result.stderr
-    # the one mode it cannot have: a single wavelength has no calibration across wavelength (format 1.2)
-    assert [line for line in said.splitlines() if "skipping" in line] == [
-        f"dice: skipping centroid mode flat+metrology+chromatic: no calibration across wavelength: {manifest} has "
-        "its pairs at one wavelength (format 1.2 gives each baseline its own)"]
+    # every mode: the chromatic one, which a single wavelength cannot have, left out unsaid
+    assert "skipping" not in said
     for planned in ("rule fit_fringes", "rule allan_deviation", "rule deproject_offsets", "metrology/H1H4.nc",
                     "calibration/offsets_", "centroids/metrology.nc", "centroids/flat+metrology.nc"):
         assert planned in said, planned
@@ -870,7 +869,7 @@ def test_a_dataset_of_several_wavelengths_plans_its_calibration_across_wavelengt
         assert planned in said, planned
 
 
-@pytest.mark.slow  # 4 min 45 s on 2 shared cores (load 5; 2026-12-05): 109 jobs
+@pytest.mark.slow  # 4 min 45 s on 2 shared cores (load 5; 2026-12-05): 109 jobs, then 8 dry runs
 def test_a_dataset_of_several_wavelengths_is_reduced_wavelength_by_wavelength_and_across(tmp_path):
     """The chromatic preset through the workflow: each wavelength's offsets against the truth at that wavelength
     within 1.2 of their photon floor (measured 1.0), calibration/chromatic.nc holding each wavelength's
@@ -894,6 +893,9 @@ def test_a_dataset_of_several_wavelengths_is_reduced_wavelength_by_wavelength_an
     rows = read_accuracy_table(out / "tables" / "accuracy.csv")
     assert {r["grouping"] for r in rows if r["mode"] == "flat+metrology+chromatic"} == {"position", "group"}
     assert "Metrology + chromatic" in (out / "tables" / "accuracy.tex").read_text()
+    # the settings of the steps that only a dataset of several wavelengths has re-run them, and only them
+    for key in ("prf.order", "centroids.spectrum"):
+        check_key_triggers_its_steps(root, key, tmp_path, dataset="chromatic")
 
 
 @pytest.mark.slow

@@ -62,7 +62,7 @@ rule select_reference_prnu:
 
 rule compare_prnu:
     input:
-        reference=output_of("prnu"),
+        reference=lambda w: PLAN.prnu_compared_with(w.flat),
         other=output_of("flat_prnu"),
         manifest=MANIFEST_FILE,
     output:

@@ -223,7 +223,7 @@ rule deproject_offsets:
 
 rule compare_pairs:
     input:
-        reference=PLAN.path("offsets", pair=MANIFEST.reference_pair) if MANIFEST.pairs else [],
+        reference=lambda w: PLAN.path("offsets", pair=PLAN.compared_pairs()[w.pair]),
         other=output_of("offsets"),
     output:
         difference=output_of("offsets_difference"),
@@ -234,7 +234,7 @@ rule compare_pairs:
     resources:
         **step_resources("compare_pairs"),
     params:
-        **step_params("compare_pairs", reference=MANIFEST.reference_pair),
+        **step_params("compare_pairs", reference=lambda w: PLAN.compared_pairs()[w.pair]),
     script:
         "../scripts/compare_pairs.py"
 
