@@ -49,7 +49,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.special import ndtr
 
 from dice_core import centroids
 
@@ -164,6 +163,8 @@ def star_grid(n: int, star: Star = Star()) -> np.ndarray:
 
 def _interval(a, b):
     """Standard normal probability of [a, b], accurate in both tails (a < b)."""
+    from scipy.special import ndtr
+
     return np.where(a > 0, ndtr(-a) - ndtr(-b), ndtr(b) - ndtr(a))
 
 
