@@ -23,10 +23,10 @@ def module(name: str):
     ModuleNotFoundError
         ``name`` is not installed (found at once, not at first use).
     """
-    if name in sys.modules:
-        return sys.modules[name]
     if "." in name:  # finding a submodule imports its parents: nothing would be deferred
         raise ValueError(f"{name}: a top-level package only")
+    if name in sys.modules:
+        return sys.modules[name]
     spec = importlib.util.find_spec(name)
     if spec is None:
         raise ModuleNotFoundError(f"No module named {name!r}", name=name)
