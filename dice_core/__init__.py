@@ -28,6 +28,7 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.reproduction` -- the paper's numbers beside ours;
 - :mod:`dice_core.overrides` -- dotted-key overrides of nested configurations (sweeps, benches, presets);
 - :mod:`dice_core.yamlfile` -- YAML files read strictly (a key given twice is an error);
+- :mod:`dice_core.lazy` -- libraries imported on their first use (a step's process pays for what it reaches);
 - :mod:`dice_core.settings` -- the workflow's configuration: its schema's choices, its checks, a step's share;
 - :mod:`dice_core.steps` -- the table of the workflow's steps: the settings each reads, the code it runs;
 - :mod:`dice_core.products` -- the catalogue of products: paths, variables with dims and units, writing steps;

@@ -29,12 +29,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import xarray as xr
 
+from dice_core import lazy
 from dice_core.centroids import MODES, mode_needs
 from dice_core.parallel import one_blas_thread
 from dice_core.superimposition import (SUPERIMPOSITIONS, AstrometryError, PoseGeometry, check_configurations,
                                        pose_identifiability, superimpose, tangent_space, tip_tilt_removal)
+
+xr = lazy.module("xarray")
 
 __all__ = [
     "barycentre_residuals",

@@ -16,11 +16,13 @@ import logging
 from typing import Iterable
 
 import numpy as np
-import xarray as xr
 
+from dice_core import lazy
 from dice_core.io import Chunk
 from dice_core.polynomials import polynomial_design
 from dice_core.manifest import Detector
+
+xr = lazy.module("xarray")
 
 __all__ = [
     "fringe_fit_calibrations",

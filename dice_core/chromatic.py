@@ -43,7 +43,10 @@ Units: m for wavelengths and depths (the manifest's), 1 for kernels and weights.
 from __future__ import annotations
 
 import numpy as np
-import xarray as xr
+
+from dice_core import lazy
+
+xr = lazy.module("xarray")
 
 __all__ = [
     "EXTINCTION",

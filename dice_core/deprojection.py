@@ -30,10 +30,11 @@ import json
 import logging
 
 import numpy as np
-import xarray as xr
 
-from dice_core import stray_light
+from dice_core import lazy, stray_light
 from dice_core.geometry import affine_basis, orthonormal_modes, remove_modes
+
+xr = lazy.module("xarray")
 
 __all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "difference_dataset", "MIN_SINE",
            "DeprojectionError", "without_stray_light"]

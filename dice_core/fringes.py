@@ -43,11 +43,12 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
-import xarray as xr
 
+from dice_core import lazy
 from dice_core.geometry import TwoSourceFit, wrapped_about_mean
 from dice_core.polynomials import polynomial_design
+
+xr = lazy.module("xarray")
 
 __all__ = [
     "FringeError",
@@ -144,6 +145,8 @@ def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 
     S = _smooth_basis(x, y, np.ones_like(x) if flat is None else flat, smooth_degree)
     q, _ = np.linalg.qr(S)
     rough = G - q @ (q.T @ G)
+    import scipy.linalg
+
     values, vectors = scipy.linalg.eigh(rough.T @ rough, G.T @ G)
     if values[1] < 100 * max(values[0], 1e-300):
         raise FringeError("cannot separate the fringe from the mean level: the pixel factors have no "

@@ -29,16 +29,18 @@ import secrets
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, NamedTuple
+from typing import TYPE_CHECKING, Iterator, NamedTuple
 
 import numpy as np
-import xarray as xr
-from astropy.io import fits
-from astropy.utils.exceptions import AstropyUserWarning
 
 import dice_core
-from dice_core import DatasetError, products
+from dice_core import DatasetError, lazy, products
 from dice_core.manifest import Acquisition, Detector
+
+xr = lazy.module("xarray")
+
+if TYPE_CHECKING:
+    from astropy.io import fits
 
 __all__ = [
     "Chunk",
@@ -147,6 +149,9 @@ def open_cube(path, detector: Detector | None = None) -> CubeFile:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(path, "file not found")
+    from astropy.io import fits  # here: a step that reads no cube does not pay for astropy (dice_core.lazy)
+    from astropy.utils.exceptions import AstropyUserWarning
+
     try:
         # astropy's own truncation warning is superseded by the error raised below
         with warnings.catch_warnings():
@@ -580,6 +585,8 @@ def write_cube(path, chunks, *, shape, n_frames, dtype="uint16", header=None):
     header : dict, optional
         Extra header keywords (e.g. EXPTIME, FRAMERAT, DATE-OBS).
     """
+    from astropy.io import fits
+
     path = Path(path)
     hdr = fits.Header()
     hdr["SIMPLE"] = True

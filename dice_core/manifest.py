@@ -22,11 +22,12 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-import jsonschema
 import numpy as np
 import yaml
 
-from dice_core import DatasetError, yamlfile
+from dice_core import DatasetError, lazy, yamlfile
+
+jsonschema = lazy.module("jsonschema")  # used when a manifest is checked
 
 __all__ = [
     "Acquisition",

@@ -57,12 +57,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import xarray as xr
 
+from dice_core import lazy
 from dice_core.detector import _kernel, _quadrature, hyper_gaussian_std
 from dice_core.fringes import frame_moments
 from dice_core.parallel import one_blas_thread
 from dice_core.polynomials import polynomial_design
+
+xr = lazy.module("xarray")
 
 __all__ = [
     "PrfShape",

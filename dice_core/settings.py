@@ -23,10 +23,12 @@ import difflib
 import re
 from pathlib import Path
 
-import jsonschema
 import yaml
 
+from dice_core import lazy
 from dice_core.overrides import NUMBER
+
+jsonschema = lazy.module("jsonschema")  # used when a configuration is checked
 
 __all__ = ["choices", "config_schema", "problems", "typed", "with_defaults", "checked", "SettingsError", "select",
            "leaf_keys", "get"]

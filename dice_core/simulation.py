@@ -43,11 +43,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import xarray as xr
 import yaml
-from scipy.ndimage import gaussian_filter
 
-from dice_core import DatasetError, stray_light, yamlfile
+from dice_core import DatasetError, lazy, stray_light, yamlfile
 from dice_core.detector import PixelResponse
 from dice_core.geometry import affine_basis as geometry_affine
 from dice_core.geometry import two_source_phase
@@ -55,6 +53,8 @@ from dice_core.io import write_cube, write_product, write_text
 from dice_core.polynomials import polynomial_design
 from dice_core.manifest import FORMAT
 from dice_core.overrides import apply_dotted, typed_value
+
+xr = lazy.module("xarray")
 
 __all__ = [
     "SimulationConfig",
@@ -976,6 +976,8 @@ def _laser_response(cfg: SimulationConfig) -> tuple[np.ndarray, np.ndarray]:
     names = list(metrology_baselines(cfg))
     speckle = np.ones((len(names), *d.shape))
     if m.speckle_rms:
+        from scipy.ndimage import gaussian_filter
+
         for i, name in enumerate(names):
             grains = gaussian_filter(_rng(cfg, "speckle", name).standard_normal(d.shape), m.speckle_grain,
                                      mode="wrap")

@@ -12,7 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import xarray as xr
+
+from dice_core import lazy
+
+xr = lazy.module("xarray")
 
 __all__ = ["PositionStack", "batch_edges", "stack_position"]
 

@@ -28,13 +28,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-import xarray as xr
 
-from dice_core import centroids, fringe_fit, geometry, simulation
+from dice_core import centroids, fringe_fit, geometry, lazy, simulation
 from dice_core.io import FrameStream, read_product
 from dice_core.manifest import load_manifest
 from dice_core.overrides import apply_dotted
 from dice_core.paper_method import fit_baseline_paper
+
+xr = lazy.module("xarray")
 
 __all__ = ["OFFSET_BIAS_BENCH", "STAR_ACCURACY_BENCH", "TIP_TILT_BENCH", "STRAY_LIGHT_BENCH", "STRAY_LIGHT_VANES",
            "CHROMATIC_BENCH", "CALIBRATION_WAVELENGTHS", "CHROMATIC_MODES", "STUDIES", "star_accuracy", "tip_tilt",

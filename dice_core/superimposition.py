@@ -35,7 +35,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from dice_core.parallel import one_blas_thread
 
@@ -306,6 +305,8 @@ def _dense_procrustes(c, mean, params):
     def jacobian(x):
         return np.vstack([_jacobian(*unpack(x)), gauge])
 
+    from scipy.optimize import least_squares
+
     fit = least_squares(residual, x0, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
                         max_nfev=200 * x0.size)
     return unpack(fit.x)
@@ -538,6 +539,8 @@ def projective(configurations) -> ProjectiveResult:
     def jacobian(x):
         p, h = unpack(x)
         return _homography_jacobian(p, h, free)[1]
+
+    from scipy.optimize import least_squares
 
     fit = least_squares(residual, x0, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
                         x_scale="jac", max_nfev=100 * x0.size)
@@ -786,6 +789,8 @@ def pose(configurations, *, geometry: PoseGeometry = PoseGeometry(), max_evaluat
 
     def jacobian(x):
         return np.vstack([pose_project(*unpack(x), geometry, jacobian=True)[1], weight[:, None] * gauge])
+
+    from scipy.optimize import least_squares
 
     fit = least_squares(residual, x0, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
                         x_scale="jac", max_nfev=max_evaluations or 200 * x0.size)

@@ -1,6 +1,8 @@
 """Centroids against truth: the Gaussian fit, Fourier resampling, the pixel-offset correction, the
 Cramer-Rao bound, and the reference implementations (scikit-image, photutils, astropy)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from astropy.modeling import fitting, models
@@ -602,3 +604,51 @@ def test_a_pixel_zero_in_every_frame_and_the_dark_is_named(star_dataset, method)
         centroids.measure_positions(stacks_of(manifest, chunks_of=zero_pixel), [p.index for p in manifest.positions],
                                     approx=manifest.star_approx, detector=manifest.detector, dark=dark,
                                     read_noise=read_noise, method=method)
+
+
+REFERENCE = Path(__file__).parent / "data" / "centroids_9f68a43.npz"
+REFERENCE_CASES = [(method, mode) for method in centroids.METHODS for mode in ("raw", "flat+metrology+width")]
+
+
+def reference_products(module, manifest, truth, stacks):
+    """Every product of :func:`measure_positions` of ``module`` (today's, or the one at a revision) on the noisy
+    stars, for both methods, without and with every correction: {"method:mode:field": array}."""
+    variance_x, variance_y = measurable_variances(truth)
+    out = {}
+    for method, mode in REFERENCE_CASES:
+        corrected = mode != "raw"
+        result = module.measure_positions(
+            stacks, [p.index for p in manifest.positions], approx=manifest.star_approx, detector=manifest.detector,
+            dark=truth["bias"].values, read_noise=truth["read_noise"].values,
+            prnu=truth["sensitivity"].values if corrected else None, dx=truth["dx"].values if corrected else None,
+            dy=truth["dy"].values if corrected else None, variance_x=variance_x if corrected else None,
+            variance_y=variance_y if corrected else None, method=method)
+        for field in ("x", "y", "precision_x", "precision_y", "limit_x", "limit_y"):
+            out[f"{method}:{mode}:{field}"] = getattr(result, field)
+    return out
+
+
+def test_products_are_those_of_the_code_before_its_speed_up_within_1e_3_of_the_bound(noisy_stars):
+    """The windows located together (batched FFTs, Newton and Levenberg-Marquardt iterations) give what the code
+    at 9f68a43 gave, one window at a time (tests/data/centroids_9f68a43.npz, made by running this file as a
+    script in a checkout of that revision), to 1e-3 of the Cramer-Rao bound: noisy stars, both methods, raw and
+    corrected for flat, offsets and PRF widths."""
+    manifest, truth, st = noisy_stars
+    reference = np.load(REFERENCE)
+    today = reference_products(centroids, manifest, truth, st)
+    assert sorted(today) == sorted(reference.files)
+    for key, values in today.items():
+        bound = reference[key.rsplit(":", 1)[0] + f":limit_{key[-1]}"]
+        assert np.isfinite(reference[key]).all()
+        assert np.abs(values - reference[key]).max() < 1e-3 * bound.min(), key
+    # what the tolerance allows is far below the bound, and the products are not all equal to begin with
+    assert not np.array_equal(today["fourier:raw:x"], today["gaussian:raw:x"])
+
+
+if __name__ == "__main__":  # the reference, with this checkout's dice_core: python tests/test_centroids.py OUT.npz
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as folder:
+        manifest, truth = simulate_noisy_stars(Path(folder), prf_width_spread=0.01)
+        np.savez(sys.argv[1], **reference_products(centroids, manifest, truth, stacks_of(manifest, n_batches=4)))
