@@ -131,6 +131,7 @@ def metrology_figure(ds, detector, *, title):
                       f"(drawn shifted by {'+' if sign > 0 else '-'}{shift:g}e{exponent} rad/pixel, dashed)")
         ax.axhline(sign * shift, color=colour, lw=0.6, ls="--")
     ax.set_xlabel("frame")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(nbins=5, integer=True))  # 200000 frames: labels apart
     ax.set_ylabel(f"K(t) - mean [1e{exponent} rad/pixel]" if exponent else "K(t) - mean [rad/pixel]")
     ax.set_title("wavevector fitted per frame (pass 1)", fontsize=9)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14))  # under the axes: the curves fill them
@@ -138,9 +139,10 @@ def metrology_figure(ds, detector, *, title):
     ax.plot(frame, ds["level"].values, lw=0.4, label="B(t), mean level")
     ax.plot(frame, ds["amplitude"].values, lw=0.4, label="A(t), amplitude")
     ax.set_xlabel("frame")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(nbins=5, integer=True))
     ax.set_ylabel("adu")
     ax.set_title("fringe level and amplitude", fontsize=9)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="center right")  # between B and A; "best" searches 200,000 frames' points slowly
     ax = axes[1, 1]
     iteration = ds["iteration"].values
     floor = float(ds["photon_noise_floor_rms"])
@@ -248,7 +250,12 @@ def _gauge_answer(ds) -> str:
     chance = 1.0 / (1.0 + ratio**2)
     verdict = "yes, within noise" if chance >= GAUGE_CHANCE else "no, beyond noise"
     return (f"do the two gauges agree? {verdict}: the difference is\n{ratio:.2g} x its noise floor, "
-            f"which noise alone exceeds {100 * chance:.0f}% of the time")
+            f"which noise alone exceeds {_how_often(chance)}")
+
+
+def _how_often(chance) -> str:
+    """A probability in words a reader compares at a glance: '30% of the time', or '1 time in 21' below 10%."""
+    return f"{100 * chance:.0f}% of the time" if chance >= 0.1 else f"1 time in {1 / chance:.0f}"
 
 
 def allan_figure(ds, *, title):
