@@ -995,14 +995,40 @@ def reproduction_pdf(path, pages, *, title: str, summary_lines=()):
     return path
 
 
+def stripe_ratios(image, detector):
+    """Whether a map is striped, as two numbers: the variance of its row means, and of its column means, over
+    the science area, each over what independent pixels of the map's own scatter give (the variance over the
+    pixels in a row, or a column). About 1 without stripes; rows or columns that share an offset make it
+    grow with their length (NaN pixels left out)."""
+    shown = np.asarray(image, float)[detector.science_slices]
+    shown = shown - np.nanmean(shown)
+    total = np.nanvar(shown)
+    ratios = []
+    for axis in (1, 0):  # row means (over the columns), then column means (over the rows)
+        counts = np.sum(np.isfinite(shown), axis=axis)
+        keep = counts > 1
+        means = np.nansum(shown, axis=axis)[keep] / counts[keep]
+        ratios.append(float(np.var(means) / np.mean(total / counts[keep])) if keep.sum() > 1 and total > 0
+                      else float("nan"))
+    return tuple(ratios)
+
+
+def _stripes_line(image, detector):
+    """A map title's line that measures its stripes (:func:`stripe_ratios`): what the eye reads as rows or
+    columns is then a number, 1 for none."""
+    rows, cols = stripe_ratios(image, detector)
+    return f"stripes: row-mean ratio {rows:.2f}, column-mean ratio {cols:.2f} (1: none)"
+
+
 def prf_widths_figure(ds, detector, *, title="PRF widths from the fringe contrast"):
     """Width maps (relative to their mean width) and their 1-sigma pixel-scale errors along x and y.
 
     ``ds`` is a ``calibration/prf.nc`` dataset; top row: width - mean_width in
     1e-3 pixel, the mean with its error in the title; bottom row:
     error_width_pixel (photon noise and the kernel shape's uncertainty in the
-    deviations' scale) in 1e-3 pixel. A direction without a baseline stays
-    blank.
+    deviations' scale) in 1e-3 pixel, with its median. Each map's title
+    measures its row and column stripes (:func:`stripe_ratios`). A direction
+    without a baseline stays blank.
     """
     fig, axes = plt.subplots(2, 2, figsize=(11.2, 9.2), constrained_layout=True)
     for j, axis in enumerate("xy"):
@@ -1014,9 +1040,10 @@ def prf_widths_figure(ds, detector, *, title="PRF widths from the fringe contras
         err = float(np.nanmedian(shown)) if np.isfinite(shown).any() else float("nan")
         _show_map(axes[0, j], fig, width - mean, detector, scale=1e3, units="width - mean [1e-3 pixel]",
                   symmetric=True, title=f"width along {axis} minus its mean ({mean:.4f} pixel +- {mean_error:.4f} pixel); "
-                                        f"rms {spread:.2e} pixel")
+                                        f"rms {spread:.2e} pixel\n{_stripes_line(width, detector)}")
         _show_map(axes[1, j], fig, error, detector, scale=1e3, units="1-sigma error [1e-3 pixel]", symmetric=False,
-                  title=f"its error (photon noise, kernel shape), mean aside: median {err:.2e} pixel")
+                  title=f"its error (photon noise, kernel shape), mean aside: median {err:.2e} pixel\n"
+                        f"{_stripes_line(error, detector)}")
     chi2 = float(ds["chi2"])
     fig.suptitle(f"{title} ({', '.join(map(str, ds['baseline'].values))}; chi2/dof between baselines "
                  f"{chi2:.2f})", fontsize=11)

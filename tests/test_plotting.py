@@ -911,3 +911,25 @@ def test_every_map_says_it_shows_the_science_area_alone(rng):
             assert "science area only" in ax.get_xlabel(), (name, ax.get_title())
         assert hidden_entries(fig) == [], name
         plotting.save(fig, None)
+
+
+def test_stripe_ratios_measure_rows_and_columns_that_share_an_offset(rng):
+    """Independent pixels: both ratios near 1; an offset per row of 0.5 sigma over 60 columns: the row ratio
+    near 1 + 60 / 4, the columns' still near 1; the PRF figure's titles carry the two numbers."""
+    detector = Detector(shape=(64, 64), science_rows=(2, 62), science_cols=(2, 62), gain=2.5, saturation=6e4)
+    noise = rng.standard_normal((64, 64))
+    rows, cols = plotting.stripe_ratios(noise, detector)
+    assert 0.5 < rows < 1.6 and 0.5 < cols < 1.6
+    striped = noise + 0.5 * rng.standard_normal((64, 1))
+    rows, cols = plotting.stripe_ratios(striped, detector)
+    assert rows > 8 and 0.5 < cols < 1.6
+    rows, cols = plotting.stripe_ratios(striped.T, detector)
+    assert cols > 8 and 0.5 < rows < 1.6
+    _, small = metrology_product(rng)
+    ds = prf_product(rng, small)
+    fig = plotting.prf_widths_figure(ds, small)
+    for ax, name in zip(fig.axes[:4], ("width_x", "width_y", "error_width_pixel_x", "error_width_pixel_y")):
+        rows, cols = plotting.stripe_ratios(ds[name].values, small)
+        assert f"row-mean ratio {rows:.2f}, column-mean ratio {cols:.2f}" in ax.get_title()
+    assert texts_outside(fig) == []
+    plotting.save(fig, None)
