@@ -103,10 +103,14 @@ def metrology_figure(ds, detector, *, title):
     """Summary of one baseline's fringe solution (a ``metrology/<baseline>.nc`` dataset).
 
     Panels: projected offsets (1e-3 pixel); per-frame wavevector minus its
-    mean (rad/pixel); B(t) and A(t) (adu); convergence (offset change per pass).
+    mean (rad/pixel), kx shifted up and ky down so that neither hides the
+    other; B(t) and A(t) (adu); convergence (offset change per pass) against
+    the offsets' photon floor, the last change over that floor in the title.
     With a flat, a row for the gauge diagnostic: the flat gauge's offsets
-    minus the PRNU-free gauge's (1e-3 pixel), and the rms of that difference
-    against its noise floor and the offsets' photon floor. With spherical
+    minus the PRNU-free gauge's (1e-3 pixel; a first harmonic of the fringe
+    phase, hence its stripes), and the rms of that difference against its
+    noise floor and the offsets' photon floor, the title answering whether
+    the gauges agree (:func:`_gauge_answer`). With spherical
     waves, a row with what a plane-wave fit would have put into the offsets
     (1e-3 pixel), and each tip coordinate's refinement from its nominal value
     with its 1-sigma error (mm).
@@ -152,7 +156,7 @@ def metrology_figure(ds, detector, *, title):
     ax.semilogy([iteration.min() - 0.5, iteration.max() + 0.5], [floor] * 2, color="0.4", ls="--",
                 label="the offsets' photon floor (rms)")
     last = float(ds["max_change"].values[-1])
-    for name, marker in (("max_change", "o"), ("rms_change", "s")):
+    for name in ("max_change", "rms_change"):
         value = float(ds[name].values[-1])
         ax.annotate(f"{value:.1e} pixel", (iteration[-1], value), textcoords="offset points", xytext=(8, 0),
                     va="center", fontsize=8)
@@ -264,7 +268,8 @@ def allan_figure(ds, *, title):
     Sample pixels (thin green) where their deviation is over at least
     ``MIN_GROUPS_PIXEL`` groups, their rms (black) and the rms of 10x10-pixel
     blocks (blue), each group fitted as a whole, with 1-sigma error bars from
-    the number of groups and of pixels (blocks) averaged; the pixels' rms with
+    the number of groups K and of pixels (blocks) M averaged, the rms of M
+    independent deviations over K groups, 1 / sqrt(2 (K - 1) M) relative; the pixels' rms with
     groups as means of their batch fits, the paper's way (grey, with its
     limit); white noise of matched single-batch scatter (dotted); the
     photon-noise limits from the fits' own errors (dashed: the batches' and
