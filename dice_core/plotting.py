@@ -171,7 +171,7 @@ def metrology_figure(ds, detector, *, title):
     ax.set_ylabel("offset change from previous pass [pixel]")
     ax.set_title(f"convergence: {iteration.max()} passes; the last moved the offsets\nby at most "
                  f"{last / floor:.1e} x their photon floor", fontsize=9)
-    ax.legend(fontsize=8, loc="center left")
+    ax.legend(fontsize=8)  # "best": a few points, quickly placed off them
     row = 2
     if gauges:
         difference = offsets - ds["projected_offset_prnu_free_gauge"].values
