@@ -77,10 +77,16 @@ def _show_map(ax, fig, image, detector, *, title, units, scale, symmetric, clip_
     # extent in pixel-centre coordinates: x = col, y = row, origin at the bottom like the paper's maps
     im = ax.imshow(shown, origin="lower", extent=extent, vmin=lo, vmax=hi, interpolation="nearest",
                    cmap=cmap or ("RdBu_r" if symmetric else "viridis"))
-    ax.set_xlabel("column x [pixel]")
+    ax.set_xlabel("column x [pixel]\n" + _science_note(detector.shape, rows, cols), fontsize=9)
     ax.set_ylabel("row y [pixel]")
     ax.set_title(title, fontsize=9)
     fig.colorbar(im, ax=ax, shrink=0.85).set_label(units)
+
+
+def _science_note(shape, rows, cols):
+    """The line under a map saying that it shows the science area alone, and where that lies on the detector:
+    ``rows``, ``cols`` are (first, end) as the manifest gives them, ``shape`` (rows, cols)."""
+    return f"science area only: rows {rows[0]}-{rows[1] - 1}, cols {cols[0]}-{cols[1] - 1} of {shape[0]}x{shape[1]}"
 
 
 def maps_figure(images, detector, *, titles, units, scale=1.0, suptitle=None):
@@ -97,10 +103,14 @@ def metrology_figure(ds, detector, *, title):
     """Summary of one baseline's fringe solution (a ``metrology/<baseline>.nc`` dataset).
 
     Panels: projected offsets (1e-3 pixel); per-frame wavevector minus its
-    mean (rad/pixel); B(t) and A(t) (adu); convergence (offset change per pass).
+    mean (rad/pixel), kx shifted up and ky down so that neither hides the
+    other; B(t) and A(t) (adu); convergence (offset change per pass) against
+    the offsets' photon floor, the last change over that floor in the title.
     With a flat, a row for the gauge diagnostic: the flat gauge's offsets
-    minus the PRNU-free gauge's (1e-3 pixel), and the rms of that difference
-    against its noise floor and the offsets' photon floor. With spherical
+    minus the PRNU-free gauge's (1e-3 pixel; a first harmonic of the fringe
+    phase, hence its stripes), and the rms of that difference against its
+    noise floor and the offsets' photon floor, the title answering whether
+    the gauges agree (:func:`_gauge_answer`). With spherical
     waves, a row with what a plane-wave fit would have put into the offsets
     (1e-3 pixel), and each tip coordinate's refinement from its nominal value
     with its 1-sigma error (mm).
@@ -117,11 +127,15 @@ def metrology_figure(ds, detector, *, title):
     ax = axes[0, 1]
     spread = max(np.nanmax(np.abs(ds[name].values - ds[name].values.mean())) for name in ("kx_frame", "ky_frame"))
     exponent = int(np.floor(np.log10(spread))) if np.isfinite(spread) and spread > 0 else 0
-    for name, colour in (("kx_frame", "C0"), ("ky_frame", "C1")):
+    shift = float(np.ceil(1.05 * spread / 10.0**exponent))  # kx above, ky below: drawn apart, not one on the other
+    for name, colour, sign in (("kx_frame", "C0", 1), ("ky_frame", "C1", -1)):
         values = ds[name].values
-        ax.plot(frame, (values - values.mean()) / 10.0**exponent, lw=0.4, color=colour,
-                label=f"{name[:2]}: mean {values.mean():.6f} rad/pixel, rms {values.std():.1e} rad/pixel")
+        ax.plot(frame, (values - values.mean()) / 10.0**exponent + sign * shift, lw=0.4, color=colour,
+                label=f"{name[:2]}: mean {values.mean():.6f} rad/pixel, rms {values.std():.1e} rad/pixel\n"
+                      f"(drawn shifted by {'+' if sign > 0 else '-'}{shift:g}e{exponent} rad/pixel, dashed)")
+        ax.axhline(sign * shift, color=colour, lw=0.6, ls="--")
     ax.set_xlabel("frame")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(nbins=5, integer=True))  # 200000 frames: labels apart
     ax.set_ylabel(f"K(t) - mean [1e{exponent} rad/pixel]" if exponent else "K(t) - mean [rad/pixel]")
     ax.set_title("wavevector fitted per frame (pass 1)", fontsize=9)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.14))  # under the axes: the curves fill them
@@ -129,14 +143,24 @@ def metrology_figure(ds, detector, *, title):
     ax.plot(frame, ds["level"].values, lw=0.4, label="B(t), mean level")
     ax.plot(frame, ds["amplitude"].values, lw=0.4, label="A(t), amplitude")
     ax.set_xlabel("frame")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(nbins=5, integer=True))
     ax.set_ylabel("adu")
     ax.set_title("fringe level and amplitude", fontsize=9)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="center right")  # between B and A; "best" searches 200,000 frames' points slowly
     ax = axes[1, 1]
     iteration = ds["iteration"].values
+    floor = float(ds["photon_noise_floor_rms"])
     ax.semilogy(iteration, ds["max_change"].values, "o-", label="largest change")
     ax.semilogy(iteration, ds["rms_change"].values, "s-", label="rms change")
-    changes = np.concatenate([ds["max_change"].values, ds["rms_change"].values])
+    # what a change is measured against: the photon floor of the offsets, drawn across the passes
+    ax.semilogy([iteration.min() - 0.5, iteration.max() + 0.5], [floor] * 2, color="0.4", ls="--",
+                label="the offsets' photon floor (rms)")
+    last = float(ds["max_change"].values[-1])
+    for name in ("max_change", "rms_change"):
+        value = float(ds[name].values[-1])
+        ax.annotate(f"{value:.1e} pixel", (iteration[-1], value), textcoords="offset points", xytext=(8, 0),
+                    va="center", fontsize=8)
+    changes = np.concatenate([ds["max_change"].values, ds["rms_change"].values, [floor]])
     changes = changes[np.isfinite(changes) & (changes > 0)]
     if changes.size:  # whole decades, each labelled: every point between two labelled ticks
         ax.set_ylim(10.0 ** np.floor(np.log10(changes.min() * 0.999)), 10.0 ** np.ceil(np.log10(changes.max() * 1.001)))
@@ -145,13 +169,15 @@ def metrology_figure(ds, detector, *, title):
     _integer_ticks(ax.xaxis)
     ax.set_xlim(iteration.min() - 0.5, iteration.max() + 0.5)
     ax.set_ylabel("offset change from previous pass [pixel]")
-    ax.set_title(f"convergence: {iteration.max()} passes", fontsize=9)
-    ax.legend(fontsize=8)
+    ax.set_title(f"convergence: {iteration.max()} passes; the last moved the offsets\nby at most "
+                 f"{last / floor:.1e} x their photon floor", fontsize=9)
+    ax.legend(fontsize=8)  # "best": a few points, quickly placed off them
     row = 2
     if gauges:
         difference = offsets - ds["projected_offset_prnu_free_gauge"].values
         _show_map(axes[row, 0], fig, difference, detector, scale=1e3, symmetric=True, units="offset [1e-3 pixel]",
-                  title="flat gauge minus PRNU-free gauge")
+                  title="flat gauge minus PRNU-free gauge: stripes along the fringes,\nas a gauge's error is a "
+                        "first harmonic of the fringe phase K.r (a boost)")
         ax = axes[row, 1]
         bars = {"gauge\ndifference": float(ds["gauge_difference_rms"])}  # two lines: labels apart
         if "gauge_difference_floor" in ds:
@@ -164,10 +190,8 @@ def metrology_figure(ds, detector, *, title):
         ax.set_xticks(range(len(bars)), list(bars))
         ax.set_xlim(-0.5, len(bars) - 0.1)  # room for the last point's label
         ax.set_ylabel("rms [pixel]")
-        ax.set_title("do the two gauges agree?", fontsize=9)
-        ax.set_ylim(min(bars.values()) / 2, max(bars.values()) * 3)  # room for the points' labels and the note
-        ax.text(0.02, 0.95, "noise alone exceeds 3x its floor 1 time in 10, 5x 1 time in 26",
-                transform=ax.transAxes, fontsize=7, color="0.3", va="top")
+        ax.set_title(_gauge_answer(ds), fontsize=9)
+        ax.set_ylim(min(bars.values()) / 2, max(bars.values()) * 3)  # room for the points' labels
         row += 1
     if spherical:
         departure = ds["plane_wave_departure"].values
@@ -187,50 +211,124 @@ def metrology_figure(ds, detector, *, title):
     return fig
 
 
+#: Fewest groups a single pixel's deviation is drawn from: over K groups it is uncertain by 1/sqrt(2 (K - 1)),
+#: 35% at 5; over fewer, one pixel's curve is noise that reaches far below every limit.
+MIN_GROUPS_PIXEL = 5
+
+#: Curves closer than this ratio at every point are drawn once, their legend entries merged: on a log axis
+#: spanning several decades 3% is under a line's width, so the later curve would hide under the earlier.
+COINCIDENT = 1.03
+
+
+def _coincides(a, b, tolerance=COINCIDENT):
+    """Whether two positive curves agree within the ratio ``tolerance`` wherever both are finite."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    both = np.isfinite(a) & np.isfinite(b) & (a > 0) & (b > 0)
+    return bool(both.any() and a.shape == b.shape and np.all(np.abs(np.log(a[both] / b[both])) < np.log(tolerance)))
+
+
+def _plot_distinct(ax, x, curves):
+    """Draw ``curves`` ((y, label, keywords) in order of priority) on log-log ``ax``, each curve that coincides
+    with one drawn before it (:func:`_coincides`) not drawn but named in that one's legend entry."""
+    drawn = []
+    for y, label, keywords in curves:
+        same = next((line for line in drawn if _coincides(line.get_ydata(), y)), None)
+        if same is None:
+            drawn.append(ax.loglog(x, y, label=label, **keywords)[0])
+        else:
+            same.set_label(f"{same.get_label()}\n   = {label} (within {100 * (COINCIDENT - 1):.0f}%)")
+    return drawn
+
+
+#: Chance below which pure noise is said not to make a gauge difference that large (the metrology figure).
+GAUGE_CHANCE = 0.05
+
+
+def _gauge_answer(ds) -> str:
+    """The gauge panel's title: whether the two gauges agree, as the difference over its noise floor and the
+    chance that noise alone gives that much. The difference is a boost, two numbers, so its ratio r to the
+    floor scatters like sqrt(F(2, 2)), whose tail is P(ratio > r) = 1 / (1 + r^2) (docs/metrology.md)."""
+    if "gauge_difference_floor" not in ds:
+        return "do the two gauges agree? (no noise floor: the frames are one file)"
+    ratio = float(ds["gauge_difference_rms"]) / float(ds["gauge_difference_floor"])
+    chance = 1.0 / (1.0 + ratio**2)
+    verdict = "yes, within noise" if chance >= GAUGE_CHANCE else "no, beyond noise"
+    return (f"do the two gauges agree? {verdict}: the difference is\n{ratio:.2g} x its noise floor, "
+            f"which noise alone exceeds {_how_often(chance)}")
+
+
+def _how_often(chance) -> str:
+    """A probability in words a reader compares at a glance: '30% of the time', or '1 time in 21' below 10%."""
+    return f"{100 * chance:.0f}% of the time" if chance >= 0.1 else f"1 time in {1 / chance:.0f}"
+
+
 def allan_figure(ds, *, title):
     """The paper's Allan figure from an ``allan/<baseline>.nc`` dataset, log-log against frames per group.
 
-    Sample pixels (thin green), their rms (black) and the rms of 10x10-pixel
-    blocks (blue), each group fitted as a whole; the pixels' rms with groups
-    as means of their batch fits, the paper's way (grey, with its limit); white
-    noise of matched single-batch scatter (dotted); the photon-noise limits
-    from the fits' own errors (dashed: the batches' and groups' own floors)
-    and the paper's formula (dash-dotted); where the product holds
-    ``photon_limit_pixel_global``, the global solution's floor scaled to each
-    group (thin grey line); and, where it holds
+    Sample pixels (thin green) where their deviation is over at least
+    ``MIN_GROUPS_PIXEL`` groups, their rms (black) and the rms of 10x10-pixel
+    blocks (blue), each group fitted as a whole, with 1-sigma error bars from
+    the number of groups K and of pixels (blocks) M averaged, the rms of M
+    independent deviations over K groups, 1 / sqrt(2 (K - 1) M) relative; the pixels' rms with
+    groups as means of their batch fits, the paper's way (grey, with its
+    limit); white noise of matched single-batch scatter (dotted); the
+    photon-noise limits from the fits' own errors (dashed: the batches' and
+    groups' own floors) and the paper's formula (dash-dotted); where the
+    product holds ``photon_limit_pixel_global``, the global solution's floor
+    scaled to each group (thin grey line); and, where it holds
     ``photon_limit_pixel_first_frame``, the paper's red line: the pixels'
     limit from the noise measured on the first frame
-    (:func:`dice_core.allan.first_frame_limit`).
+    (:func:`dice_core.allan.first_frame_limit`). Curves that coincide within
+    3% are drawn once with one legend entry naming them all.
     """
     fig, ax = plt.subplots(figsize=(8, 7.5), layout="constrained")
     n = ds["n_frames"].values
-    ax.loglog(n, ds["sample_deviation"].values, color="tab:green", lw=0.5, alpha=0.5)
-    ax.loglog([], [], color="tab:green", lw=0.5, label=f"{ds.sizes['sample']} individual pixels")
+    groups = ds["n_groups"].values if "n_groups" in ds else np.full(n.shape, np.inf)
+    few = groups < MIN_GROUPS_PIXEL
+    samples = np.where(few[:, None], np.nan, ds["sample_deviation"].values)
+    pixel_lines = ax.loglog(n, samples, color="tab:green", lw=0.5, alpha=0.5,  # one size: a point, no line
+                            marker="." if (~few).sum() < 2 else None, ms=3)
+    if pixel_lines:  # one entry for all: the first pixel's curve stands for them
+        pixel_lines[0].set_label(f"{ds.sizes['sample']} individual pixels (where {MIN_GROUPS_PIXEL} groups or more)")
+    if few.any() and not few.all():  # where one pixel's curve is noise: said on the figure, not left to guess
+        ax.axvspan(np.sqrt(n[~few].max() * n[few].min()), n.max() * 1.05, color="0.5", alpha=0.1, lw=0,
+                   label=f"fewer than {MIN_GROUPS_PIXEL} groups: single pixels not drawn")
     block = int(ds.attrs.get("block_size", 10))
-    curves = (("pixel", "deviation_mean", "white_deviation_mean", "black", f"pixels, rms (slope "
-               f"{float(ds['slope']):.2f})"),
-              ("block", "deviation_block_mean", "white_deviation_block_mean", "tab:blue",
-               f"{block}x{block} blocks, rms"))
-    if "deviation_mean_batch_means" in ds:
-        ax.loglog(n, ds["deviation_mean_batch_means"].values, color="0.55", lw=1.6,
-                  label=f"pixels, groups as means of batch fits (slope {float(ds['slope_batch_means']):.2f})")
-        ax.loglog(n, ds["photon_limit_pixel_batch_means"].values, color="0.55", ls="--", lw=0.8,
-                  label="its photon limit")
-    for kind, measured, white, colour, label in curves:
-        ax.loglog(n, ds[measured].values, color=colour, lw=2, label=label)
-        ax.loglog(n, ds[white].values, color=colour, ls=":", lw=1.2,
-                  label=f"white noise of the single-batch scatter, {kind}s")
-        ax.loglog(n, ds[f"photon_limit_{kind}"].values, color=colour, ls="--", lw=1, label=f"photon limit, {kind}s")
-        ax.loglog(n, ds[f"photon_limit_{kind}_paper"].values, color=colour, ls="-.", lw=0.8, alpha=0.7,
-                  label=f"paper's photon limit, {kind}s")
-    if "photon_limit_pixel_global" in ds:
-        ax.loglog(n, ds["photon_limit_pixel_global"].values, color="0.3", lw=0.8, zorder=1.4,
-                  label="global solution's floor scaled to the group, pixels")
-    if "photon_limit_pixel_first_frame" in ds:
+    pixels = int(np.isfinite(ds["deviation"].values[0]).sum()) if "deviation" in ds else 0
+    counts = {"pixel": pixels, "block": pixels // block**2}
+    curves = []
+    if "photon_limit_pixel_first_frame" in ds:  # first: the limits it nearly equals merge into its red entry
         noise = f", {float(ds['first_frame_noise']):.3g} adu rms" if "first_frame_noise" in ds else ""
-        # under the other curves (zorder), so that the paper's dash-dotted limit it nearly equals shows on it
-        ax.loglog(n, ds["photon_limit_pixel_first_frame"].values, color="red", lw=1.4, zorder=1.5,
-                  gid="first frame", label=f"measured photon limit (first frame{noise}), pixels")
+        curves.append((ds["photon_limit_pixel_first_frame"].values,
+                       f"measured photon limit (first frame{noise}), pixels", dict(color="red", lw=1.2, gid="first frame")))
+    measured = []
+    for kind, colour, label in (("pixel", "black", f"pixels, rms (slope {float(ds['slope']):.2f})"),
+                                ("block", "tab:blue", f"{block}x{block} blocks, rms")):
+        values = ds["deviation_mean" if kind == "pixel" else "deviation_block_mean"].values
+        error = values / np.sqrt(2 * np.maximum(groups - 1, 1) * max(counts[kind], 1))
+        # markers and a thin line: a limit it meets, drawn over it, stays visible
+        measured.append(ax.errorbar(n, values, yerr=error if counts[kind] else None, fmt="o-", ms=4, color=colour,
+                                    lw=1.2, capsize=2, zorder=2,
+                                    label=label + (f", 1-sigma from the groups and {kind}s" if counts[kind] else "")))
+        curves += [(ds[f"white_deviation_{'mean' if kind == 'pixel' else 'block_mean'}"].values,
+                    f"white noise of the single-batch scatter, {kind}s", dict(color=colour, ls=":", lw=1.2)),
+                   (ds[f"photon_limit_{kind}"].values, f"photon limit, {kind}s", dict(color=colour, ls="--", lw=1)),
+                   (ds[f"photon_limit_{kind}_paper"].values, f"paper's photon limit, {kind}s",
+                    dict(color=colour, ls="-.", lw=0.8, alpha=0.7))]
+    if "deviation_mean_batch_means" in ds:
+        batch_means = ds["deviation_mean_batch_means"].values
+        label = f"pixels, groups as means of batch fits (slope {float(ds['slope_batch_means']):.2f})"
+        if _coincides(batch_means, ds["deviation_mean"].values):  # the paper's way gives ours: one curve
+            measured[0].set_label(f"{measured[0].get_label()}\n   = {label} (within {100 * (COINCIDENT - 1):.0f}%)")
+        else:
+            ax.loglog(n, batch_means, "s-", ms=3, color="0.55", lw=1.2, zorder=2, label=label)
+        curves.append((ds["photon_limit_pixel_batch_means"].values, "the batch means' photon limit",
+                       dict(color="0.55", ls="--", lw=0.8)))
+    if "photon_limit_pixel_global" in ds:
+        curves.append((ds["photon_limit_pixel_global"].values, "global solution's floor scaled to the group, pixels",
+                       dict(color="0.3", lw=0.8)))
+    for line in _plot_distinct(ax, n, curves):
+        line.set_zorder(2.5)  # the limits over the measured curves' markers
     ax.set_xlabel("frames per group")
     # plain numbers (30, 40, 100) instead of 3x10^1, and minor ticks labelled too where the axis spans few
     # decades (the group sizes often span 1-2: one power of ten alone would be the only label)
@@ -297,13 +395,21 @@ def centroids_figure(ds, *, title, positions=None):
     finite = windows[np.isfinite(windows)]
     low, high = (finite.min(), finite.max()) if finite.size else (0.0, 1.0)
     window_axes = []
+    half = windows.shape[-1] // 2
     for s in range(n_star):
         ax = fig.add_subplot(grid[0, s])
-        image = ax.imshow(windows[s], origin="lower", cmap="magma", vmin=low, vmax=high)
+        # the window sits on the pixel nearest the star at the first position: its detector pixels
+        col, row = np.rint(x0[s]), np.rint(y0[s])
+        image = ax.imshow(windows[s], origin="lower", cmap="magma", vmin=low, vmax=high, interpolation="nearest",
+                          extent=(col - half - 0.5, col + half + 0.5, row - half - 0.5, row + half + 0.5))
         ax.set_title(f"star {s}" + (" (central)" if s == central else "") +
                      f"\nx {x0[s]:.3f} pixel, y {y0[s]:.3f} pixel", fontsize=8)
-        ax.set_xticks([])
-        ax.set_yticks([])
+        for axis, centre in ((ax.xaxis, col), (ax.yaxis, row)):
+            axis.set_major_locator(matplotlib.ticker.FixedLocator([centre - half, centre, centre + half]))
+            axis.set_tick_params(labelsize=7)
+        ax.set_xlabel("column x [pixel]", fontsize=7, labelpad=1)
+        if s == 0:  # one y label for the row of windows: each would take the width the windows need
+            ax.set_ylabel("row y [pixel]", fontsize=7, labelpad=1)
         window_axes.append(ax)
     fig.colorbar(image, ax=window_axes, shrink=0.8, label="mean window [adu]")
     position = ds["position"].values
@@ -314,16 +420,20 @@ def centroids_figure(ds, *, title, positions=None):
         ax = fig.add_subplot(grid[row, :half])
         values = ds[axis].values[:, central]
         offset = np.nanmean(values)
-        ax.errorbar(position, values - offset, yerr=ds[f"precision_{axis}"].values[:, central], fmt="o-",
-                    color="C0", ms=3, lw=0.8, capsize=2, label="batch precision (error bars; see below)")
+        error = ds[f"precision_{axis}"].values[:, central]
+        factor = _visible_factor(error, values, ax, fig)
+        ax.errorbar(position, values - offset, yerr=error * factor, fmt="o-", color="C0", ms=3, lw=0.8, capsize=3,
+                    elinewidth=1.2, gid=f"precision bars {axis}", label="batch precision (error bars, enlarged as "
+                                                                      "each title says; true size below)")
         ax.plot(position[used], values[used] - offset, "o", ls="none", color="red", ms=3.5, zorder=3,
                 gid="used positions", label=f"{used_text} (accuracies)")
         ax.set_xlabel("position index")
         _integer_ticks(ax.xaxis)
         ax.set_ylabel(f"{axis} - {offset:.3f} [pixel]")
-        ax.set_title(f"central star's {axis} against the position index", fontsize=9)
+        ax.set_title(f"central star's {axis} against the position index"
+                     + (f" (error bars x{factor:g})" if factor != 1 else ""), fontsize=9)
         if axis == "y":  # one legend for both panels, under the lower one: inside, it would hide points
-            ax.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.2), title="both panels",
+            ax.legend(fontsize=7, ncol=1, loc="upper center", bbox_to_anchor=(0.5, -0.2), title="both panels",
                       title_fontsize=7)
     ax = fig.add_subplot(grid[1:3, half:])
     x, y = ds["x"].values[:, central], ds["y"].values[:, central]
@@ -341,13 +451,16 @@ def centroids_figure(ds, *, title, positions=None):
     ax.legend(fontsize=8, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.08))  # the path fills the axes
     ax = fig.add_subplot(grid[3, :])
     ratios = []
-    for axis, colour, marker, line in (("x", "C0", "o", "-"), ("y", "C1", "s", "--")):  # the bounds often equal
+    bounds = [ds[f"photon_limit_{axis}"].values[:, central] for axis in "xy"]
+    same = _coincides(*bounds)  # a round star: one line for both, not y's hiding x's
+    for axis, colour, marker, line, limit in (("x", "C0", "o", "-", bounds[0]), ("y", "C1", "s", "--", bounds[1])):
         precision = ds[f"precision_{axis}"].values[:, central]
-        limit = ds[f"photon_limit_{axis}"].values[:, central]
         ax.plot(position, precision, marker, ls="none", color=colour, ms=4, gid=f"precision {axis}",
                 label=f"{axis}: precision from the batches")
-        ax.plot(position, limit, line, color=colour, lw=1.2, gid=f"Cramer-Rao {axis}",
-                label=f"{axis}: Cramer-Rao bound")
+        if not (same and axis == "y"):
+            ax.plot(position, limit, line, color="0.2" if same else colour, lw=1.2, gid=f"Cramer-Rao {axis}",
+                    label=f"x and y: Cramer-Rao bound (equal within {100 * (COINCIDENT - 1):.0f}%)" if same
+                    else f"{axis}: Cramer-Rao bound")
         ratios.append(float(np.nanmedian(precision / limit)))
     shown = np.concatenate([ds[f"{name}_{axis}"].values[:, central] for name in ("precision", "photon_limit")
                             for axis in "xy"])
@@ -368,6 +481,19 @@ def centroids_figure(ds, *, title, positions=None):
     ax.legend(fontsize=7, ncol=5)
     fig.suptitle(f"{title} ({ds.attrs.get('method', '')})", fontsize=11)
     return fig
+
+
+def _visible_factor(error, values, ax, fig, *, marker_points=3.0):
+    """A power of ten by which 1-sigma error bars ``error`` are enlarged so that the median bar reaches beyond
+    a marker of ``marker_points`` on ``ax``, whose data span ``values`` (1 when they already do)."""
+    error = np.asarray(error, float)
+    error = error[np.isfinite(error) & (error > 0)]
+    span = np.nanmax(values) - np.nanmin(values) if np.isfinite(values).any() else 0.0
+    if not error.size or span <= 0:
+        return 1.0
+    height = ax.get_position().height * fig.get_figheight() * 72  # points, before the layout's small changes
+    needed = 2 * marker_points * span * 1.1 / height  # half a bar two markers long, in data units
+    return float(10.0 ** max(0, np.ceil(np.log10(needed / np.median(error)))))
 
 
 def _central_star(ds, mode):
@@ -394,21 +520,46 @@ def _removal_line(ds, mode) -> str:
             + ("; no gain the data can show" if bound < float(ds.attrs.get("removal_bound_low", 0.5)) else ""))
 
 
-def procrustes_figure(ds, *, title="Procrustes residuals"):
-    """Residuals of every star (x plain, y dotted) against the position, one panel per mode (pixel).
+def _scaled_ticks(axis, exponent):
+    """Tick labels of ``axis`` (values in pixel) in 1e``exponent`` pixel; returns the unit for the axis label."""
+    # rounded, so that the tick at 0 reads "0", not "-0" or "1e-17"
+    axis.set_major_formatter(matplotlib.ticker.FuncFormatter(
+        lambda value, _, e=exponent: f"{round(value / 10.0**e, 6) + 0.0:g}"))
+    return f"1e{exponent} pixel" if exponent else "pixel"
 
-    The dashed lines are +-sigma, sigma the rms of the residuals shown (over
-    the positions, stars and both axes: the paper's dotted lines); the title
-    gives sigma and the mode's corrected accuracy (sigma corrected for what
-    the superimposition absorbs). The central star is black. A pose product
-    adds, per mode, what the pose removes of Procrustes's tip-tilt excess
-    and the noise-limited bound its Fisher information allows
+
+def _pixel_exponent(values):
+    """The power of ten of the pixel that the largest finite |value| of ``values`` (pixel) is in (0 if none)."""
+    values = np.abs(np.asarray(values, float))
+    top = np.nanmax(values) if np.isfinite(values).any() else 0.0
+    return int(np.floor(np.log10(top))) if top > 0 else 0
+
+
+def _style_key(*entries):
+    """Legend handles drawn on no axes, for a line-style key: (label, keywords of Line2D) each."""
+    from matplotlib.lines import Line2D
+
+    return [Line2D([], [], label=label, **keywords) for label, keywords in entries]
+
+
+def procrustes_figure(ds, *, title="Procrustes residuals"):
+    """Residuals of every star (x plain, y dotted) against the position, one panel per mode.
+
+    All panels share one y range, in one power of ten of the pixel, so that
+    modes compare by eye. The dashed lines are +-sigma, sigma the rms of the
+    residuals shown (over the positions, stars and both axes: the paper's
+    dotted lines); the title gives sigma and the mode's corrected accuracy
+    (sigma corrected for what the superimposition absorbs). The central star
+    is black; the legend under the panels names the stars and the line styles.
+    A pose product adds, per mode, what the pose removes of Procrustes's
+    tip-tilt excess and the noise-limited bound its Fisher information allows
     (:func:`dice_core.accuracies.pose_removal`).
     """
     modes = list(ds["mode"].values)
-    fig, axes = plt.subplots(len(modes), 1, figsize=(9, 2.9 * len(modes)), sharex=True, squeeze=False,
-                             constrained_layout=True)
+    fig, axes = plt.subplots(len(modes), 1, figsize=(9, 2.7 * len(modes) + 0.6), sharex=True, sharey=True,
+                             squeeze=False, constrained_layout=True)
     position = ds["position"].values
+    exponent = _pixel_exponent(ds["residual"].values)
     for ax, mode in zip(axes[:, 0], modes):
         residual = ds["residual"].sel(mode=mode).values
         central = _central_star(ds, mode)
@@ -420,13 +571,18 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
         accuracy = float(ds["accuracy"].sel(mode=mode))
         for sign in (-1, 1):
             ax.axhline(sign * sigma, color="0.35", ls="--", lw=0.8, gid="sigma")
-        ax.set_ylabel("residual [pixel]")
-        ax.set_title(f"{mode}: dashed ±σ, σ = {sigma:.2e} pixel (rms of these residuals)\ncorrected accuracy "
-                     f"{accuracy:.2e} pixel; x plain, y dotted{_removal_line(ds, mode)}", fontsize=9)  # the longest mode fits
-    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=5)  # off the data
+        ax.set_ylabel(f"residual [{_scaled_ticks(ax.yaxis, exponent)}]")
+        ax.set_title(f"{mode}: σ = {sigma:.2e} pixel (rms of these residuals), corrected accuracy "
+                     f"{accuracy:.2e} pixel{_removal_line(ds, mode)}", fontsize=9)  # the longest mode fits
+        ax.grid(True, axis="y", alpha=0.3)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    key = _style_key(("x residual", dict(color="0.3", lw=0.9)), ("y residual", dict(color="0.3", lw=0.9, ls=":")),
+                     ("±σ", dict(color="0.35", ls="--", lw=0.8)))
+    fig.legend(handles + key, labels + [k.get_label() for k in key], loc="outside lower center", fontsize=7,
+               ncol=4)  # off the data
     axes[-1, 0].set_xlabel("position index")
     _integer_ticks(axes[-1, 0].xaxis)
-    fig.suptitle(f"{title}, positions {position.min()}-{position.max()}", fontsize=11)
+    fig.suptitle(f"{title}, positions {position.min()}-{position.max()}; every panel on one scale", fontsize=11)
     return fig
 
 
@@ -458,31 +614,39 @@ def _symmetric_square(ax, points, *, margin=1.1, bins=4):
     exponent = int(np.floor(np.log10(half)))
     for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_locator(matplotlib.ticker.MaxNLocator(nbins=bins, symmetric=True))
-        # rounded, so that the tick at 0 reads "0", not "-0" or "1e-17"
-        axis.set_major_formatter(matplotlib.ticker.FuncFormatter(
-            lambda value, _, e=exponent: f"{round(value / 10.0**e, 6) + 0.0:g}"))
-    return f"1e{exponent} pixel" if exponent else "pixel"
+        unit = _scaled_ticks(axis, exponent)
+    return unit
+
+
+def _layout_words(scale):
+    """How the pattern is drawn beside the residual paths, in words: 'shrunk 1,205 times' for a scale of 8.3e-4."""
+    if scale >= 1:
+        return f"enlarged {scale:,.0f} times" if scale >= 1.5 else "at its own size"
+    return f"shrunk {1 / scale:,.0f} times"
 
 
 def barycentre_figure(ds, *, title="Barycentre residuals", spread: float = 3.0):
     """The paper's barycentre-residual figures, one row per mode (pixel).
 
     Left: each star's residual against the position index (x plain, y
-    dotted; the positions used for the accuracies between dotted lines).
-    Right: each star's residual path, y against x, drawn at that star's place
-    in the pattern downscaled to the residuals (mean position minus the
-    pattern's mean, times a scale that makes the layout span ``spread`` times
-    the largest extent of the paths), the corner stars joined by the dashed
-    downscaled square and the used positions circled in black; needs the
-    product's ``star_x``, ``star_y`` (without them, the paths are drawn
-    centred). The central star is black.
+    dotted), all modes on one y range in one power of ten of the pixel; the
+    positions used for the accuracies shaded (when some are not). Right: each
+    star's residual path, y against x, drawn at that star's place in the
+    pattern shrunk to the residuals (mean position minus the pattern's mean,
+    times a scale that makes the layout span ``spread`` times the largest
+    extent of the paths; the title says how many times), the corner stars
+    joined by the dashed shrunk square and the used positions circled in
+    black; needs the product's ``star_x``, ``star_y`` (without them, the
+    paths are drawn centred). The central star is black; the legend under
+    the panels names the stars and every line style.
     """
     modes = list(ds["mode"].values)
-    fig, axes = plt.subplots(len(modes), 2, figsize=(13, 3.6 * len(modes)), squeeze=False, constrained_layout=True,
-                             gridspec_kw={"width_ratios": [1.7, 1]})
+    fig, axes = plt.subplots(len(modes), 2, figsize=(13, 3.4 * len(modes) + 0.8), squeeze=False,
+                             constrained_layout=True, gridspec_kw={"width_ratios": [1.7, 1]})
     position = ds["all_position"].values
     used = ds["position"].values
     circled = np.isin(position, used)
+    exponent = _pixel_exponent(ds["barycentre_residual"].values)
     for row, mode in zip(axes, modes):
         residual = ds["barycentre_residual"].sel(mode=mode).values
         n_star = residual.shape[1]
@@ -507,25 +671,38 @@ def barycentre_figure(ds, *, title="Barycentre residuals", spread: float = 3.0):
             ring.append(ring[0])
             row[1].plot(offsets[ring, 0], offsets[ring, 1], color="0.55", ls="--", lw=0.8, gid="layout square")
             row[1].plot(offsets[:, 0], offsets[:, 1], "+", ls="none", color="0.55", ms=6, gid="layout stars")
-        for edge in (used.min(), used.max()):
-            row[0].axvline(edge, color="grey", ls=":", lw=0.8)
+        if not circled.all():  # a band, not lines: lines at the first and last positions sat on the axes' edges
+            row[0].axvspan(used.min() - 0.5, used.max() + 0.5, color="tab:orange", alpha=0.12, lw=0,
+                           gid="used span")
+        row[0].set_xlim(position.min() - 0.5, position.max() + 0.5)
         _integer_ticks(row[0].xaxis)
-        row[0].set_ylabel("residual [pixel]")
-        row[0].set_title(f"{mode}: against the position index, x plain, y dotted; positions {used.min()}-"
-                         f"{used.max()} used (between the dotted lines)", fontsize=9)
+        row[0].set_ylabel(f"residual [{_scaled_ticks(row[0].yaxis, exponent)}]")
+        row[0].set_title(f"{mode}: residuals against the position index", fontsize=9)
         unit = _symmetric_square(row[1], [line.get_xydata() for line in row[1].get_lines()])
-        if scale is None:
-            row[1].set_xlabel(f"x residual [{unit}]")
-            row[1].set_ylabel(f"y residual [{unit}]")
-            row[1].set_title(f"{mode}: y against x; used positions circled", fontsize=9)
-        else:
-            row[1].set_xlabel(f"x residual + scaled layout [{unit}]")
-            row[1].set_ylabel(f"y residual + scaled layout [{unit}]")
-            row[1].set_title(f"{mode}: y against x at each star's place\nlayout x{scale:.1e} (dashed: the corner "
-                             f"stars' square);\ncircled: positions {used.min()}-{used.max()}", fontsize=9)
-    fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=5)  # off the data
+        row[1].set_xlabel(f"x residual [{unit}]")
+        row[1].set_ylabel(f"y residual [{unit}]")
+        row[1].set_title(f"{mode}: y against x" if scale is None else
+                         f"{mode}: y against x at each star's place\n(the pattern {_layout_words(scale)})",
+                         fontsize=9)
+    shared = [min(ax.get_ylim()[0] for ax in axes[:, 0]), max(ax.get_ylim()[1] for ax in axes[:, 0])]
+    for ax in axes[:, 0]:  # one range for every mode: they compare by eye
+        ax.set_ylim(*shared)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    from matplotlib.patches import Patch
+
+    key = _style_key(("x residual", dict(color="0.3", lw=0.9)), ("y residual", dict(color="0.3", lw=0.9, ls=":")),
+                     ("used position (circled)", dict(ls="none", marker="o", ms=4.5, mfc="none", mec="black",
+                                                      mew=0.5)),
+                     *([("the corner stars' square, shrunk (+: each star's place)", dict(color="0.55", ls="--",
+                                                                                          lw=0.8))]
+                       if "star_x" in ds else []))
+    key += [Patch(color="tab:orange", alpha=0.12, label=f"positions {used.min()}-{used.max()} used")] \
+        if not circled.all() else []
+    fig.legend(handles + key, labels + [k.get_label() for k in key], loc="outside lower center", fontsize=7,
+               ncol=5)  # off the data
     axes[-1, 0].set_xlabel("position index")
-    fig.suptitle(title, fontsize=11)
+    fig.suptitle(f"{title}: positions {used.min()}-{used.max()} used"
+                 + (" (all)" if circled.all() else f" of {position.min()}-{position.max()}"), fontsize=11)
     return fig
 
 
@@ -587,7 +764,8 @@ def offset_bias_figure(datasets, *, title="Pixel-offset error against truth: the
                     extra = (f" (this pattern);\n{float(ds[f'rms_{name}']):.2e} pixel over "
                              f"{ds.attrs.get('noiseless_draws', 1)} patterns")
                 ax.set_title(f"PRNU {ds.attrs['prnu_rms']:.0e}: {label}\nrms {shown_rms:.2e} pixel{extra}", fontsize=8)
-                ax.set_xlabel("column x [pixel]")
+                ax.set_xlabel("column x [pixel]\n" + _science_note(ds["error_ours"].shape, (r0, r0 + rows_),
+                                                                   (c0, c0 + cols_)), fontsize=8)
                 ax.set_ylabel("row y [pixel]")
                 fig.colorbar(im, ax=ax, shrink=0.8).set_label(unit)
     fig.suptitle(f"{title}\nprojected offsets of {datasets[0].attrs.get('baseline', '')}, "
@@ -822,26 +1000,55 @@ def reproduction_pdf(path, pages, *, title: str, summary_lines=()):
     return path
 
 
+def stripe_ratios(image, detector):
+    """Whether a map is striped, as two numbers: the variance of its row means, and of its column means, over
+    the science area, each over what independent pixels of the map's own scatter give (the variance over the
+    pixels in a row, or a column). About 1 without stripes; rows or columns that share an offset make it
+    grow with their length (NaN pixels left out)."""
+    shown = np.asarray(image, float)[detector.science_slices]
+    shown = shown - np.nanmean(shown)
+    total = np.nanvar(shown)
+    ratios = []
+    for axis in (1, 0):  # row means (over the columns), then column means (over the rows)
+        counts = np.sum(np.isfinite(shown), axis=axis)
+        keep = counts > 1
+        means = np.nansum(shown, axis=axis)[keep] / counts[keep]
+        ratios.append(float(np.var(means) / np.mean(total / counts[keep])) if keep.sum() > 1 and total > 0
+                      else float("nan"))
+    return tuple(ratios)
+
+
+def _stripes_line(image, detector):
+    """A map title's line that measures its stripes (:func:`stripe_ratios`): what the eye reads as rows or
+    columns is then a number, 1 for none."""
+    rows, cols = stripe_ratios(image, detector)
+    return f"stripes: row-mean ratio {rows:.2f}, column-mean ratio {cols:.2f} (1: none)"
+
+
 def prf_widths_figure(ds, detector, *, title="PRF widths from the fringe contrast"):
     """Width maps (relative to their mean width) and their 1-sigma pixel-scale errors along x and y.
 
     ``ds`` is a ``calibration/prf.nc`` dataset; top row: width - mean_width in
     1e-3 pixel, the mean with its error in the title; bottom row:
     error_width_pixel (photon noise and the kernel shape's uncertainty in the
-    deviations' scale) in 1e-3 pixel. A direction without a baseline stays
-    blank.
+    deviations' scale) in 1e-3 pixel, with its median. Each map's title
+    measures its row and column stripes (:func:`stripe_ratios`). A direction
+    without a baseline stays blank.
     """
     fig, axes = plt.subplots(2, 2, figsize=(11.2, 9.2), constrained_layout=True)
     for j, axis in enumerate("xy"):
         mean, mean_error = float(ds[f"mean_width_{axis}"]), float(ds[f"error_mean_width_{axis}"])
         width, error = ds[f"width_{axis}"].values, ds[f"error_width_pixel_{axis}"].values
         spread = float(np.sqrt(np.nanmean((width - mean) ** 2))) if np.isfinite(width).any() else float("nan")
-        err = float(np.sqrt(np.nanmean(error**2))) if np.isfinite(error).any() else float("nan")
+        # a median: the errors are positive and skewed by the few pixels of low contrast (an rms weighs those)
+        shown = error[detector.science_slices]  # the median of what the map draws
+        err = float(np.nanmedian(shown)) if np.isfinite(shown).any() else float("nan")
         _show_map(axes[0, j], fig, width - mean, detector, scale=1e3, units="width - mean [1e-3 pixel]",
                   symmetric=True, title=f"width along {axis} minus its mean ({mean:.4f} pixel +- {mean_error:.4f} pixel); "
-                                        f"rms {spread:.2e} pixel")
+                                        f"rms {spread:.2e} pixel\n{_stripes_line(width, detector)}")
         _show_map(axes[1, j], fig, error, detector, scale=1e3, units="1-sigma error [1e-3 pixel]", symmetric=False,
-                  title=f"its error (photon noise, kernel shape), mean aside, rms {err:.2e} pixel")
+                  title=f"its error (photon noise, kernel shape), mean aside: median {err:.2e} pixel\n"
+                        f"{_stripes_line(error, detector)}")
     chi2 = float(ds["chi2"])
     fig.suptitle(f"{title} ({', '.join(map(str, ds['baseline'].values))}; chi2/dof between baselines "
                  f"{chi2:.2f})", fontsize=11)

@@ -659,3 +659,281 @@ def test_the_tip_tilt_sweep_figure_marks_what_the_pose_identifies():
     assert texts_outside(fig) == []
     assert points_under_legends(fig) == []
     plotting.save(fig, None)
+
+
+# What a referee sees on each figure (issue: a newcomer's figures): no legend entry whose curve lies under
+# another, one scale for the panels of one quantity, each number said with what it means, maps that say they
+# show the science area alone.
+
+def _data_artists(handle):
+    """The Line2D a legend handle stands for (an errorbar's data line), or None for a patch or a key."""
+    from matplotlib.container import ErrorbarContainer
+    from matplotlib.lines import Line2D
+
+    if isinstance(handle, ErrorbarContainer):
+        return handle.lines[0]
+    return handle if isinstance(handle, Line2D) else None
+
+
+def hidden_entries(fig, tolerance=1.03):
+    """Legend labels of ``fig`` whose curve is not seen: not visible, without finite points, or lying (within
+    ``tolerance`` at every point) under another visible curve of its axes drawn over it (a higher zorder, or
+    the same and later) at least as wide, while having no markers of its own to show."""
+    hidden = []
+    for ax in fig.axes:
+        handles, labels = ax.get_legend_handles_labels()
+        drawn = [line for line in ax.get_lines() if line.get_visible()]
+        for handle, label in zip(handles, labels):
+            line = _data_artists(handle)
+            if line is None or line.axes is not ax:
+                continue
+            y = np.asarray(line.get_ydata(), float)
+            markers = line.get_marker() not in ("None", "", None, " ")
+            if not line.get_visible() or np.isfinite(y).sum() < (1 if markers else 2):  # one point: no line
+                hidden.append(label)
+                continue
+            if markers:
+                continue
+            order = drawn.index(line)
+            for k, other in enumerate(drawn):
+                over = other.get_zorder() > line.get_zorder() or (other.get_zorder() == line.get_zorder() and k > order)
+                oy = np.asarray(other.get_ydata(), float)
+                if other is line or not over or oy.shape != y.shape or other.get_linewidth() < line.get_linewidth():
+                    continue
+                both = np.isfinite(y) & np.isfinite(oy)
+                if both.any() and np.allclose(other.get_xdata()[both], line.get_xdata()[both]) and np.all(
+                        np.abs(np.log(np.abs(oy[both]) / np.abs(y[both]))) < np.log(tolerance)):
+                    hidden.append(label)
+                    break
+    return hidden
+
+
+def legend_labels(fig):
+    return [t.get_text() for legend in [ax.get_legend() for ax in fig.axes if ax.get_legend()] + list(fig.legends)
+            for t in legend.get_texts()]
+
+
+def test_hidden_entries_are_found():
+    """The check itself: a thin curve under a wider one is hidden, one with markers or drawn over is not."""
+    fig, ax = plotting.plt.subplots()
+    x = np.arange(1.0, 5.0)
+    ax.loglog(x, 1 / x, lw=0.8, label="under")
+    ax.loglog(x, 1.01 / x, lw=1.5, label="over")
+    ax.loglog(x, 2 / x, "o", label="markers")
+    ax.loglog(x, 2 / x, lw=2, label="over the markers")
+    ax.legend()
+    assert hidden_entries(fig) == ["under"]
+    plotting.save(fig, None)
+
+
+def allan_product(rng, *, coincide=True):
+    """An allan product whose paper's and first-frame pixel limits equal the fits' (as on the default preset)."""
+    args, keywords = allan_inputs(rng, n_batches=16)
+    ds = allan.allan_dataset(*args, **keywords, first_frame=rng.uniform(500, 3000, args[3].size))
+    if coincide:
+        ds["photon_limit_pixel_paper"] = ds["photon_limit_pixel"] * 1.01
+        ds["photon_limit_pixel_first_frame"] = ds["photon_limit_pixel"] * 0.995
+    return ds
+
+
+def test_allan_figure_draws_every_entry_and_single_pixels_only_over_enough_groups(rng):
+    """Curves within 3% drawn once, their entry naming each; no entry hidden; single pixels only where
+    MIN_GROUPS_PIXEL groups or more (elsewhere a shaded band says so); the measured rms with error bars."""
+    ds = allan_product(rng)
+    fig = plotting.allan_figure(ds, title="test")
+    (ax,) = fig.axes
+    assert hidden_entries(fig) == []
+    (red,) = lines(ax, "first frame")
+    assert "paper's photon limit, pixels" in red.get_label() and "photon limit, pixels" in red.get_label()
+    assert not [line for line in ax.get_lines() if line.get_label().startswith("paper's photon limit, pixels")]
+    few = ds["n_groups"].values < plotting.MIN_GROUPS_PIXEL
+    assert few.any() and not few.all()  # the case of the issue: the last sizes from a few groups
+    green = [line for line in ax.get_lines() if matplotlib.colors.same_color(line.get_color(), "tab:green")
+             and line.get_xdata().size]
+    assert len(green) == ds.sizes["sample"]
+    for line in green:
+        assert np.isnan(line.get_ydata()[few]).all() and np.isfinite(line.get_ydata()[~few]).all()
+    assert any(f"fewer than {plotting.MIN_GROUPS_PIXEL} groups" in label for label in legend_labels(fig))
+    bars = [c for c in ax.containers if c.has_yerr]
+    assert len(bars) == 2 and all(np.all(np.isfinite(c.lines[0].get_ydata())) for c in bars)
+    assert texts_outside(fig) == []
+    plotting.save(fig, None)
+    # without the coincidences, each curve its own entry
+    fig = plotting.allan_figure(allan_product(rng, coincide=False), title="test")
+    assert hidden_entries(fig) == []
+    plotting.save(fig, None)
+
+
+def shared_range(axes):
+    """Whether the axes all show one y range."""
+    return len({tuple(np.round(ax.get_ylim(), 15)) for ax in axes}) == 1
+
+
+def tick_label_digits(fig, axis):
+    """The longest drawn tick label's number of digits."""
+    return max(len(re.sub(r"\D", "", text)) for text in labelled_ticks(fig, axis))
+
+
+def test_procrustes_panels_share_one_scaled_range_and_the_line_styles_are_in_the_legend(residuals_product):
+    """Every mode on one y range, ticks in a power of ten of the pixel (no 0.00075), the y unit in the label;
+    the legend has the stars and the key of x, y and sigma."""
+    product, _ = residuals_product
+    fig = plotting.procrustes_figure(product)
+    fig.canvas.draw()
+    assert shared_range(fig.axes)
+    for ax in fig.axes:
+        assert re.search(r"\[1e-\d+ pixel\]", ax.get_ylabel())
+        assert tick_label_digits(fig, ax.yaxis) <= 3
+        assert "\n" not in ax.get_title()  # one line: the key is in the legend
+    (legend,) = fig.legends
+    entries = [t.get_text() for t in legend.get_texts()]
+    assert {"x residual", "y residual", "±σ"} <= set(entries)
+    assert texts_outside(fig) == [] and hidden_entries(fig) == []
+    plotting.save(fig, None)
+
+
+def test_barycentre_titles_the_used_band_and_the_layout_read(residuals_product):
+    """Titles of at most two lines; the used positions a band inside the axes (not lines on their edges);
+    the layout's scale said in words; the left panels on one range."""
+    product, _ = residuals_product
+    fig = plotting.barycentre_figure(product)
+    fig.canvas.draw()
+    left = fig.axes[0::2]
+    assert shared_range(left)
+    for ax in fig.axes:
+        assert ax.get_title().count("\n") <= 1 and "layout x" not in ax.get_title()
+    for ax in left:
+        (band,) = [p for p in ax.patches if p.get_gid() == "used span"]
+        x0, x1 = band.get_x(), band.get_x() + band.get_width()
+        assert (x0, x1) == (USED[0] - 0.5, USED[1] + 0.5)
+        low, high = ax.get_xlim()
+        assert low < x0 and x1 < high
+    for row, mode in enumerate(product["mode"].values):
+        residual = product["barycentre_residual"].sel(mode=mode).values
+        star = np.column_stack([product["star_x"].sel(mode=mode), product["star_y"].sel(mode=mode)])
+        _, scale = plotting._downscaled_layout(residual, star, 3.0)
+        assert f"shrunk {1 / scale:,.0f} times" in fig.axes[2 * row + 1].get_title()
+    assert f"positions {USED[0]}-{USED[1]} used" in legend_labels(fig)
+    assert texts_outside(fig) == [] and hidden_entries(fig) == []
+    plotting.save(fig, None)
+
+
+@pytest.mark.parametrize("difference, verdict", [(7.3e-5, "yes"), (2.6e-3, "no")])
+def test_metrology_answers_its_questions_and_draws_kx_and_ky_apart(rng, difference, verdict):
+    """The gauge panel's title answers with the difference over its floor and the chance noise gives it; the
+    convergence panel has the photon floor to compare with and says the ratio; kx above ky, not on it; the
+    gauge map says why it is striped."""
+    ds, detector = metrology_product(rng, passes=3)
+    ds["max_change"] = ("iteration", [1.2e-7, 7.1e-9])  # as on the default preset's V2V4
+    ds["rms_change"] = ("iteration", [6e-8, 1.5e-9])
+    ds["photon_noise_floor_rms"] = 8e-5
+    ds["gauge_difference_rms"] = difference
+    fig = plotting.metrology_figure(ds, detector, title="test")
+    (gauge,) = [ax for ax in fig.axes if ax.get_ylabel() == "rms [pixel]"]
+    ratio = difference / 2.6e-4
+    assert gauge.get_title().startswith(f"do the two gauges agree? {verdict}")
+    assert f"{ratio:.2g} x its noise floor" in gauge.get_title()
+    chance = 1 / (1 + ratio**2)
+    assert (f"{100 * chance:.0f}% of the time" if chance >= 0.1 else f"1 time in {1 / chance:.0f}") in gauge.get_title()
+    (convergence,) = [ax for ax in fig.axes if ax.get_xlabel() == "pass"]
+    assert any(np.allclose(line.get_ydata(), 8e-5) for line in convergence.get_lines())
+    assert f"{float(ds['max_change'][-1]) / 8e-5:.1e} x their photon floor" in convergence.get_title()
+    (kt,) = [ax for ax in fig.axes if ax.get_ylabel().startswith("K(t)")]
+    kx, ky = [line for line in kt.get_lines() if line.get_label().startswith(("kx", "ky"))]
+    assert np.min(kx.get_ydata()) > np.max(ky.get_ydata())
+    assert not [entry for entry in points_under_legends(fig) if "largest change" in entry[0]]
+    (difference_map,) = [ax for ax in fig.axes if ax.get_title().startswith("flat gauge minus")]
+    assert "first harmonic of the fringe phase" in difference_map.get_title()
+    assert texts_outside(fig) == [] and hidden_entries(fig) == []
+    assert {text: numbers_without_unit(text) for text in texts(fig) if numbers_without_unit(text)} == {}
+    plotting.save(fig, None)
+
+
+def test_metrology_frame_ticks_stay_apart_at_the_papers_frames(rng):
+    """200,000 frames: the frame axes' labels (six digits) do not run into each other."""
+    ds, detector = metrology_product(rng)
+    frames = 200_000
+    ds = ds.isel(frame=np.arange(ds.sizes["frame"]).repeat(frames // ds.sizes["frame"])).assign_coords(
+        frame=np.arange(frames))
+    fig = plotting.metrology_figure(ds, detector, title="test")
+    for ax in fig.axes:
+        if ax.get_xlabel() == "frame":
+            assert not overlapping_labels(fig, ax.xaxis) and len(labelled_ticks(fig, ax.xaxis)) >= 3
+    plotting.save(fig, None)
+
+
+@pytest.mark.parametrize("y_bound", [1.0, 1.3])
+def test_centroids_bounds_error_bars_and_windows_are_seen(rng, y_bound):
+    """Equal x and y bounds drawn once (else each); the error bars on the path panels longer than the markers,
+    enlarged by a power of ten said in the title; the windows in detector pixels around each star."""
+    ds = central_centroids(rng)
+    ds["photon_limit_y"] = ds["photon_limit_y"] * y_bound
+    fig = plotting.centroids_figure(ds, title="test", positions=USED)
+    fig.canvas.draw()
+    (ax,) = [ax for ax in fig.axes if lines(ax, "Cramer-Rao x")]
+    assert len(lines(ax, "Cramer-Rao y")) == (0 if y_bound == 1.0 else 1)
+    assert ("x and y: Cramer-Rao bound" in lines(ax, "Cramer-Rao x")[0].get_label()) == (y_bound == 1.0)
+    assert hidden_entries(fig) == []
+    for axis in "xy":
+        (panel,) = [a for a in fig.axes if a.get_title().startswith(f"central star's {axis} against")]
+        (bars,) = [c for c in panel.containers if c.has_yerr]
+        segments = bars.lines[2][0].get_segments()
+        lengths = [abs(np.diff(panel.transData.transform(seg)[:, 1])[0]) for seg in segments]  # display pixels
+        marker = 3 * fig.dpi / 72  # the markers' size, display pixels
+        assert np.median(lengths) > 2 * marker
+        factor = np.median([abs(seg[1, 1] - seg[0, 1]) / 2 for seg in segments]) / 1e-3
+        if round(factor) != 1:
+            assert f"(error bars x{factor:g})" in panel.get_title()
+    windows = [a for a in fig.axes if a.get_images() and a.get_label() != "<colorbar>"]
+    for s, window in enumerate(windows):
+        col = np.rint(ds["x"].values[0, s])
+        low, high = window.get_xlim()
+        assert low == pytest.approx(col - 3.5) and high == pytest.approx(col + 3.5)  # 7x7 windows
+        assert window.get_xlabel() == "column x [pixel]" and len(labelled_ticks(fig, window.xaxis)) == 3
+    assert texts_outside(fig) == []
+    plotting.save(fig, None)
+
+
+def test_prf_errors_are_summarised_by_their_median(rng):
+    _, detector = metrology_product(rng)
+    ds = prf_product(rng, detector)
+    fig = plotting.prf_widths_figure(ds, detector)
+    for axis, ax in zip("xy", fig.axes[2:4]):  # the bottom row
+        median = np.nanmedian(ds[f"error_width_pixel_{axis}"].values[detector.science_slices])
+        assert f"median {median:.2e} pixel" in ax.get_title()
+    plotting.save(fig, None)
+
+
+def test_every_map_says_it_shows_the_science_area_alone(rng):
+    """Each panel with an image of the detector says, under it, that the science area alone is drawn."""
+    for name, fig in every_figure(rng):
+        if name in ("centroids",):  # star windows, not maps of the detector
+            plotting.save(fig, None)
+            continue
+        maps = [ax for ax in fig.axes if ax.get_images() and ax.get_label() != "<colorbar>"]
+        for ax in maps:
+            assert "science area only" in ax.get_xlabel(), (name, ax.get_title())
+        assert hidden_entries(fig) == [], name
+        plotting.save(fig, None)
+
+
+def test_stripe_ratios_measure_rows_and_columns_that_share_an_offset(rng):
+    """Independent pixels: both ratios near 1; an offset per row of 0.5 sigma over 60 columns: the row ratio
+    near 1 + 60 / 4, the columns' still near 1; the PRF figure's titles carry the two numbers."""
+    detector = Detector(shape=(64, 64), science_rows=(2, 62), science_cols=(2, 62), gain=2.5, saturation=6e4)
+    noise = rng.standard_normal((64, 64))
+    rows, cols = plotting.stripe_ratios(noise, detector)
+    assert 0.5 < rows < 1.6 and 0.5 < cols < 1.6
+    striped = noise + 0.5 * rng.standard_normal((64, 1))
+    rows, cols = plotting.stripe_ratios(striped, detector)
+    assert rows > 8 and 0.5 < cols < 1.6
+    rows, cols = plotting.stripe_ratios(striped.T, detector)
+    assert cols > 8 and 0.5 < rows < 1.6
+    _, small = metrology_product(rng)
+    ds = prf_product(rng, small)
+    fig = plotting.prf_widths_figure(ds, small)
+    for ax, name in zip(fig.axes[:4], ("width_x", "width_y", "error_width_pixel_x", "error_width_pixel_y")):
+        rows, cols = plotting.stripe_ratios(ds[name].values, small)
+        assert f"row-mean ratio {rows:.2f}, column-mean ratio {cols:.2f}" in ax.get_title()
+    assert texts_outside(fig) == []
+    plotting.save(fig, None)
