@@ -104,28 +104,28 @@ if _log:
 STEPS = ("fit_fringes", "fit_start", "fit_part", "fit_reduce", "fit_finish", "allan_deviation")
 
 
-def config(rows, cols, frames, frames_per_file):
+def config(rows, cols, frames, frames_per_file, sweep_frames=1000):
     from dice_core import simulation
 
     return simulation.SimulationConfig.from_dict({
-        "name": f"reads-{rows}x{cols}x{frames}", "seed": 20150926, "frames_per_file": frames_per_file,
+        "name": f"reads-{rows}x{cols}x{frames}-s{sweep_frames}", "seed": 20150926, "frames_per_file": frames_per_file,
         "detector": {"shape": [rows, cols], "science_rows": [2, rows - 1], "science_cols": [10, cols - 1],
                      "gain": 10.0, "read_noise": 4.0},
         "dark": {"frames": 100}, "flats": {"frames": 100, "level": 20000.0},
         "stars": {"positions": 1, "frames": 1},
-        "metrology": {"frames": frames, "sweep_frames": 1000, "mean_level": 10000.0, "amplitude": 6000.0,
+        "metrology": {"frames": frames, "sweep_frames": sweep_frames, "mean_level": 10000.0, "amplitude": 6000.0,
                       "baselines": {BASELINE: {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}},
     })
 
 
-def prepare(rows, cols, frames, frames_per_file, data: Path) -> Path:
+def prepare(rows, cols, frames, frames_per_file, sweep_frames, data: Path) -> Path:
     """The dataset's manifest, simulated into ``data`` unless already there."""
     from dice_core import simulation
 
     manifest = data / "dataset.yaml"
     if not manifest.exists():
         start = time.perf_counter()
-        simulation.simulate_dataset(config(rows, cols, frames, frames_per_file), data)
+        simulation.simulate_dataset(config(rows, cols, frames, frames_per_file, sweep_frames), data)
         print(f"simulated {rows}x{cols}x{frames} in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     return manifest
 
@@ -202,6 +202,8 @@ def main():
     parser.add_argument("--frames-per-file", type=int, default=2000)
     parser.add_argument("--cores", type=int, default=1)
     parser.add_argument("--ways", default="single,split")
+    parser.add_argument("--sweep-frames", type=int, default=1000,
+                        help="the simulated sweep's pace: fewer frames a fringe period, more Allan batches")
     args = parser.parse_args()
     workdir = args.workdir.resolve()
     hook = workdir / "hook"
@@ -213,7 +215,8 @@ def main():
     out = {"machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "sizes": {}}
     for size in args.sizes:
         rows, cols, frames = map(int, size.split("x"))
-        manifest = prepare(rows, cols, frames, args.frames_per_file, workdir / "data" / size)
+        manifest = prepare(rows, cols, frames, args.frames_per_file, args.sweep_frames,
+                           workdir / "data" / f"{size}-s{args.sweep_frames}")
         from dice_core.manifest import load_manifest
 
         files = load_manifest(manifest).baselines[BASELINE].files
@@ -221,7 +224,7 @@ def main():
         entry = {"cube_bytes": cube_bytes, "load_before": os.getloadavg(), "plain_s": [plain_pass(manifest)]}
         for way in args.ways.split(","):
             for tree_name, tree in trees.items():
-                results = workdir / "results" / size / tree_name / way
+                results = workdir / "results" / f"{size}-s{args.sweep_frames}" / tree_name / way
                 wall, jobs = run(Path(tree).resolve(), manifest, results, load_manifest(manifest).name,
                                  split=way == "split", cores=args.cores, hook=hook, log=workdir / "io.log")
                 entry[f"{tree_name}/{way}"] = {"wall_s": wall, "jobs": jobs}
@@ -229,9 +232,13 @@ def main():
             names = list(trees)
             name = load_manifest(manifest).name
             for product in (f"metrology/{BASELINE}.nc", f"allan/{BASELINE}.nc"):
-                paths = [workdir / "results" / size / t / way / name / product for t in names]
+                paths = [workdir / "results" / f"{size}-s{args.sweep_frames}" / t / way / name / product
+                         for t in names]
                 entry[f"compare/{way}/{product}"] = compare(*paths[:2]) if len(paths) > 1 else []
         entry["load_after"] = os.getloadavg()
+        logs = sorted((workdir / "results" / f"{size}-s{args.sweep_frames}").glob("*/*/*/logs/allan_deviation_*.log"))
+        entry["allan_batches"] = next((line.split(": ", 2)[-1] for line in logs[0].read_text().splitlines()
+                                       if " batches of " in line), None) if logs else None
         out["sizes"][size] = entry
         (workdir / "reads.json").write_text(json.dumps(out, indent=1))
         print(table(size, entry, trees))
@@ -241,11 +248,12 @@ def main():
 def table(size, entry, trees) -> str:
     plain = min(entry["plain_s"])
     lines = [f"\n{size}: baseline {entry['cube_bytes'] / 1e9:.2f} GB, plain pass {plain:.2f} s "
-             f"({', '.join(f'{s:.2f}' for s in entry['plain_s'])}), load {entry['load_before'][0]:.1f}",
+             f"({', '.join(f'{s:.2f}' for s in entry['plain_s'])}), load {entry['load_before'][0]:.1f}; Allan: "
+             f"{entry.get('allan_batches')}",
              "", "| code | way | step | jobs | reads of the baseline (sum) | peak RSS (MB, max) | job time (s, sum) "
                  "| job time / plain pass |", "|---|---|---|---:|---:|---:|---:|---:|"]
     for key, run_ in entry.items():
-        if "/" not in key or key.startswith("compare"):
+        if "/" not in key or key.startswith("compare") or not isinstance(run_, dict):
             continue
         tree, way = key.split("/")
         total_reads = 0.0

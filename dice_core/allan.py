@@ -961,14 +961,16 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
                                   pixel_factors=pixel_factors, reference=reference, workers=workers,
                                   return_sums=True, label=label)
     read_noise = np.nan_to_num(dark["noise"].values[rows, cols])
-    floors = batch_floors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
-                          read_noise=read_noise, k_norm=np.hypot(*k))
     sizes = group_sizes(len(batches))
     good = np.isfinite(offsets).all(axis=0)
     groups = group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes,
                         pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise, good=good,
                         weights=block_weights(rows, cols, good=good, block=block))
     del sums  # the groups are reduced: only the batch offsets go on
+    # the batches' floors once the sums are gone: the groups' fits hold two maps a group at one batch a
+    # group, so the job's peak is there; the floors beside them would add an eighth map a batch
+    floors = batch_floors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
+                          read_noise=read_noise, k_norm=np.hypot(*k))
     global_floor = None
     if "photon_noise_floor" in metrology:  # the whole acquisition's floor, for the curves' reference
         global_floor = (metrology["photon_noise_floor"].values[rows, cols], phase.size)
