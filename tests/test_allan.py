@@ -306,17 +306,22 @@ def test_batch_offsets_ignore_the_constant_phase_the_gauge_leaves_free(rng, cons
     assert np.sqrt(np.mean((offsets - expected) ** 2)) < 1e-4
 
 
-def test_allan_is_the_same_bit_for_bit_whatever_the_workers(tmp_path):
-    """Fixed lanes of whole files, summed in order; a batch cut between two lanes sums their parts."""
+def four_file_baseline(tmp_path, name):
+    """A 40x44 dataset whose one baseline of 1800 frames is four files of 450 (two lanes of two files):
+    its manifest and truth."""
     cfg = simulation.SimulationConfig.from_dict({
-        "name": "allan-lanes", "frames_per_file": 450,
+        "name": name, "frames_per_file": 450,
         "detector": {"shape": [40, 44], "science_rows": [2, 39], "science_cols": [3, 43]},
         "dark": {"frames": 2}, "flats": {"frames": 2},
         "stars": {"positions": 1, "frames": 1, "pattern_centre": [23.0, 20.0], "pattern_side": 16.0},
         "metrology": {"frames": 1800, "sweep_frames": 300,
                       "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
-    manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
-    truth = read_product(tmp_path / "truth.nc")
+    return load_manifest(simulation.simulate_dataset(cfg, tmp_path)), read_product(tmp_path / "truth.nc")
+
+
+def test_allan_is_the_same_bit_for_bit_whatever_the_workers(tmp_path):
+    """Fixed lanes of whole files, summed in order; a batch cut between two lanes sums their parts."""
+    manifest, truth = four_file_baseline(tmp_path, "allan-lanes")
     stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
     assert len(stream.split(2)) == 2
     solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
@@ -448,15 +453,7 @@ def test_the_fit_and_the_allan_step_read_a_cube_once_a_pass_its_checksums_on_the
 
     from dice_core import io
 
-    cfg = simulation.SimulationConfig.from_dict({
-        "name": "allan-reads", "frames_per_file": 450,
-        "detector": {"shape": [40, 44], "science_rows": [2, 39], "science_cols": [3, 43]},
-        "dark": {"frames": 2}, "flats": {"frames": 2},
-        "stars": {"positions": 1, "frames": 1, "pattern_centre": [23.0, 20.0], "pattern_side": 16.0},
-        "metrology": {"frames": 1800, "sweep_frames": 300,
-                      "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
-    manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
-    truth = read_product(tmp_path / "truth.nc")
+    manifest, truth = four_file_baseline(tmp_path, "allan-reads")
     files = [f.resolve() for f in manifest.baselines["H1H4"].files]
     cube_bytes = sum(f.stat().st_size for f in files)
     counter, real_open = Counter(), builtins.open
