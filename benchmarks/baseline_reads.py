@@ -19,7 +19,8 @@ Each job's process records, at its exit, the bytes it read from FITS files (ever
 file for reading is counted: the streams, the headers, any hash; page cache or disk alike) and its peak RSS
 (``VmHWM``), through a ``sitecustomize`` hook this script puts first on ``PYTHONPATH``; forked worker
 processes are not counted, so the reads are measured with ``--cores 1`` (each job reads its lanes itself).
-``reads`` is a job's FITS bytes over the baseline's files' bytes (a job reads no other FITS file). Job times are Snakemake's ``benchmark:`` files (the whole job: start, imports, inputs, the step,
+``reads`` is a job's FITS bytes over the baseline's files' bytes (a job reads no other FITS file).
+Job times are Snakemake's ``benchmark:`` files (the whole job: start, imports, inputs, the step,
 the product).
 
     git -C <repo> archive <base commit> | tar -x -C /tmp/dice-old

@@ -93,7 +93,8 @@ def map_lanes(executor, function, lanes, *shared):
 
     n = len(lanes)
     results = []
-    for result, digests in executor.map(_lane_with_digests, [function] * n, lanes, *[[value] * n for value in shared]):
+    for result, digests in executor.map(_lane_with_digests, [function] * n, lanes,
+                                        *[[value] * n for value in shared]):
         io.remember_digests(digests)
         results.append(result)
     return results

@@ -100,7 +100,8 @@ COSTS: dict[str, StepCost] = {
     # large detector"). A part holds the projector, F'X and a chunk per pixel and its own frames' products
     # (frames: its files' frames): 438 MB at 1024x1024 whether its files hold 2000 or 10,000 frames; pass 1
     # read its files twice then (their checksums, then the pass): 14.5 s per 1e9 samples from the disk, 8 for
-    # a later pass (pass 1 now hashes what it streams: kept at 15 until measured from a disk again). The start forms pass 1's 7-column design and projector: 536 MB at 1024x1024. The sum of
+    # a later pass (pass 1 now hashes what it streams: kept at 15 until measured from a disk again). The
+    # start forms pass 1's 7-column design and projector: 536 MB at 1024x1024. The sum of
     # a pass (1.5-1.6 GB, 11 s) and the product (1.85 GB, 74-78 s: the pixel solution and the tips'
     # refinement) hold all frames' factors (frames: the baseline's) and per-pixel arrays.
     "fit_start": StepCost(base_mb=400.0, mb_per_mpixel=2500.0, start_s=3.0, s_per_mpixel=60.0),
