@@ -369,7 +369,8 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
             kept[b] = FtI
 
     for done, sums, _ in results:  # in lane order, so that a batch cut between parts sums the same way always
-        for b, FtI in done.items():
+        while done:  # each lane's sums released as they are kept: one copy of them in memory, not two
+            b, FtI = done.popitem()
             finish(b, FtI)
         for b, (part, n_frames) in sums.items():
             partial[b] = part if b not in partial else partial[b] + part
@@ -697,17 +698,21 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
     blocks = np.where(good, offsets, 0.0) @ weights
     # white noise of the same per-pixel (and per-block) scatter as the data at one batch per group
     rng = np.random.default_rng(seed)
-    white = rng.standard_normal(offsets.shape) * np.std(offsets, axis=0, ddof=1)
+    # in place, and dropped once its statistics are taken: memory grows with batches x pixels here
+    white = rng.standard_normal(offsets.shape)
+    white *= np.std(offsets, axis=0, ddof=1)
     white_blocks = rng.standard_normal(blocks.shape) * np.std(blocks, axis=0, ddof=1)
 
     per_pixel, per_pixel_allan = _deviations(offsets, sizes)  # groups as means of their batch fits
     per_block, per_block_allan = _deviations(blocks, sizes)
     white_pixel, _ = _deviations(white, sizes)
+    del white
     white_block, _ = _deviations(white_blocks, sizes)
     # The limits: the variance of a group mean is the sum of its batches' variances over m^2,
     # averaged over groups (as the deviation between group means is), then over pixels or blocks:
     # the mean batch variance over the batches the groups use, over m.
-    variance = np.where(good, floors, 0.0) ** 2
+    variance = np.where(good, floors, 0.0)
+    variance **= 2
     pixel_variance = variance.mean(axis=1) * good.size / good.sum()  # (batch,): mean over good pixels
     block_variance = (variance @ weights**2).mean(axis=1)  # independent pixels in a block
     used = (n_batches // sizes) * sizes
@@ -883,18 +888,16 @@ def statistics_dataset(statistics: AllanStatistics, rows, cols, shape, *, block:
     the detector's ``shape`` (NaN off ``rows``, ``cols``), units and long names; the batch offsets stored
     as float32."""
 
-    def as_maps(values):
-        out = np.full((values.shape[0], *shape), np.nan)
-        out[:, rows, cols] = values
+    def as_maps(values, dtype):
+        out = np.full((values.shape[0], *shape), np.nan, dtype)
+        out[:, rows, cols] = values  # cast as astype() would, with no float64 map of the detector on the way
         return out
 
     data = {}
     for name, (dims, units, long_name) in _allan_variables(statistics, block).items():
         values = getattr(statistics, name)
         if "row" in dims:
-            values = as_maps(values)
-        if name == "batch_offset":
-            values = values.astype(np.float32)
+            values = as_maps(values, np.float32 if name == "batch_offset" else np.float64)
         data[name] = (dims, values, {"units": units, "long_name": long_name})
     n_batches = statistics.batch_start.size
     return xr.Dataset(
@@ -958,14 +961,16 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
                                   pixel_factors=pixel_factors, reference=reference, workers=workers,
                                   return_sums=True, label=label)
     read_noise = np.nan_to_num(dark["noise"].values[rows, cols])
-    floors = batch_floors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
-                          read_noise=read_noise, k_norm=np.hypot(*k))
     sizes = group_sizes(len(batches))
     good = np.isfinite(offsets).all(axis=0)
     groups = group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes,
                         pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise, good=good,
                         weights=block_weights(rows, cols, good=good, block=block))
     del sums  # the groups are reduced: only the batch offsets go on
+    # the batches' floors once the sums are gone: the groups' fits hold two maps a group at one batch a
+    # group, so the job's peak is there; the floors beside them would add an eighth map a batch
+    floors = batch_floors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
+                          read_noise=read_noise, k_norm=np.hypot(*k))
     global_floor = None
     if "photon_noise_floor" in metrology:  # the whole acquisition's floor, for the curves' reference
         global_floor = (metrology["photon_noise_floor"].values[rows, cols], phase.size)

@@ -6,7 +6,9 @@ chunks of frames, so memory does not grow with the number of frames. Samples
 are converted straight from a read-only memory map of the file (no copy of the
 raw bytes), and each chunk's pages are released (madvise DONTNEED) once
 converted, so that pages of a large cube do not accumulate in the process's
-resident memory.
+resident memory. A stream read to the end of a file also takes the file's
+SHA-256 from the bytes it read, so that the products' provenance
+(:func:`write_product`) reads no file only to hash it.
 
 Conventions: a cube is ``(frame, row, col)``; samples are returned as float64
 ADU; NAXIS1 is cols, NAXIS2 rows, NAXIS3 frames.
@@ -57,6 +59,8 @@ __all__ = [
     "TEMPORARY_NAME",
     "provenance",
     "input_digests",
+    "known_digests",
+    "remember_digests",
     "read_product",
     "product_attrs",
     "first_chunk",
@@ -368,6 +372,9 @@ class FrameStream:
             # the CPU cache, where a fresh one per chunk would cost page faults at each read.
             buffer = np.empty(min(self.chunk_frames, cube.n_frames) * frame_pixels, dtype=cube.disk_dtype)
             with open(cube.path, "rb", buffering=0) as f:
+                # the file's SHA-256 for the products' provenance, from the bytes this pass reads anyway
+                # (a file already hashed in this process is not hashed again)
+                digest = _StreamDigest.start(cube.path, f, cube.header_bytes)
                 f.seek(cube.header_bytes)
                 for first in range(0, cube.n_frames, self.chunk_frames):
                     n = min(self.chunk_frames, cube.n_frames - first)
@@ -377,6 +384,8 @@ class FrameStream:
                         raise DatasetError(cube.path, f"file ended inside frame {first + got // cube.frame_bytes}")
                     if checksum is not None:
                         checksum.update(stored.view(np.uint8))
+                    if digest is not None:
+                        digest.update(stored.view(np.uint8))
                     stored = stored.reshape(n, *cube.shape)
                     frames = stored.astype(self.dtype)
                     # The stored values, converted exactly, are judged before any shift: the
@@ -396,6 +405,8 @@ class FrameStream:
                         raise DatasetError(cube.path, _non_finite_report(cube))
                     yield Chunk(start, frames, saturated, any_saturated)
                     start += n
+                if digest is not None:
+                    digest.finish(f)
             if checksum is not None:
                 _check_checksums(cube, checksum.value())
 
@@ -697,12 +708,64 @@ def provenance(*, code_version=None, **roots):
         _PROVENANCE.reset(token)
 
 
+def _digest_key(path: Path, stat=None) -> tuple:
+    """The key of a file's digest in :data:`_DIGESTS`: its resolved path, size and modification time."""
+    stat = path.stat() if stat is None else stat
+    return (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+
+
+class _StreamDigest:
+    """The SHA-256 of a file taken from the bytes a :class:`FrameStream` reads: the header (read here, a few
+    kB), the data unit chunk by chunk, then what follows it (the FITS padding), recorded in
+    :data:`_DIGESTS` when the whole file was streamed and it did not change meanwhile. The provenance of
+    the products made from a stream then costs no read of its own (:func:`write_product`)."""
+
+    def __init__(self, key, hasher):
+        self.key, self.hasher = key, hasher
+
+    @classmethod
+    def start(cls, path: Path, f, header_bytes: int):
+        """The digest to take of the open file ``f``, its first ``header_bytes`` (the bytes before the data
+        unit) hashed, or None if this process has it already. Leaves ``f`` at ``header_bytes``."""
+        key = _digest_key(Path(path), os.fstat(f.fileno()))
+        if key in _DIGESTS:
+            return None
+        hasher = hashlib.sha256()
+        f.seek(0)
+        head = f.read(header_bytes)
+        while len(head) < header_bytes and (more := f.read(header_bytes - len(head))):
+            head += more
+        hasher.update(head)
+        return cls(key, hasher)
+
+    def update(self, data):
+        self.hasher.update(data)
+
+    def finish(self, f):
+        """Hash the rest of ``f`` after the data unit and record the digest."""
+        while block := f.read(1 << 20):
+            self.hasher.update(block)
+        stat = os.fstat(f.fileno())
+        if (stat.st_size, stat.st_mtime_ns) == self.key[1:]:  # not rewritten while it was read
+            _DIGESTS[self.key] = self.hasher.hexdigest()
+
+
+def known_digests() -> dict:
+    """The SHA-256 this process has taken, by (resolved path, size, mtime_ns): a worker process hands its
+    own to its parent (:func:`dice_core.parallel.map_lanes`), which :func:`remember_digests`."""
+    return dict(_DIGESTS)
+
+
+def remember_digests(digests: dict) -> None:
+    """Add digests taken elsewhere (:func:`known_digests` of a worker process) to this process's."""
+    _DIGESTS.update(digests)
+
+
 def _sha256(path: Path) -> str | None:
     try:
-        stat = path.stat()
+        key = _digest_key(path)
     except OSError:
         return None
-    key = (str(path), stat.st_size, stat.st_mtime_ns)
     if key not in _DIGESTS:
         with open(path, "rb") as f:
             _DIGESTS[key] = hashlib.file_digest(f, "sha256").hexdigest()

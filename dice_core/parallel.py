@@ -82,11 +82,29 @@ def lane_executor(workers: int, n_lanes: int):
 
 
 def map_lanes(executor, function, lanes, *shared):
-    """``function(lane, *shared)`` for each lane, in lane order: in the executor's processes, or here if None."""
+    """``function(lane, *shared)`` for each lane, in lane order: in the executor's processes, or here if None.
+
+    The files' SHA-256 a worker took while streaming its lane (:class:`dice_core.io.FrameStream`) come back
+    to this process with the results, so that the products' provenance does not read the files again.
+    """
     if executor is None:
         return [function(lane, *shared) for lane in lanes]
+    from dice_core import io  # here: io's imports are not this module's to pay for
+
     n = len(lanes)
-    return list(executor.map(function, lanes, *[[value] * n for value in shared]))
+    results = []
+    for result, digests in executor.map(_lane_with_digests, [function] * n, lanes,
+                                        *[[value] * n for value in shared]):
+        io.remember_digests(digests)
+        results.append(result)
+    return results
+
+
+def _lane_with_digests(function, lane, *shared):
+    """In a worker process: ``function(lane, *shared)`` and the files' digests the worker knows."""
+    from dice_core import io
+
+    return function(lane, *shared), io.known_digests()
 
 
 def threads_report(executor, lane_threads) -> str:

@@ -99,8 +99,9 @@ COSTS: dict[str, StepCost] = {
     # A split fit's jobs (docs/metrology.md), measured on 256x256 to 1024x1024 detectors (BENCHMARKS.md, "A
     # large detector"). A part holds the projector, F'X and a chunk per pixel and its own frames' products
     # (frames: its files' frames): 438 MB at 1024x1024 whether its files hold 2000 or 10,000 frames; pass 1
-    # reads its files twice (their checksums, then the pass): 14.5 s per 1e9 samples from the disk, 8 for
-    # a later pass. The start forms pass 1's 7-column design and projector: 536 MB at 1024x1024. The sum of
+    # read its files twice then (their checksums, then the pass): 14.5 s per 1e9 samples from the disk, 8 for
+    # a later pass (pass 1 now hashes what it streams: kept at 15 until measured from a disk again). The
+    # start forms pass 1's 7-column design and projector: 536 MB at 1024x1024. The sum of
     # a pass (1.5-1.6 GB, 11 s) and the product (1.85 GB, 74-78 s: the pixel solution and the tips'
     # refinement) hold all frames' factors (frames: the baseline's) and per-pixel arrays.
     "fit_start": StepCost(base_mb=400.0, mb_per_mpixel=2500.0, start_s=3.0, s_per_mpixel=60.0),
@@ -111,7 +112,10 @@ COSTS: dict[str, StepCost] = {
     "fit_finish": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
                            s_per_mpixel=80.0),  # reads the state and the parts' digests, no cube
     # each batch's offset map in memory: batches (one a fringe period) x pixels; 7.2 GB and 353 s for
-    # 1024x1024 x 20,000 frames (160 batches)
+    # 1024x1024 x 20,000 frames (160 batches of 125 frames). About 49 bytes a pixel and batch, measured at
+    # 128x128 and 256x256 with 140 and 281 batches of 71 frames (BENCHMARKS.md, "Reads and memory of one
+    # baseline"): per sample, 49 / (frames a batch), which a sweep slower than a fringe period per 125
+    # frames keeps under this coefficient
     "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=1000.0, mb_per_gsample=300.0, start_s=3.0,
                                 s_per_gsample=17.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),

@@ -1,6 +1,8 @@
 """Allan deviations: against allantools, against the photon-noise limit on simulated metrology, and
 their response to correlated noise."""
 
+from pathlib import Path
+
 import allantools
 import numpy as np
 import pytest
@@ -304,17 +306,22 @@ def test_batch_offsets_ignore_the_constant_phase_the_gauge_leaves_free(rng, cons
     assert np.sqrt(np.mean((offsets - expected) ** 2)) < 1e-4
 
 
-def test_allan_is_the_same_bit_for_bit_whatever_the_workers(tmp_path):
-    """Fixed lanes of whole files, summed in order; a batch cut between two lanes sums their parts."""
+def four_file_baseline(tmp_path, name):
+    """A 40x44 dataset whose one baseline of 1800 frames is four files of 450 (two lanes of two files):
+    its manifest and truth."""
     cfg = simulation.SimulationConfig.from_dict({
-        "name": "allan-lanes", "frames_per_file": 450,
+        "name": name, "frames_per_file": 450,
         "detector": {"shape": [40, 44], "science_rows": [2, 39], "science_cols": [3, 43]},
         "dark": {"frames": 2}, "flats": {"frames": 2},
         "stars": {"positions": 1, "frames": 1, "pattern_centre": [23.0, 20.0], "pattern_side": 16.0},
         "metrology": {"frames": 1800, "sweep_frames": 300,
                       "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
-    manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
-    truth = read_product(tmp_path / "truth.nc")
+    return load_manifest(simulation.simulate_dataset(cfg, tmp_path)), read_product(tmp_path / "truth.nc")
+
+
+def test_allan_is_the_same_bit_for_bit_whatever_the_workers(tmp_path):
+    """Fixed lanes of whole files, summed in order; a batch cut between two lanes sums their parts."""
+    manifest, truth = four_file_baseline(tmp_path, "allan-lanes")
     stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
     assert len(stream.split(2)) == 2
     solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
@@ -408,3 +415,73 @@ def test_the_product_is_the_statistics_with_their_metadata(rng):
     # the optional statistics are absent from the product when not computed
     assert statistics.deviation_mean_batch_means is None and "deviation_mean_batch_means" not in ds
     assert statistics.first_frame_noise is None and "first_frame_noise" not in ds
+
+
+class _CountedFile:
+    """A file opened for reading whose bytes read are added to ``counter[name]``; the rest is the file's."""
+
+    def __init__(self, f, counter, name):
+        self._f, self._counter, self._name = f, counter, name
+
+    def __getattr__(self, name):
+        return getattr(self._f, name)
+
+    def read(self, *args):
+        data = self._f.read(*args)
+        self._counter[self._name] += len(data or b"")
+        return data
+
+    def readinto(self, buffer):
+        n = self._f.readinto(buffer)
+        self._counter[self._name] += n or 0
+        return n
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return self._f.__exit__(*exc)
+
+
+def test_the_fit_and_the_allan_step_read_a_cube_once_a_pass_its_checksums_on_the_way(tmp_path, monkeypatch):
+    """No read of a cube only to hash it: the fit reads the cube once a pass, the Allan step once, and the
+    products still record each cube's SHA-256 (taken from the bytes the passes read)."""
+    import builtins
+    import hashlib
+    import json
+    from collections import Counter
+
+    from dice_core import io
+
+    manifest, truth = four_file_baseline(tmp_path, "allan-reads")
+    files = [f.resolve() for f in manifest.baselines["H1H4"].files]
+    cube_bytes = sum(f.stat().st_size for f in files)
+    counter, real_open = Counter(), builtins.open
+
+    def counting_open(file, mode="r", *args, **kwargs):
+        f = real_open(file, mode, *args, **kwargs)
+        if isinstance(file, (str, Path)) and Path(file).resolve() in files and "r" in mode:
+            return _CountedFile(f, counter, "cubes")
+        return f
+
+    monkeypatch.setattr(io, "_DIGESTS", {})
+    monkeypatch.setattr(builtins, "open", counting_open)
+    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
+    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
+                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
+    metrology = fringes.solution_dataset(solution, manifest.detector)
+    io.write_product(metrology, tmp_path / "metrology.nc", title="fit", inputs=files)
+    passes = len(solution.history) + 1
+    fit_reads = counter["cubes"] / cube_bytes
+    dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
+                       "noise": (("row", "col"), truth["read_noise"].values)})
+    io._DIGESTS.clear()  # the Allan step is a job of its own: it hashes the cubes itself
+    product = allan.allan_of_baseline(stream, metrology, dark=dark, detector=manifest.detector)
+    io.write_product(product, tmp_path / "allan.nc", title="allan", inputs=files)
+    allan_reads = counter["cubes"] / cube_bytes - fit_reads
+    monkeypatch.undo()
+    # the passes, and the headers and first chunks (a few percent) besides: a hash's read would add 1
+    assert passes <= fit_reads < passes + 0.2 and 1 <= allan_reads < 1.2, (passes, fit_reads, allan_reads)
+    for name in ("metrology.nc", "allan.nc"):
+        recorded = [r["sha256"] for r in json.loads(read_product(tmp_path / name).attrs["inputs"])]
+        assert recorded == [hashlib.sha256(f.read_bytes()).hexdigest() for f in files], name

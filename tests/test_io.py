@@ -562,3 +562,54 @@ def test_a_killed_writers_temporary_file_is_removed_and_a_live_writers_kept(tmp_
         writer.kill()
     assert removed == [part] and not part.exists() and other.exists()
     assert remove_abandoned(tmp_path / "nowhere", [target]) == []
+
+
+def test_a_streamed_file_is_hashed_from_the_bytes_the_stream_reads_not_read_again(tmp_path, rng, monkeypatch):
+    """The products' checksums cost no read of their own: a stream read to its end records each file's
+    SHA-256 (header, data and padding); a stream left after its first chunk records nothing, and a file
+    changed since is hashed again; worker processes hand theirs to the parent."""
+    import hashlib
+    import json
+    import os
+
+    from dice_core import io, parallel
+
+    paths = [tmp_path / f"c{i}.fits" for i in range(3)]
+    for path, n in zip(paths, (7, 4, 5)):
+        write_cube(path, [cube(n, rng)], shape=(6, 7), n_frames=n, dtype="uint16")
+    truth = {str(p.resolve()): hashlib.sha256(p.read_bytes()).hexdigest() for p in paths}
+    monkeypatch.setattr(io, "_DIGESTS", {})
+    io.first_chunk(stream(paths, chunk_frames=3))  # a partial read proves nothing of the rest of the file
+    assert io.known_digests() == {}
+    collect(stream(paths, chunk_frames=3))
+    assert {key[0]: value for key, value in io.known_digests().items()} == truth
+
+    def no_read(*args, **kwargs):
+        raise AssertionError("a streamed file read again to be hashed")
+
+    monkeypatch.setattr(io.hashlib, "file_digest", no_read)
+    write_product(product(), tmp_path / "p.nc", title="p", inputs=paths)
+    assert [r["sha256"] for r in json.loads(read_product(tmp_path / "p.nc").attrs["inputs"])] == list(truth.values())
+    # a file rewritten since it was streamed is hashed from its new bytes
+    monkeypatch.undo()
+    monkeypatch.setattr(io, "_DIGESTS", {})
+    collect(stream(paths, chunk_frames=3))
+    write_cube(paths[0], [cube(7, rng)], shape=(6, 7), n_frames=7, dtype="uint16")
+    os.utime(paths[0], ns=(1, 1))
+    write_product(product(), tmp_path / "q.nc", title="q", inputs=paths[:1])
+    [record] = json.loads(read_product(tmp_path / "q.nc").attrs["inputs"])
+    assert record["sha256"] == hashlib.sha256(paths[0].read_bytes()).hexdigest() != truth[str(paths[0].resolve())]
+    # lanes read in worker processes: their digests come back with the results
+    monkeypatch.setattr(io, "_DIGESTS", {})
+    lanes = stream(paths[1:], chunk_frames=2).split(2)
+    with parallel.lane_executor(2, len(lanes)) as executor:
+        if executor is None:
+            pytest.skip("no fork on this platform")
+        counts = parallel.map_lanes(executor, _frames_of, lanes)
+    assert counts == [4, 5]
+    assert {key[0]: value for key, value in io.known_digests().items()} == {
+        str(p.resolve()): truth[str(p.resolve())] for p in paths[1:]}
+
+
+def _frames_of(lane):
+    return sum(chunk.frames.shape[0] for chunk in lane)

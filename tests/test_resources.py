@@ -8,16 +8,20 @@ from dice_core.resources import job_resources
 PAPER_PIXELS = 80 * 84
 
 
-@pytest.mark.parametrize("step, frames, max_rss_mb, seconds", [
+@pytest.mark.parametrize("step, frames, max_rss_mb, seconds, pixels", [
     # BENCHMARKS.md, the paper preset (80x84 pixels, 200,000-frame baselines): the benchmark files' max_rss
     # and wall time with other jobs on the cores
-    ("fit_fringes", 200_000, 411, 19),
-    ("allan_deviation", 200_000, 491, 14),
+    ("fit_fringes", 200_000, 411, 19, PAPER_PIXELS),
+    ("allan_deviation", 200_000, 491, 14, PAPER_PIXELS),
     # BENCHMARKS.md, one 20,000-frame metrology file simulated (3.4 s alone), memory_streaming.py's 221 MiB
-    ("simulate_file", 20_000, 232, 3.4),
+    ("simulate_file", 20_000, 232, 3.4, PAPER_PIXELS),
+    # BENCHMARKS.md, "Reads and memory of one baseline": the Allan job's peak (VmHWM) at 281 batches of 71
+    # frames, the base commit's code (this branch's is lower), on 128x128 and 256x256 pixels
+    ("allan_deviation", 20_000, 354, 19.3, 128 * 128),
+    ("allan_deviation", 20_000, 1035, 125.7, 256 * 256),
 ])
-def test_requests_cover_the_paper_scale_measurements(step, frames, max_rss_mb, seconds):
-    asked = job_resources(step, pixels=PAPER_PIXELS, frames=frames)
+def test_requests_cover_the_paper_scale_measurements(step, frames, max_rss_mb, seconds, pixels):
+    asked = job_resources(step, pixels=pixels, frames=frames)
     assert asked["mem_mb"] - resources.EXECUTOR_MB >= max_rss_mb
     assert asked["mem_mb"] <= 4 * max_rss_mb + resources.EXECUTOR_MB  # a request, not the whole node
     assert asked["runtime"] * 60 >= seconds
