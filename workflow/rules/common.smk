@@ -77,14 +77,6 @@ except planning.PlanningError as exc:
 REDUCTION_SWEEPS = [name for name, sweep in SWEEPS.items() if sweep.study == "reduction"]
 STUDY_SWEEPS = [name for name in SWEEPS if name not in REDUCTION_SWEEPS]
 
-# One set for the run and the modules of its reduction sweep's points, which evaluate this file again with the
-# same workflow object: a reason is said once, not once per point.
-_SKIPPED = vars(workflow).setdefault("_dice_skipped", set())
-for _message in PLAN.skipped:
-    if _message not in _SKIPPED:
-        _SKIPPED.add(_message)
-        print(f"dice: {_message}", file=sys.stderr)
-
 
 wildcard_constraints:
     flat="|".join(map(re.escape, MANIFEST.flats)) or "(?!)",
@@ -227,6 +219,15 @@ def file_frames(path):
 if getattr(workflow, "is_main_process", True):
     for _file in MANIFEST.all_files():
         file_frames(_file)
+
+# What the run skips and why, said once every start-up check has passed: a run refused at start says its one
+# problem alone. One set for the run and the modules of its reduction sweep's points, which evaluate this file
+# again with the same workflow object: a reason is said once, not once per point.
+_SKIPPED = vars(workflow).setdefault("_dice_skipped", set())
+for _message in PLAN.skipped:
+    if _message not in _SKIPPED:
+        _SKIPPED.add(_message)
+        print(f"dice: {_message}", file=sys.stderr)
 
 
 def part_files(wildcards):
