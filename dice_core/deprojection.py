@@ -33,7 +33,7 @@ import numpy as np
 import xarray as xr
 
 from dice_core import stray_light
-from dice_core.geometry import affine_basis, orthonormal_modes, remove_modes
+from dice_core.geometry import UNOBSERVABLE_MODE, affine_basis, orthonormal_modes, remove_modes
 
 __all__ = ["deproject", "deproject_floor", "pair_difference", "offsets_dataset", "difference_dataset", "MIN_SINE",
            "DeprojectionError", "without_stray_light"]
@@ -229,7 +229,7 @@ def offsets_dataset(first, second, *, label: str = "pair", stray=(None, None)):
             **modes,
         },
         coords={"row": first["row"].values, "col": first["col"].values,
-                **({"mode": np.arange(mode_dx.shape[0])} if modes_found else {})},
+                **({"mode": ("mode", np.arange(mode_dx.shape[0]), UNOBSERVABLE_MODE)} if modes_found else {})},
     )
     product.attrs["fringe_frequencies"] = json.dumps(harmonics)
     return product
