@@ -174,8 +174,8 @@ def test_start_up_problems_are_one_line_naming_the_file_or_key(sandbox, tmp_path
     assert not (repo / "results").exists()
 
 
-#: What Snakemake itself prints before the workflow is read, which the workflow cannot prevent (README, "When
-#: something is wrong"): the profile it read by itself, and the configuration file that --config extends.
+#: What Snakemake itself prints before the workflow is read, which the workflow cannot prevent (README and
+#: docs/running.md, "When something is wrong"): the profile it read by itself, and the configuration file that --config extends.
 SNAKEMAKE_OWN = (re.compile(r"Using workflow specific profile profiles/default for setting default command line "
                             r"arguments\."),
                  re.compile(r"Config file \S+/config/config\.yaml is extended by additional config specified via "
