@@ -149,12 +149,12 @@ def open_cube(path, detector: Detector | None = None) -> CubeFile:
         raise DatasetError(path, "file not found")
     try:
         # astropy's own truncation warning is superseded by the error raised below
+        # (reading the header included: lazily loaded, it is where astropy warns of a short file)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", AstropyUserWarning)
-            hdul = fits.open(path, memmap=False, lazy_load_hdus=True)
-        with hdul:
-            header = hdul[0].header.copy()
-            header_bytes = hdul.fileinfo(0)["datLoc"]
+            with fits.open(path, memmap=False, lazy_load_hdus=True) as hdul:
+                header = hdul[0].header.copy()
+                header_bytes = hdul.fileinfo(0)["datLoc"]
     except (OSError, ValueError, IndexError) as exc:
         raise DatasetError(path, f"not a readable FITS file ({exc})") from None
 
