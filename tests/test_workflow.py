@@ -99,6 +99,20 @@ def test_products_follow_the_contract(out):
     assert "dark_000.fits" in dark.attrs["inputs"]
 
 
+def test_every_coordinate_of_every_product_says_what_it_is(out):
+    """A long_name on every coordinate of every netCDF product, and units where it is numeric (a label's values
+    are its own words); the two meanings of ``mode`` told apart."""
+    found = sorted(out.rglob("*.nc"))
+    assert len(found) > 30
+    for path in found:
+        with xr.open_dataset(path) as ds:
+            for name, coord in ds.coords.items():
+                assert coord.attrs.get("long_name"), (path, name)
+                assert coord.dtype.kind not in "iuf" or coord.attrs.get("units"), (path, name)
+    with xr.open_dataset(out / "tables" / "procrustes_residuals.nc") as ds:
+        assert ds["mode"].attrs["long_name"].startswith("calibration mode")
+
+
 def test_products_record_their_code_relative_inputs_with_checksums_and_history(out):
     """Provenance: the hash of the code that made each product, inputs relative to the dataset's and the results
     folders with their sha256, and history appended along the chain of products, CF style."""
