@@ -35,9 +35,11 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.products_page` -- the generated part of docs/products.md, from the catalogue and the steps;
 - :mod:`dice_core.planning` -- what a run makes of a dataset and a configuration: targets, skips, sweeps;
 - :mod:`dice_core.resources` -- memory and time each job needs, from the dataset's size;
-- :mod:`dice_core.preflight` -- what a workflow run checks before any job (paths, folders, disk).
+- :mod:`dice_core.preflight` -- what a workflow run checks before any job (paths, folders, disk);
+- :mod:`dice_core.check` -- a dataset checked before a run: manifest, headers, samples, what the run would make;
+- :mod:`dice_core.__main__` -- ``python -m dice_core check PATH/dataset.yaml``, the checker's command.
 
-The last seven describe the workflow (``workflow/``) without depending on it.
+The seven before the checker describe the workflow (``workflow/``) without depending on it.
 """
 
 from importlib.metadata import PackageNotFoundError, version

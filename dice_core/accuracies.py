@@ -51,6 +51,7 @@ __all__ = [
     "accuracy_tables",
     "latex_table",
     "CSV_COLUMNS",
+    "ACCURACY_UNIT",
     "accuracy_csv",
     "residuals_dataset",
     "REMOVAL_BOUND_LOW",
@@ -406,20 +407,26 @@ def latex_table(rows, *, notes=()) -> str:
     return "\n".join(lines)
 
 
-#: Columns of ``tables/accuracy.csv``: the contract's first, then what makes each row traceable.
+#: Columns of ``tables/accuracy.csv``: the contract's first, then what makes each row traceable, then ``unit``,
+#: the unit of the columns that have one (accuracy, error, rms_residual; n and factor are pure numbers), last so
+#: that the columns before it stay where they were.
 CSV_COLUMNS = ("flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "n", "rms_residual", "factor",
-               "superimposition")
+               "superimposition", "unit")
+#: The unit of the accuracy table's accuracy, error and rms_residual, in its column ``unit``.
+ACCURACY_UNIT = "pixel"
 
 
 def accuracy_csv(rows) -> str:
-    """The rows of :func:`mode_accuracies` as CSV text (booleans as true/false, floats to 7 digits)."""
+    """The rows of :func:`mode_accuracies` as CSV text (booleans as true/false, floats to 7 digits), with the
+    unit (:data:`ACCURACY_UNIT`) of accuracy, error and rms_residual in the column ``unit``."""
     def text(value):
         if isinstance(value, (bool, np.bool_)):
             return str(bool(value)).lower()
         return f"{value:.6e}" if isinstance(value, float) else str(value)
 
-    return "\n".join([",".join(CSV_COLUMNS), *(",".join(text(row.get(c, "procrustes" if c == "superimposition" else ""))
-                                                       for c in CSV_COLUMNS) for row in rows)]) + "\n"
+    defaults = {"superimposition": "procrustes", "unit": ACCURACY_UNIT}
+    return "\n".join([",".join(CSV_COLUMNS), *(",".join(text(row.get(c, defaults.get(c, ""))) for c in CSV_COLUMNS)
+                                               for row in rows)]) + "\n"
 
 
 def _complete_barycentre_residuals(configurations):

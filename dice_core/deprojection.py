@@ -32,7 +32,7 @@ import logging
 import numpy as np
 
 from dice_core import lazy, stray_light
-from dice_core.geometry import affine_basis, orthonormal_modes, remove_modes
+from dice_core.geometry import UNOBSERVABLE_MODE, affine_basis, orthonormal_modes, remove_modes
 
 xr = lazy.module("xarray")
 
@@ -230,7 +230,7 @@ def offsets_dataset(first, second, *, label: str = "pair", stray=(None, None)):
             **modes,
         },
         coords={"row": first["row"].values, "col": first["col"].values,
-                **({"mode": np.arange(mode_dx.shape[0])} if modes_found else {})},
+                **({"mode": ("mode", np.arange(mode_dx.shape[0]), UNOBSERVABLE_MODE)} if modes_found else {})},
     )
     product.attrs["fringe_frequencies"] = json.dumps(harmonics)
     return product

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from dice_core import lazy
-from dice_core.geometry import TwoSourceFit, wrapped_about_mean
+from dice_core.geometry import UNOBSERVABLE_MODE, TwoSourceFit, wrapped_about_mean
 from dice_core.polynomials import polynomial_design
 
 xr = lazy.module("xarray")
@@ -491,6 +491,7 @@ def solution_dataset(solution: FringeSolution, detector, *, fibers=None) -> xr.D
                 "frame": np.arange(solution.phase.size), "iteration": [h["pass"] for h in history],
                 **({} if solution.two_source is None else {
                     "fiber": list(fibers), "xyz": ["x", "y", "z"], "tip_mode": np.arange(6),
-                    **({"mode": np.arange(len(solution.two_source.modes))} if len(solution.two_source.modes) else {})
+                    **({"mode": ("mode", np.arange(len(solution.two_source.modes)), UNOBSERVABLE_MODE)}
+                       if len(solution.two_source.modes) else {})
                 })},
     )

@@ -48,6 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "UNOBSERVABLE_MODE",
     "MODE_INFORMATION_THRESHOLD",
     "MAX_TIP_SHIFT_SIGMA",
     "GeometryError",
@@ -66,6 +67,9 @@ log = logging.getLogger(__name__)
 
 #: Largest move of a refined tip coordinate from its nominal value accepted, in units of tip_sigma.
 MAX_TIP_SHIFT_SIGMA = 5.0
+#: Attributes of the ``mode`` coordinate of the products that hold unobservable offset modes (a baseline's
+#: ``unobservable_offset``, a pair's ``unobservable_dx``, ``unobservable_dy``).
+UNOBSERVABLE_MODE = {"units": "1", "long_name": "unobservable offset mode beyond the affine part, counted from 0"}
 
 #: Information ratio (data over prior) above which a tip mode counts as refined from the data,
 #: and its offset pattern as unobservable (module docstring).

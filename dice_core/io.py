@@ -158,12 +158,12 @@ def open_cube(path, detector: Detector | None = None) -> CubeFile:
 
     try:
         # astropy's own truncation warning is superseded by the error raised below
+        # (reading the header included: lazily loaded, it is where astropy warns of a short file)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", AstropyUserWarning)
-            hdul = fits.open(path, memmap=False, lazy_load_hdus=True)
-        with hdul:
-            header = hdul[0].header.copy()
-            header_bytes = hdul.fileinfo(0)["datLoc"]
+            with fits.open(path, memmap=False, lazy_load_hdus=True) as hdul:
+                header = hdul[0].header.copy()
+                header_bytes = hdul.fileinfo(0)["datLoc"]
     except (OSError, ValueError, IndexError) as exc:
         raise DatasetError(path, f"not a readable FITS file ({exc})") from None
 
@@ -669,18 +669,9 @@ def write_text(path, text: str):
             f.write(text)
 
 
-#: Units and long names of the index coordinates the products share (CF has no standard_name for a
-#: detector's pixel grid, a frame index or a star; none is set).
-COORDINATE_ATTRS = {
-    "row": {"units": "pixel", "long_name": "detector row (pixel centres at integers, counted from 0)", "axis": "Y"},
-    "col": {"units": "pixel", "long_name": "detector column (pixel centres at integers, counted from 0)",
-            "axis": "X"},
-    "frame": {"units": "1", "long_name": "frame index in the acquisition, counted from 0"},
-    "position": {"units": "1", "long_name": "star position index of the dataset's manifest"},
-    "star": {"units": "1", "long_name": "pseudo-star index in the star pattern, counted from 0"},
-    "batch": {"units": "1", "long_name": "batch of consecutive frames, counted from 0"},
-    "iteration": {"units": "1", "long_name": "pass of the iterative solution, counted from 1"},
-}
+#: Units and long names of the coordinates the products share (the catalogue's, :mod:`dice_core.products`).
+COORDINATE_ATTRS = products.COORDINATE_ATTRS
+INDEX_DIMS = products.INDEX_DIMS
 
 _PROVENANCE = contextvars.ContextVar("dice_core_provenance", default=None)
 _DIGESTS: dict = {}  # (path, size, mtime) -> sha256, so a file read by several products is hashed once
@@ -824,13 +815,20 @@ def _history_of(path) -> list[str]:
 
 
 def _annotate_coordinates(ds: xr.Dataset) -> xr.Dataset:
-    """Index coordinates for the shared dims that have none, and units and long names where unset."""
-    missing = {dim: np.arange(ds.sizes[dim]) for dim in COORDINATE_ATTRS if dim in ds.dims and dim not in ds.coords}
+    """Index coordinates for the shared dims that have none (:data:`INDEX_DIMS`), and the units and long names of
+    :data:`COORDINATE_ATTRS` where the step set none."""
+    missing = {dim: np.arange(ds.sizes[dim]) for dim in INDEX_DIMS if dim in ds.dims and dim not in ds.coords}
     ds = ds.assign_coords(missing)
     for dim, attrs in COORDINATE_ATTRS.items():
         if dim in ds.coords:
             ds[dim].attrs = {**attrs, **ds[dim].attrs}
     return ds
+
+
+def _unannotated_coordinates(ds: xr.Dataset) -> list[str]:
+    """The coordinates without a long name, or numeric without units: what a reader could not interpret."""
+    return [str(name) for name, coord in ds.coords.items() if "long_name" not in coord.attrs
+            or (coord.dtype.kind in "iuf" and "units" not in coord.attrs)]
 
 
 def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), code_version=None, roots=None,
@@ -839,9 +837,11 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
 
     Every data variable with a physical meaning must carry a ``units`` attribute
     (``"1"`` for dimensionless): a variable without one is refused. The shared
-    index coordinates (:data:`COORDINATE_ATTRS`: row, col, frame, position, star,
-    batch, iteration) get their units and long names, and an index coordinate
-    where the dataset has none. The global attributes receive ``Conventions``,
+    index coordinates (:data:`INDEX_DIMS`: row, col, frame, position, star,
+    batch, iteration) get one where the dataset has none; every coordinate gets
+    the units and long name of :data:`COORDINATE_ATTRS` where the step set none,
+    and a coordinate left without a long name (or, numeric, without units) is
+    refused. The global attributes receive ``Conventions``,
     ``title``, ``source`` and ``dice_core_version`` (the software),
     ``code_version`` (the hash of the code that made it, when known),
     ``configuration`` (JSON of ``config``), ``inputs`` (JSON list of
@@ -871,6 +871,9 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
     roots = roots if roots is not None else context.get("roots") or {}
     inputs = [Path(p) for p in inputs]
     ds = _annotate_coordinates(ds.copy())
+    unannotated = _unannotated_coordinates(ds)
+    if unannotated:
+        raise ValueError(f"{path}: coordinates without a long_name (and units, if numeric): {unannotated}")
     history = []
     for line in [*str(ds.attrs.get("history", "")).splitlines(), *(h for p in inputs for h in _history_of(p))]:
         if line and line not in history:

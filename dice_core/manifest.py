@@ -15,6 +15,7 @@ baselines of a pair must share one wavelength.
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
 import re
@@ -334,6 +335,30 @@ def _is_name_error(error) -> bool:
         "propertyNames" in error.schema_path or list(error.absolute_path) == ["name"])
 
 
+def _error_rank(error) -> tuple:
+    """The order schema errors are reported in, the first alone: names that would become paths (what a hostile
+    manifest is refused for), then the format (a manifest of another format breaks everything after it), then
+    unknown keys (a misspelt key also makes its right spelling missing: the typo is the cause), then the rest."""
+    kind = (0 if _is_name_error(error) else 1 if list(error.absolute_path) == ["format"] else
+            2 if error.validator == "additionalProperties" else 3)
+    return kind, [str(p) for p in error.absolute_path]
+
+
+def _error_text(error) -> str:
+    """A schema error as the user needs it: the format with the value found; an unknown key with the nearest
+    valid one; else the validator's message."""
+    if list(error.absolute_path) == ["format"]:
+        return f"format is {_shown(error.instance)}, and this version reads {FORMAT!r} (docs/dataset-format.md)"
+    if error.validator == "additionalProperties" and isinstance(error.instance, dict):
+        known = list(error.schema.get("properties", {}))
+        hints = []
+        for key in sorted(set(map(str, error.instance)) - set(known)):
+            near = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+            hints.append(f"did you mean {near[0]}?" if near else f"keys allowed: {', '.join(known)}")
+        return f"{error.message}; {'; '.join(hints)}"
+    return error.message
+
+
 def load_manifest(path, *, check_files: bool = True) -> Manifest:
     """Read, validate and resolve a dataset manifest.
 
@@ -384,8 +409,7 @@ def parse_manifest(document, path) -> Manifest:
         _fail(path, f"manifest is a {type(document).__name__}, not a mapping of keys (format, name, "
                     f"detector, ...): {_shown(document)}")
     validator = jsonschema.Draft202012Validator(_schema())
-    # names that would become paths first: they are what a hostile manifest is refused for
-    errors = sorted(validator.iter_errors(document), key=lambda e: (not _is_name_error(e), list(e.absolute_path)))
+    errors = sorted(validator.iter_errors(document), key=_error_rank)
     if errors:
         first = errors[0]
         where = ".".join(str(p) for p in first.absolute_path) or "(top level)"
@@ -393,7 +417,7 @@ def parse_manifest(document, path) -> Manifest:
         if _is_name_error(first):
             key = "name" if where == "name" else f"{where} key"
             _fail(path, f"manifest {key} {name_problem(first.instance)}{more}")
-        _fail(path, f"manifest violates {FORMAT} at {where}: {first.message}{more}")
+        _fail(path, f"manifest violates {FORMAT} at {where}: {_error_text(first)}{more}")
 
     root = path.parent
 

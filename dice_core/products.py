@@ -23,7 +23,7 @@ import os
 import re
 from dataclasses import dataclass, field
 
-__all__ = ["Variable", "Product", "CATALOGUE", "SWEEPS_FOLDER", "entry", "pattern", "path_of", "match", "problems"]
+__all__ = ["Variable", "Product", "CATALOGUE", "COORDINATE_ATTRS", "INDEX_DIMS", "SWEEPS_FOLDER", "entry", "pattern", "path_of", "match", "problems"]
 
 #: The sweeps' folder, beside the datasets' own under the results folder (base ``"sweeps"``).
 SWEEPS_FOLDER = "sweeps"
@@ -252,8 +252,9 @@ _PRODUCTS = [
     Product("accuracy_table", "tables/accuracy.csv", "accuracy_table", "csv", stable=True, stage="astrometry",
             meaning="one row per centroid method, calibration mode, grouping and superimposition; select rows by "
                     "mode (the width mode shares flat and metrology with flat+metrology); accuracy, error and "
-                    "rms_residual in pixel",
-            columns=("flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "superimposition")),
+                    "rms_residual in the unit the column unit names (pixel); n and factor are pure numbers",
+            columns=("flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "superimposition",
+                     "unit")),
     Product("accuracy_latex", "tables/accuracy.tex", "accuracy_table", "tex", stage="astrometry",
             meaning="the accuracy table as the paper prints it"),
     Product("procrustes_residuals", "tables/procrustes_residuals.nc", "accuracy_table", "netcdf", stage="astrometry",
@@ -341,6 +342,43 @@ _PRODUCTS += [Product(key, path, step, "figure", meaning=meaning, stage=stage)
 
 #: Every product by its key.
 CATALOGUE: dict[str, Product] = {p.key: p for p in _PRODUCTS}
+
+#: Units and long names of the coordinates the products share, set where the step that writes a product sets
+#: none (:func:`dice_core.io.write_product`, which refuses a coordinate left without a long name, or numeric
+#: without units). CF has no standard_name for a detector's pixel grid, a frame index or a star; none is set.
+#: A label coordinate (strings: baseline, axis, mode...) has a long name and no units.
+COORDINATE_ATTRS = {
+    "row": {"units": "pixel", "long_name": "detector row (pixel centres at integers, counted from 0)", "axis": "Y"},
+    "col": {"units": "pixel", "long_name": "detector column (pixel centres at integers, counted from 0)",
+            "axis": "X"},
+    "frame": {"units": "1", "long_name": "frame index in the acquisition, counted from 0"},
+    "position": {"units": "1", "long_name": "star position index of the dataset's manifest"},
+    "star": {"units": "1", "long_name": "pseudo-star index in the star pattern, counted from 0"},
+    "batch": {"units": "1", "long_name": "batch of consecutive frames, counted from 0"},
+    "iteration": {"units": "1", "long_name": "pass of the iterative solution, counted from 1"},
+    # the coordinates that are not indices of the data: their attributes alone, where the step sets none
+    "all_position": {"units": "1", "long_name": "star position index of the dataset's manifest, every position"},
+    "window_row": {"units": "pixel", "long_name": "row within the star window, counted from its first row"},
+    "window_col": {"units": "pixel", "long_name": "column within the star window, counted from its first column"},
+    "axis": {"long_name": "axis of the detector frame: x along columns, y along rows, z along the detector's normal "
+                          "towards the fibers"},
+    "xyz": {"long_name": "component of a position in the detector frame: x along columns, y along rows, z along the "
+                         "detector's normal towards the fibers"},
+    "angle": {"long_name": "rotation of the star stage's pose: tip, tilt (about x, y) and roll (about z)"},
+    "baseline": {"long_name": "metrology baseline, named as in the dataset's manifest"},
+    "flat": {"long_name": "flat-field acquisition, named as in the dataset's manifest"},
+    "fiber": {"long_name": "metrology fiber tip, named as in the dataset's manifest (metrology.geometry.fibers)"},
+    "tip_mode": {"units": "1", "long_name": "eigenvector of the fiber tips' information matrix, counted from 0"},
+    "kernel": {"units": "1", "long_name": "member of the PRF kernel family (kernel_order, kernel_sigma, "
+                                          "kernel_half_width), counted from 0"},
+    "mode": {"long_name": "calibration mode of the centroids (docs/products.md, \"Calibration modes and centroid "
+                          "methods\")"},
+    "model": {"long_name": "superimposition of the star pattern: procrustes, projective or pose"},
+    "wavelength": {"units": "m", "long_name": "wavelength in vacuum"},
+    "wavelengths": {"long_name": "set of calibration wavelengths"},
+}
+#: The dimensions that get an index coordinate (0, 1, ...) where the dataset has none.
+INDEX_DIMS = ("row", "col", "frame", "position", "star", "batch", "iteration")
 
 
 def entry(key: str) -> Product:

@@ -8,7 +8,8 @@ page is stale. Kept apart from the catalogue, which the I/O module reads: a page
 from __future__ import annotations
 
 from dice_core import centroids, steps
-from dice_core.products import CATALOGUE
+from dice_core.geometry import UNOBSERVABLE_MODE
+from dice_core.products import CATALOGUE, COORDINATE_ATTRS, INDEX_DIMS
 
 __all__ = ["markdown", "replace_generated"]
 
@@ -45,6 +46,14 @@ def markdown(*, modes=None, methods=None) -> str:
     if methods:
         lines += ["", "`<method>` is one of these (`centroids.method`, `centroids.methods`):", ""]
         lines += [f"- `{name}`: {text}" for name, text in methods.items()]
+    lines += ["", "### Coordinates", "",
+              "Every coordinate of a netCDF product carries a `long_name`, and `units` where it is numeric (a label "
+              "coordinate, of strings, has none); these are set where the step sets none, and an index coordinate "
+              "(0, 1, ...) is added for " + ", ".join(f"`{d}`" for d in INDEX_DIMS) + " where a product has none:", "",
+              "| coordinate | units | long_name |", "|---|---|---|"]
+    lines += [f"| `{name}` | {attrs.get('units', '')} | {attrs['long_name']} |" for name, attrs in COORDINATE_ATTRS.items()]
+    lines += [f"| `mode` (integers, beside `unobservable_offset`, `unobservable_dx`, `unobservable_dy`) | "
+              f"{UNOBSERVABLE_MODE['units']} | {UNOBSERVABLE_MODE['long_name']} |"]
     lines += ["", "### Steps and the settings each reads", "",
               "A step re-runs when one of its settings changes, and its products record them as their "
               "`configuration` (`dice_core/steps.py`; a step that stands for others reads theirs too).", "",

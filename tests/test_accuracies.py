@@ -113,7 +113,9 @@ def test_accuracy_tables_gather_every_method_mode_and_superimposition(rng):
     assert "NOT identifiable" in tables.reports["gaussian raw"]
     assert tables.latex.count(r"\begin{tabular}") == 4
     csv = accuracies.accuracy_csv(tables.rows).splitlines()
-    assert csv[0].endswith(",superimposition") and csv[1].endswith(",procrustes")
+    assert csv[0].endswith(",superimposition,unit") and csv[1].endswith(",procrustes,pixel")
+    # header-compatible: the columns before the unit are those of the tables made before it, in their order
+    assert csv[0] == "flat,metrology,grouping,accuracy,error,mode,method,n,rms_residual,factor,superimposition,unit"
     # Procrustes rows and residuals are those of the single-model call
     rows, residuals = accuracies.mode_accuracies(gaussian, trials=50)
     assert rows[0]["accuracy"] == tables.rows[0]["accuracy"]

@@ -8,6 +8,7 @@ per key, two at a time, and the whole matrix is marked slow.
 
 import copy
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -170,6 +171,49 @@ def test_start_up_problems_are_one_line_naming_the_file_or_key(sandbox, tmp_path
     results = run_together(repo, [args for args, _ in cases.values()])
     for (name, (_, expected)), (status, said) in zip(cases.items(), results):
         assert_refused_in_one_line(status, said, *expected)
+    assert not (repo / "results").exists()
+
+
+#: What Snakemake itself prints before the workflow is read, which the workflow cannot prevent (README and
+#: docs/running.md, "When something is wrong"): the profile it read by itself, and the configuration file that --config extends.
+SNAKEMAKE_OWN = (re.compile(r"Using workflow specific profile profiles/default for setting default command line "
+                            r"arguments\."),
+                 re.compile(r"Config file \S+/config/config\.yaml is extended by additional config specified via "
+                            r"the command line\."))
+
+
+def test_start_up_errors_are_the_one_line_and_nothing_else_the_workflow_prints(sandbox):
+    """A bad dataset name, a misspelt configuration key, a manifest of another format (the value found said) and a
+    misspelt manifest key (the nearest key said): the terminal shows Snakemake's own lines before the workflow is
+    read, then the one dice: line, and nothing else (no header, no WorkflowError, no file and line of the
+    workflow)."""
+    data, repo = sandbox / "data", sandbox / "repo"
+    document = yaml.safe_load((data / "dataset.yaml").read_text())
+    other = data / "other-format.yaml"
+    other.write_text(yaml.safe_dump({**document, "format": "dice-dataset/2"}, sort_keys=False))
+    typo = copy.deepcopy(document)
+    typo["detector"]["gian"] = typo["detector"].pop("gain")
+    misspelt = data / "misspelt.yaml"
+    misspelt.write_text(yaml.safe_dump(typo, sort_keys=False))
+    cases = {
+        "dataset": (["--config", "dataset=defualt"], "dice: config dataset='defualt' is neither a manifest path "
+                                                     "(*.yaml) nor a simulation preset ['chromatic', 'ci', "
+                                                     "'default', 'large', 'paper']"),
+        "key": (["--config", "datset=ci"], "dice: config datset: unknown key; did you mean dataset? (keys of the "
+                                            "config: "),
+        "format": (["--config", f"dataset={other}"], f"dice: config dataset: {other}: manifest violates "
+                                                     "dice-dataset/1 at format: format is 'dice-dataset/2', and this "
+                                                     "version reads 'dice-dataset/1'"),
+        "manifest key": (["--config", f"dataset={misspelt}"], f"dice: config dataset: {misspelt}: manifest violates "
+                                                              "dice-dataset/1 at detector: Additional properties are "
+                                                              "not allowed ('gian' was unexpected); did you mean "
+                                                              "gain?"),
+    }
+    results = run_together(repo, [args for args, _ in cases.values()])
+    for (name, (_, expected)), (status, said) in zip(cases.items(), results):
+        lines = said.splitlines()
+        ours = [line for line in lines if not any(own.fullmatch(line) for own in SNAKEMAKE_OWN)]
+        assert status == 1 and len(ours) == 1 and ours[0].startswith(expected), (name, said)
     assert not (repo / "results").exists()
 
 

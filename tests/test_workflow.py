@@ -99,6 +99,20 @@ def test_products_follow_the_contract(out):
     assert "dark_000.fits" in dark.attrs["inputs"]
 
 
+def test_every_coordinate_of_every_product_says_what_it_is(out):
+    """A long_name on every coordinate of every netCDF product, and units where it is numeric (a label's values
+    are its own words); the two meanings of ``mode`` told apart."""
+    found = sorted(out.rglob("*.nc"))
+    assert len(found) > 30
+    for path in found:
+        with xr.open_dataset(path) as ds:
+            for name, coord in ds.coords.items():
+                assert coord.attrs.get("long_name"), (path, name)
+                assert coord.dtype.kind not in "iuf" or coord.attrs.get("units"), (path, name)
+    with xr.open_dataset(out / "tables" / "procrustes_residuals.nc") as ds:
+        assert ds["mode"].attrs["long_name"].startswith("calibration mode")
+
+
 def test_products_record_their_code_relative_inputs_with_checksums_and_history(out):
     """Provenance: the hash of the code that made each product, inputs relative to the dataset's and the results
     folders with their sha256, and history appended along the chain of products, CF style."""
@@ -622,7 +636,7 @@ def snakemake_locks(root):
 @pytest.mark.slow  # a whole workflow run or more (4 min on 2 shared cores): pytest -m slow
 def test_a_killed_run_is_finished_by_running_the_same_command_again(out, tmp_path):
     """kill -9 of Snakemake and its jobs leaves an output marked incomplete and Snakemake's lock; the same
-    command, run again once, finishes the run (README, "After a crash") with the uninterrupted run's products.
+    command, run again once, finishes the run (docs/running.md, "After a crash") with the uninterrupted run's products.
     While the run is alive, its lock still keeps a second run out."""
     root = copy_repository(tmp_path)
     args = ("--config", "dataset=ci")
@@ -749,9 +763,9 @@ def test_a_mistyped_config_key_is_named_with_the_nearest_valid_key(workdir):
 
 
 def test_the_readme_s_command_line_form_sets_nested_keys_typed_and_checked(workdir):
-    """README, "Settings": --config 'section={key: value}' (Snakemake reads its values as strings; the schema
-    types them), a misspelt key named with the nearest valid one, in one line each."""
-    readme = (REPO / "README.md").read_text()
+    """docs/running.md, "Settings": --config 'section={key: value}' (Snakemake reads its values as strings; the
+    schema types them), a misspelt key named with the nearest valid one, in one line each."""
+    readme = (REPO / "docs" / "running.md").read_text()
     assert "--config 'centroids={method: gaussian, half_size: 6}' chunk_frames=16" in readme
     plan = snakemake(workdir, "-n", "--config", "dataset=ci", "centroids={method: gaussian, half_size: 6}",
                      "chunk_frames=16").stdout

@@ -77,14 +77,6 @@ except planning.PlanningError as exc:
 REDUCTION_SWEEPS = [name for name, sweep in SWEEPS.items() if sweep.study == "reduction"]
 STUDY_SWEEPS = [name for name in SWEEPS if name not in REDUCTION_SWEEPS]
 
-# One set for the run and the modules of its reduction sweep's points, which evaluate this file again with the
-# same workflow object: a reason is said once, not once per point.
-_SKIPPED = vars(workflow).setdefault("_dice_skipped", set())
-for _message in PLAN.skipped:
-    if _message not in _SKIPPED:
-        _SKIPPED.add(_message)
-        print(f"dice: {_message}", file=sys.stderr)
-
 
 wildcard_constraints:
     flat="|".join(map(re.escape, MANIFEST.flats)) or "(?!)",
@@ -227,6 +219,31 @@ def file_frames(path):
 if getattr(workflow, "is_main_process", True):
     for _file in MANIFEST.all_files():
         file_frames(_file)
+
+# What the run skips and why, said once every start-up check has passed (a run refused at start says its one
+# problem alone): by a run in its onstart, after the checks of the planned jobs (preflight.smk); by a dry run,
+# which has no onstart, now. Snakemake tells the workflow nothing of a dry run while it reads it: the command
+# line says it. One record for the run and the modules of its reduction sweep's points, which evaluate this
+# file again with the same workflow object: a reason is said once, not once per point.
+_SKIPPED = vars(workflow).setdefault("_dice_skipped", {})  # message: said yet
+for _message in PLAN.skipped:
+    _SKIPPED.setdefault(_message, False)
+DRY_RUN = any(
+    arg in ("--dry-run", "--dryrun") or (arg.startswith("-") and not arg.startswith("--") and "n" in arg[1:])
+    for arg in sys.argv[1:]
+)
+
+
+def say_skipped():
+    """Print each reason the run skips something that is not said yet, one ``dice:`` line each."""
+    for message, said in _SKIPPED.items():
+        if not said:
+            _SKIPPED[message] = True
+            print(f"dice: {message}", file=sys.stderr)
+
+
+if DRY_RUN:
+    say_skipped()
 
 
 def part_files(wildcards):

@@ -96,3 +96,4 @@ def remove_stale_temporaries(jobs):
 
 onstart:
     check_planned_jobs(workflow.dag)
+    say_skipped()
