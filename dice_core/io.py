@@ -2,11 +2,10 @@
 besides the manifest reader.
 
 Reading streams an acquisition (one or more FITS files concatenated in time) in
-chunks of frames, so memory does not grow with the number of frames. Samples
-are converted straight from a read-only memory map of the file (no copy of the
-raw bytes), and each chunk's pages are released (madvise DONTNEED) once
-converted, so that pages of a large cube do not accumulate in the process's
-resident memory. A stream read to the end of a file also takes the file's
+chunks of frames, so memory does not grow with the number of frames. Each
+chunk's raw bytes are read (``readinto``) into one chunk-sized buffer per file,
+reused by every chunk, and converted from it, so that pages of a large cube do
+not accumulate in the process's resident memory. A stream read to the end of a file also takes the file's
 SHA-256 from the bytes it read, so that the products' provenance
 (:func:`write_product`) reads no file only to hash it.
 

@@ -108,13 +108,12 @@ class Plan:
         """Flat -> the flat its PRNU is compared with: the first of the same light (white flats with the first
         white one, a laser's with its wavelength's first; format 1.2), which the difference's photon-noise
         check needs (a laser flat against a white one would measure colour, not noise)."""
-        m, first, out = self.manifest, {}, {}
-        for flat, acquisition in m.flats.items():
-            key = None if acquisition.wavelength is None else round(acquisition.wavelength * 1e12)
-            if key in first:
-                out[flat] = first[key]
-            else:
-                first[key] = flat
+        flats = self.manifest.flats
+        out = {}
+        for flat, acquisition in flats.items():
+            first = next(f for f in flats if same_wavelength(flats[f].wavelength, acquisition.wavelength))
+            if first != flat:
+                out[flat] = first
         return out
 
     def prnu_compared_with(self, flat: str) -> str:

@@ -227,6 +227,11 @@ def _coincides(a, b, tolerance=COINCIDENT):
     return bool(both.any() and a.shape == b.shape and np.all(np.abs(np.log(a[both] / b[both])) < np.log(tolerance)))
 
 
+def _also_names(line, label):
+    """Add ``label`` to the legend entry of ``line``, a curve it coincides with (:func:`_coincides`)."""
+    line.set_label(f"{line.get_label()}\n   = {label} (within {100 * (COINCIDENT - 1):.0f}%)")
+
+
 def _plot_distinct(ax, x, curves):
     """Draw ``curves`` ((y, label, keywords) in order of priority) on log-log ``ax``, each curve that coincides
     with one drawn before it (:func:`_coincides`) not drawn but named in that one's legend entry."""
@@ -236,7 +241,7 @@ def _plot_distinct(ax, x, curves):
         if same is None:
             drawn.append(ax.loglog(x, y, label=label, **keywords)[0])
         else:
-            same.set_label(f"{same.get_label()}\n   = {label} (within {100 * (COINCIDENT - 1):.0f}%)")
+            _also_names(same, label)
     return drawn
 
 
@@ -319,7 +324,7 @@ def allan_figure(ds, *, title):
         batch_means = ds["deviation_mean_batch_means"].values
         label = f"pixels, groups as means of batch fits (slope {float(ds['slope_batch_means']):.2f})"
         if _coincides(batch_means, ds["deviation_mean"].values):  # the paper's way gives ours: one curve
-            measured[0].set_label(f"{measured[0].get_label()}\n   = {label} (within {100 * (COINCIDENT - 1):.0f}%)")
+            _also_names(measured[0], label)
         else:
             ax.loglog(n, batch_means, "s-", ms=3, color="0.55", lw=1.2, zorder=2, label=label)
         curves.append((ds["photon_limit_pixel_batch_means"].values, "the batch means' photon limit",
