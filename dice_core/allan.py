@@ -41,15 +41,15 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-import xarray as xr
-from scipy import sparse
-from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
+from dice_core import lazy
 from dice_core.fringes import frame_moments, photon_floor
 from dice_core.io import first_chunk
 from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
                                 threads_report)
 from dice_core.polynomials import polynomial_design
+
+xr = lazy.module("xarray")  # scipy too is imported where used: a job reaches its first line sooner
 
 __all__ = [
     "AllanError",
@@ -115,6 +115,8 @@ def fringe_batches(phase, *, span: float = 2 * np.pi, equal_length: bool = True)
     for one batch per group, about 1 for large groups: a curve steeper than
     N^-1/2 (docs/metrology.md, "Batches of one length").
     """
+    from scipy.ndimage import maximum_filter1d, minimum_filter1d
+
     unwrapped = np.unwrap(np.asarray(phase, dtype=float))
     if not equal_length:
         return _shortest_runs(unwrapped, span)
@@ -530,8 +532,8 @@ def _allan_of_means(means):
     return np.sqrt(np.mean(np.diff(means, axis=0) ** 2, axis=0) / 2)
 
 
-def block_weights(rows, cols, *, good, block: int = 10) -> sparse.csr_array:
-    """Averaging matrix (pixel, block) over block x block squares of the ``good`` pixels, sparse.
+def block_weights(rows, cols, *, good, block: int = 10):
+    """Averaging matrix (pixel, block) over block x block squares of the ``good`` pixels, a scipy.sparse csr_array.
 
     Blocks tile the bounding box of the pixels from its first row and column;
     only whole blocks are kept, and a block's weights are 1 / (its good
@@ -540,6 +542,8 @@ def block_weights(rows, cols, *, good, block: int = 10) -> sparse.csr_array:
     the matrix would hold pixels^2 / block^2 numbers (85 GB on a 1024x1024
     detector).
     """
+    from scipy import sparse
+
     r0, c0 = rows.min(), cols.min()
     n_r, n_c = (rows.max() - r0 + 1) // block, (cols.max() - c0 + 1) // block
     br, bc = (rows - r0) // block, (cols - c0) // block

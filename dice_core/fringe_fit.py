@@ -29,15 +29,16 @@ from dataclasses import dataclass, field
 from typing import Iterable
 
 import numpy as np
-import xarray as xr
 
-from dice_core import io
+from dice_core import io, lazy
 from dice_core.fringes import (FringeError, FringeSolution, fix_gauge, frame_moments, initial_wavevector,
                                perfect_pixel_design, photon_floor, projected_offsets, wavevector_per_frame)
 from dice_core.geometry import BaselineGeometry, TwoSourceFit, fit_two_source
 from dice_core.io import Chunk, FrameStream, first_chunk
 from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
                                 threads_report)
+
+xr = lazy.module("xarray")  # products only: a fit job reaches its first line before xarray and pandas load
 
 __all__ = [
     "fit_baseline",
