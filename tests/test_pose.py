@@ -214,3 +214,45 @@ def test_the_pose_removes_what_the_data_allow_of_the_tip_tilt_where_the_bench_is
     assert found["pose_removal_true_tip_tilt"] < 0, found
     report = superimposition.pose_identifiability(pair["pose"][0].result, sigma=pair["pose"][0].accuracy)
     assert not report.all_identifiable and "not" in report.summary().lower()
+
+
+def test_near_the_noise_the_pose_removes_what_the_bound_allows_over_seeds():
+    """Issue 27, part 3: near the noise (the field on the axis, the tip-tilt's signature of second order,
+    a bound of 0.6-0.7), the share the pose removes scatters from one draw of the noise to the next (the
+    issue's twins: 0.80 to 1.31 of the bound over nine seeds), so the claim is over seeds. On fast twins of a
+    bench the presets never use (five stars on a 30-pixel square off centre, 40 positions, 6e-3 rad peak to
+    valley, white errors of 5e-5 pixel; seeds 27-29) the pose removes at least 0.9 of the bound on average
+    (measured 0.80 against 0.66), and the true tip and tilt remove all of it. 7 s on 2 idle cores."""
+    removed, bounds = [], []
+    for seed in (27, 28, 29):
+        tilted, untilted, true_tip_tilt, geometry = twins(nominal_off_axis_deg=0.0, tip_tilt_pv=6e-3, seed=seed)
+        found, _ = removals(tilted, untilted, true_tip_tilt, geometry)
+        assert 0.5 < found["pose_removal_bound"] < 0.8, found  # the regime: near the noise
+        assert found["pose_removal_true_tip_tilt"] > 0.98, found
+        removed.append(found["pose_removal"])
+        bounds.append(found["pose_removal_bound"])
+    assert np.mean(removed) >= 0.9 * np.mean(bounds), (removed, bounds)
+
+
+@pytest.mark.slow  # simulated images of 4 x 2 x 60 positions x 240 frames and their fits: 109 s on 2 idle cores
+def test_on_the_issues_twins_the_pose_reaches_the_bound_over_seeds():
+    """Issue 27, part 3, on simulated images: the issue's twins (the star-accuracy bench with the field on
+    the axis, 60 positions of 240 frames, photon and read noise, 8e-3 rad peak to valley), seeds
+    20150926-29. The first is the draw on which the pose removed 0.80 of the bound; over the four it removes
+    at least 0.9 of it on average (measured 1.02: 0.79, 1.03, 1.20, 1.08 with 300 trials), the true tip and
+    tilt all of it (0.98-1.01)."""
+    from dice_core import studies
+
+    ratios = []
+    for seed in range(20150926, 20150930):
+        centroids = {}
+        for amplitude in (0.0, 8e-3):
+            settings = studies.apply_overrides(studies.STAR_ACCURACY_BENCH, {
+                "seed": seed, "stars.positions": 60, "stars.tip_tilt_pv": amplitude, "stars.frames": 240,
+                "stars.off_axis_deg": 0.0, "detector.photon_noise": True, "detector.read_noise": 4.0})
+            centroids[amplitude] = studies.flat_metrology_centroids(settings)
+        (tilted, truth, geometry), (untilted, _, _) = centroids[8e-3], centroids[0.0]
+        found, _ = removals(tilted, untilted, truth["stage_rotation"].values[:, :2], geometry)
+        assert found["pose_removal_true_tip_tilt"] > 0.95, (seed, found)
+        ratios.append(found["pose_removal_over_bound"])
+    assert np.mean(ratios) >= 0.9, ratios
