@@ -251,10 +251,13 @@ _PRODUCTS = [
     # ------------------------------------------------------------------ astrometry
     Product("accuracy_table", "tables/accuracy.csv", "accuracy_table", "csv", stable=True, stage="astrometry",
             meaning="one row per centroid method, calibration mode, grouping and superimposition; select rows by "
-                    "mode (the width mode shares flat and metrology with flat+metrology); accuracy, error and "
-                    "rms_residual in the unit the column unit names (pixel); n and factor are pure numbers",
-            columns=("flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "superimposition",
-                     "unit")),
+                    "mode (the width mode shares flat and metrology with flat+metrology); grouping: position, "
+                    "the (p) accuracy over positions, or group, the (g) one over group means; n the positions "
+                    "or groups; accuracy, error and rms_residual in the unit the column unit names (pixel); "
+                    "factor the global correction factor (the accuracy corrects each star by its own, so it "
+                    "is not rms_residual x factor: docs/astrometry.md); n and factor are pure numbers",
+            columns=("flat", "metrology", "grouping", "accuracy", "error", "mode", "method", "n", "rms_residual",
+                     "factor", "superimposition", "unit")),
     Product("accuracy_latex", "tables/accuracy.tex", "accuracy_table", "tex", stage="astrometry",
             meaning="the accuracy table as the paper prints it"),
     Product("procrustes_residuals", "tables/procrustes_residuals.nc", "accuracy_table", "netcdf", stage="astrometry",

@@ -162,27 +162,27 @@ def test_data_finds_what_headers_do_not_a_checksum_that_does_not_verify(default_
 # ------------------------------------------------------------------ docs/own-data.md: another program's files
 
 
-def doc_script():
-    """The make_dataset.py of docs/own-data.md, as the page prints it."""
+def doc_script(name="make_dataset.py"):
+    """A script of docs/own-data.md, as the page prints it."""
     page = (REPO / "docs" / "own-data.md").read_text()
-    block = page.split("<!-- begin make_dataset.py")[1].split("<!-- end make_dataset.py -->")[0]
+    block = page.split(f"<!-- begin {name}")[1].split(f"<!-- end {name} -->")[0]
     return block.split("```python\n")[1].split("```")[0]
 
 
 def test_the_worked_example_turns_another_program_s_frames_into_a_dataset_the_workflow_reads(tmp_path):
-    """A simulated bench's cubes written again as another program would (one 2-D uint16 file a frame, its own
-    folder names, frame numbers not zero-padded); docs/own-data.md's script makes the manifest; the checker
-    passes it, samples and all; and the workflow's reader streams exactly the original frames from it."""
-    original = load_manifest(simulation.simulate_dataset(small_config(), tmp_path / "sim"))
+    """A simulated bench's cubes written again as another program would, by docs/own-data.md's
+    make_example_folder.py (one 2-D uint16 file a frame, its own folder names, frame numbers not
+    zero-padded, the bench's geometry beside them); the page's make_dataset.py makes the manifest; the
+    checker passes it, samples and all; and the workflow's reader streams exactly the original frames."""
+    manifest_path = simulation.simulate_dataset(small_config(metrology={"spherical": True}), tmp_path / "sim")
+    original = load_manifest(manifest_path)
     bench = tmp_path / "bench-2026-11-30"
-    folders = {"dark": original.dark, "flat_a": original.flats["fiber_a"], "flat_b": original.flats["fiber_b"],
-               **{f"fringes_{name}": a for name, a in original.baselines.items()},
-               **{f"star_{p.index:03d}": p.acquisition for p in original.positions}}
-    for folder, acquisition in folders.items():
-        frames = np.concatenate([fits.getdata(f).astype(np.uint16)[None] if fits.getdata(f).ndim == 2
-                                 else fits.getdata(f).astype(np.uint16) for f in acquisition.files])
-        for k, frame in enumerate(frames):
-            write_frames(bench / folder / f"frame_{k + 1}.fits", frame)  # frame_10 after frame_9
+    converter = tmp_path / "make_example_folder.py"
+    converter.write_text(doc_script("make_example_folder.py"))
+    made = subprocess.run([sys.executable, str(converter), str(manifest_path), str(bench)], capture_output=True,
+                          text=True, timeout=300)
+    assert made.returncode == 0, made.stderr
+    assert "for make_dataset.py:" in made.stdout and (bench / "dark" / "frame_10.fits").exists()
     header = fits.getheader(bench / "dark" / "frame_1.fits")
     assert (header["NAXIS"], header["BITPIX"], header["BZERO"]) == (2, 16, 32768)
 
@@ -196,6 +196,7 @@ def test_the_worked_example_turns_another_program_s_frames_into_a_dataset_the_wo
 
     converted = load_manifest(bench / "dataset.yaml")
     assert converted.name == "bench-2026-11-30" and converted.detector.shape == original.detector.shape
+    assert original.geometry is not None and converted.geometry == original.geometry  # carried by geometry.yaml
     for name in ("H1H4", "V2V4"):
         ours = np.concatenate([c.frames for c in io.FrameStream(converted.baselines[name], converted.detector)])
         theirs = np.concatenate([c.frames for c in io.FrameStream(original.baselines[name], original.detector)])

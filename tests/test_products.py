@@ -70,7 +70,7 @@ def test_io_refuses_a_product_that_breaks_its_entry_and_writes_one_that_keeps_it
         offsets = xr.Dataset({name: (("row", "col"), np.zeros((2, 3)), {"units": "pixel"})
                               for name in ("dx", "dy", "dx_photon_noise_floor", "dy_photon_noise_floor")})
         write_product(offsets, results / "calibration" / "offsets_P14.nc", title="offsets")  # no optional modes
-        with pytest.raises(ValueError, match="table accuracy_table promises: no column superimposition"):
+        with pytest.raises(ValueError, match="table accuracy_table promises: no column n, rms_residual, factor, superimposition, unit"):
             write_text(results / "tables" / "accuracy.csv", "flat,metrology,grouping,accuracy,error,mode,method\n")
         # a file of the same name outside the results folder is no product of the workflow
         write_product(dark_product(noise=(None, None)), tmp_path / "mywork" / "calibration" / "dark.nc", title="x")
