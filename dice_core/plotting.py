@@ -335,12 +335,7 @@ def allan_figure(ds, *, title):
     for line in _plot_distinct(ax, n, curves):
         line.set_zorder(2.5)  # the limits over the measured curves' markers
     ax.set_xlabel("frames per group")
-    # plain numbers (30, 40, 100) instead of 3x10^1, and minor ticks labelled too where the axis spans few
-    # decades (the group sizes often span 1-2: one power of ten alone would be the only label)
-    ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}"))
-    ax.xaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(
-        lambda value, _: f"{value:g}" if round(value / 10.0 ** np.floor(np.log10(value)))
-        in _labelled_mantissas(np.log10(ax.get_xlim()[1] / ax.get_xlim()[0])) else ""))
+    _frame_ticks(ax.xaxis)
     ax.set_ylabel("deviation of projected offsets [pixel]")
     ax.set_title(f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (any that many "
                  f"frames sweep a fringe period); each fits the pixels' phases alone", fontsize=9)
@@ -350,10 +345,49 @@ def allan_figure(ds, *, title):
     return fig
 
 
-def _labelled_mantissas(decades):
-    """The mantissas (2 for 200, 2000...) of the minor ticks to label on a log axis spanning ``decades``:
-    more on a short axis, none beyond three decades, so that at least three ticks read and none overlap."""
-    return (2, 3, 4, 5, 6, 8) if decades < 1 else (2, 3, 5) if decades < 2 else (2, 5) if decades < 3 else ()
+#: Mantissas of the labelled ticks on a log axis, sparsest first (:class:`_LogTicks` takes the first that reads).
+TICK_MANTISSAS = ((1,), (1, 2, 5), (1, 2, 3, 5), (1, 1.5, 2, 3, 4, 5, 6, 8),
+                  (1, 1.2, 1.4, 1.6, 1.8, 2, 2.5, 3, 3.5, 4, 5, 6, 7, 8, 9))
+
+
+def log_ticks(low, high):
+    """Labelled tick values (in the axis's unit) of a log axis viewing ``low``-``high``: the sparsest mantissas
+    of :data:`TICK_MANTISSAS` giving at least three ticks in view and no stretch without a label (between two
+    ticks, or a tick and the view's end) longer than 0.2 decade or, on a longer axis, 30% of it. So a view of
+    320-2000 frames is labelled 400, 500, 600, 800, 1000, 1500 (not up to 1000 alone), one of 10-30000 at the
+    powers of ten."""
+    low, high = sorted((float(low), float(high)))
+    if not (low > 0 and np.isfinite(high) and high > low):
+        return np.array([])
+    edges = np.log10([low, high])
+    longest = max(0.2, 0.3 * (edges[1] - edges[0]))
+    decades = np.arange(np.floor(edges[0]), np.ceil(edges[1]) + 1)
+    for mantissas in TICK_MANTISSAS:
+        ticks = np.array([m * 10.0**k for k in decades for m in mantissas])
+        ticks = ticks[(ticks >= low * (1 - 1e-9)) & (ticks <= high * (1 + 1e-9))]
+        gaps = np.diff(np.concatenate([edges[:1], np.log10(ticks), edges[1:]]))
+        if ticks.size >= 3 and gaps.max() <= longest:
+            break
+    return ticks
+
+
+class _LogTicks(matplotlib.ticker.Locator):
+    """:func:`log_ticks` of the axis's view, as it is when the figure is drawn."""
+
+    def __call__(self):
+        return self.tick_values(*self.axis.get_view_interval())
+
+    def tick_values(self, vmin, vmax):
+        return log_ticks(vmin, vmax)
+
+
+def _frame_ticks(axis):
+    """A log axis of frames labelled by :func:`log_ticks`, in plain numbers (1500, not 1.5x10^3); unlabelled
+    minor ticks at every integer mantissa for the grid."""
+    axis.set_major_locator(_LogTicks())
+    axis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}"))
+    axis.set_minor_locator(matplotlib.ticker.LogLocator(subs=np.arange(2, 10), numticks=99))
+    axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
 
 
 def _used_positions(position, positions):

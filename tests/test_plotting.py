@@ -483,16 +483,23 @@ def test_procrustes_title_of_the_longest_mode_fits(rng):
     plotting.save(fig, None)
 
 
-@pytest.mark.parametrize("sizes", [(100, 200, 300, 400), (150, 400, 1200, 3700), (10, 100, 1000, 30000)])
+@pytest.mark.parametrize("sizes", [(100, 200, 300, 400), (150, 400, 1200, 3700), (10, 100, 1000, 30000),
+                                   (350, 700, 1050, 1400, 1750), (1050, 1400, 1750)])
 def test_allan_axis_has_labelled_ticks_across_the_group_sizes(rng, sizes):
-    """At least three labelled ticks within the group sizes (on 150-3700, not 1000 alone), none overlapping."""
-    args, keywords = allan_inputs(rng)
-    ds = allan.allan_dataset(*args, **keywords).assign_coords(n_frames=np.array(sizes, float))
+    """At least three labelled ticks within the group sizes (on 150-3700, not 1000 alone), none overlapping, and
+    no stretch of the axis unlabelled over 0.2 decade or, on a longer axis, 30% of it (on 350-1750 frames, not
+    1000 the last label)."""
+    args, keywords = allan_inputs(rng, n_batches=2 * len(sizes))
+    ds = allan.allan_dataset(*args, **keywords)
+    ds = ds.isel(n_frames=slice(len(sizes))).assign_coords(n_frames=np.array(sizes, float))
     fig = plotting.allan_figure(ds, title="test")
     (ax,) = fig.axes
     labels = labelled_ticks(fig, ax.xaxis)
     assert len(labels) >= 3, labels
     assert not overlapping_labels(fig, ax.xaxis)
+    view = np.log10(sorted(ax.get_xlim()))
+    stretches = np.diff(np.sort(np.concatenate([view, np.log10([float(label) for label in labels])])))
+    assert stretches.max() <= max(0.2, 0.3 * (view[1] - view[0])) + 1e-9, (labels, ax.get_xlim())
     plotting.save(fig, None)
 
 
