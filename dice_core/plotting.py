@@ -18,6 +18,7 @@ import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
 from dice_core import error_budget  # noqa: E402
+from dice_core.allan import MIN_GROUPS_PIXEL, few_batches  # noqa: E402
 from dice_core.manifest import Detector  # noqa: E402
 
 __all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure",
@@ -211,10 +212,6 @@ def metrology_figure(ds, detector, *, title):
     return fig
 
 
-#: Fewest groups a single pixel's deviation is drawn from: over K groups it is uncertain by 1/sqrt(2 (K - 1)),
-#: 35% at 5; over fewer, one pixel's curve is noise that reaches far below every limit.
-MIN_GROUPS_PIXEL = 5
-
 #: Curves closer than this ratio at every point are drawn once, their legend entries merged: on a log axis
 #: spanning several decades 3% is under a line's width, so the later curve would hide under the earlier.
 COINCIDENT = 1.03
@@ -307,7 +304,7 @@ def allan_figure(ds, *, title):
         curves.append((ds["photon_limit_pixel_first_frame"].values,
                        f"measured photon limit (first frame{noise}), pixels", dict(color="red", lw=1.2, gid="first frame")))
     measured = []
-    for kind, colour, label in (("pixel", "black", f"pixels, rms (slope {float(ds['slope']):.2f})"),
+    for kind, colour, label in (("pixel", "black", f"pixels, rms ({_slope_text(ds['slope'])})"),
                                 ("block", "tab:blue", f"{block}x{block} blocks, rms")):
         values = ds["deviation_mean" if kind == "pixel" else "deviation_block_mean"].values
         error = values / np.sqrt(2 * np.maximum(groups - 1, 1) * max(counts[kind], 1))
@@ -322,7 +319,7 @@ def allan_figure(ds, *, title):
                     dict(color=colour, ls="-.", lw=0.8, alpha=0.7))]
     if "deviation_mean_batch_means" in ds:
         batch_means = ds["deviation_mean_batch_means"].values
-        label = f"pixels, groups as means of batch fits (slope {float(ds['slope_batch_means']):.2f})"
+        label = f"pixels, groups as means of batch fits ({_slope_text(ds['slope_batch_means'])})"
         if _coincides(batch_means, ds["deviation_mean"].values):  # the paper's way gives ours: one curve
             _also_names(measured[0], label)
         else:
@@ -337,12 +334,33 @@ def allan_figure(ds, *, title):
     ax.set_xlabel("frames per group")
     _frame_ticks(ax.xaxis)
     ax.set_ylabel("deviation of projected offsets [pixel]")
-    ax.set_title(f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (any that many "
-                 f"frames sweep a fringe period); each fits the pixels' phases alone", fontsize=9)
+    too_few = few_batches(ds.sizes["batch"], ds.attrs["frames_per_batch"])
+    ax.set_title(too_few or f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (any that "
+                 f"many frames sweep a fringe period); each fits the pixels' phases alone",
+                 fontsize=11 if too_few else 9, color="firebrick" if too_few else "black")
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
-    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=2)  # off the curves
+    fig.legend(*_drawn_entries(ax), loc="outside lower center", fontsize=7, ncol=2)  # off the curves
     fig.suptitle(title, fontsize=11)
     return fig
+
+
+def _slope_text(slope) -> str:
+    """'slope -0.49' of a log-log slope, or 'no slope' where it is NaN (one group size)."""
+    return f"slope {float(slope):.2f}" if np.isfinite(float(slope)) else "no slope: one group size"
+
+
+def _drawn_entries(ax):
+    """(handles, labels) of ``ax``'s legend entries for what shows: a line or error bars with a finite point (a
+    curve of NaN alone, as a pixel's where every size has too few groups, is not listed), any other artist."""
+    def shows(handle):
+        line = handle.lines[0] if isinstance(handle, matplotlib.container.ErrorbarContainer) else handle
+        if not isinstance(line, matplotlib.lines.Line2D):
+            return True
+        x, y = (np.asarray(v, float) for v in line.get_data())
+        return bool(np.any(np.isfinite(x) & np.isfinite(y)))
+
+    entries = [(h, label) for h, label in zip(*ax.get_legend_handles_labels()) if shows(h)]
+    return [h for h, _ in entries], [label for _, label in entries]
 
 
 #: Mantissas of the labelled ticks on a log axis, sparsest first (:class:`_LogTicks` takes the first that reads).

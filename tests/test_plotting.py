@@ -3,6 +3,8 @@
 import re
 
 import matplotlib.colors
+import matplotlib.container
+import matplotlib.lines
 import matplotlib.text
 import numpy as np
 import pytest
@@ -741,6 +743,26 @@ def allan_product(rng, *, coincide=True):
         ds["photon_limit_pixel_paper"] = ds["photon_limit_pixel"] * 1.01
         ds["photon_limit_pixel_first_frame"] = ds["photon_limit_pixel"] * 0.995
     return ds
+
+
+@pytest.mark.parametrize("n_batches", [2, 3, 4])
+def test_an_allan_figure_of_too_few_batches_says_so_and_lists_only_what_it_draws(rng, n_batches):
+    """Under 5 batches no single pixel reaches 5 groups (and under 4 there is no slope): the title says so in
+    plain words, and the legend lists no curve that is not drawn (no pixels' entry, no slope of NaN)."""
+    args, keywords = allan_inputs(rng, n_batches=n_batches, frames=350)
+    ds = allan.allan_dataset(*args, **keywords)
+    fig = plotting.allan_figure(ds, title="test")
+    (ax,) = fig.axes
+    assert ax.get_title() == (f"too few batches for Allan deviations: {n_batches} batches of 350 frames; at least "
+                              f"{allan.MIN_BATCHES} needed")
+    labels = legend_labels(fig)
+    assert not [label for label in labels if "individual pixels" in label or "nan" in label], labels
+    assert any(("no slope" in label) == (n_batches < 4) for label in labels if label.startswith("pixels, rms"))
+    for handle, label in zip(*ax.get_legend_handles_labels()):  # the artists the legend's entries stand for
+        line = handle.lines[0] if isinstance(handle, matplotlib.container.ErrorbarContainer) else handle
+        if label in labels and isinstance(line, matplotlib.lines.Line2D):
+            assert np.isfinite(np.asarray(line.get_ydata(), float)).any(), label
+    plotting.save(fig, None)
 
 
 def test_allan_figure_draws_every_entry_and_single_pixels_only_over_enough_groups(rng):
