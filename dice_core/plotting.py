@@ -561,9 +561,23 @@ def _central_star(ds, mode):
     return int(np.nanargmin(np.hypot(x - np.nanmean(x), y - np.nanmean(y))))
 
 
+#: The stars' colours after the central star's black: matplotlib's cycle without its grey (C7), which the line-style
+#: key's grey (:data:`KEY_GREY`) would look like.
+STAR_COLOURS = tuple(f"C{i}" for i in range(10) if i != 7)
+
+#: The colour of the line-style key (x plain, y dotted): a mid grey, which no star is drawn in.
+KEY_GREY = "0.65"
+
+
 def _star_style(s, central):
-    """Colour and legend label of star ``s``: the central star black."""
-    return ("black", f"star {s} (central)") if s == central else (f"C{s}", f"star {s}")
+    """Colour and legend label of star ``s``: the central star black, the others :data:`STAR_COLOURS`."""
+    return ("black", f"star {s} (central)") if s == central else (STAR_COLOURS[s % len(STAR_COLOURS)], f"star {s}")
+
+
+def _axis_key():
+    """The line-style key's entries of the residual figures, in words too: its grey is no star's colour."""
+    return (("x residual: solid, in the star's colour", dict(color=KEY_GREY, lw=1.2)),
+            ("y residual: dotted, in the star's colour", dict(color=KEY_GREY, lw=1.2, ls=":")))
 
 
 def _removal_line(ds, mode) -> str:
@@ -633,8 +647,7 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
                      f"{accuracy:.2e} pixel{_removal_line(ds, mode)}", fontsize=9)  # the longest mode fits
         ax.grid(True, axis="y", alpha=0.3)
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    key = _style_key(("x residual", dict(color="0.3", lw=0.9)), ("y residual", dict(color="0.3", lw=0.9, ls=":")),
-                     ("±σ", dict(color="0.35", ls="--", lw=0.8)))
+    key = _style_key(*_axis_key(), ("±σ", dict(color="0.35", ls="--", lw=0.8)))
     fig.legend(handles + key, labels + [k.get_label() for k in key], loc="outside lower center", fontsize=7,
                ncol=4)  # off the data
     axes[-1, 0].set_xlabel("position index")
@@ -747,7 +760,7 @@ def barycentre_figure(ds, *, title="Barycentre residuals", spread: float = 3.0):
     handles, labels = axes[0, 0].get_legend_handles_labels()
     from matplotlib.patches import Patch
 
-    key = _style_key(("x residual", dict(color="0.3", lw=0.9)), ("y residual", dict(color="0.3", lw=0.9, ls=":")),
+    key = _style_key(*_axis_key(),
                      ("used position (circled)", dict(ls="none", marker="o", ms=4.5, mfc="none", mec="black",
                                                       mew=0.5)),
                      *([("the corner stars' square, shrunk (+: each star's place)", dict(color="0.55", ls="--",

@@ -722,6 +722,52 @@ def legend_labels(fig):
             for t in legend.get_texts()]
 
 
+def same_looking_entries(fig):
+    """Pairs of legend entries whose keys look alike: lines of one colour, line style and marker (and marker
+    colours), or patches of one colour: the central star's black line and a black line-style key, say."""
+    def look(handle):
+        if isinstance(handle, matplotlib.lines.Line2D):
+            style = handle.get_linestyle() if handle.get_linestyle() not in ("None", "none", "") else "none"
+            colours = [handle.get_color()] if style != "none" else []
+            if handle.get_marker() not in ("None", "none", "", None):
+                colours += [handle.get_markerfacecolor(), handle.get_markeredgecolor()]
+            return ("line", style, str(handle.get_marker()), tuple(matplotlib.colors.to_hex(c, keep_alpha=True)
+                                                                   if c != "none" else c for c in colours))
+        return ("patch", matplotlib.colors.to_hex(handle.get_facecolor(), keep_alpha=True))
+
+    seen, alike = {}, []
+    for legend in [ax.get_legend() for ax in fig.axes if ax.get_legend()] + list(fig.legends):
+        for handle, text in zip(legend.legend_handles, legend.get_texts()):
+            key = look(handle)
+            if key in seen:
+                alike.append((seen[key], text.get_text()))
+            seen.setdefault(key, text.get_text())
+    return alike
+
+
+@pytest.mark.parametrize("stars", [5, 9])
+def test_the_residual_figures_line_style_key_looks_like_no_star(residuals_product, stars):
+    """The x and y keys in a grey no star is drawn in (the central star black, the others matplotlib's cycle
+    without its grey), also with 9 stars, where star 7 would take the cycle's grey."""
+    product, _ = residuals_product
+    product = product.isel(star=np.arange(stars) % product.sizes["star"])
+    for figure in (plotting.procrustes_figure, plotting.barycentre_figure):
+        fig = figure(product)
+        assert same_looking_entries(fig) == [], figure.__name__
+        (legend,) = fig.legends
+        hsv = {text.get_text(): matplotlib.colors.rgb_to_hsv(matplotlib.colors.to_rgb(handle.get_color()))
+               for handle, text in zip(legend.legend_handles, legend.get_texts())
+               if isinstance(handle, matplotlib.lines.Line2D)}
+        stars_ = {label: v for label, v in hsv.items() if label.startswith("star ")}
+        keys = {label: v for label, v in hsv.items() if label.startswith(("x residual", "y residual"))}
+        assert len(stars_) == stars and len(keys) == 2
+        # the stars: black (the central one) or a colour; the key: a grey far from black
+        assert all(label.endswith("(central)") == (v[2] == 0) for label, v in stars_.items())
+        assert all(v[1] >= 0.3 for label, v in stars_.items() if v[2] > 0), stars_
+        assert all(v[1] == 0 and v[2] >= 0.5 for v in keys.values()), keys
+        plotting.save(fig, None)
+
+
 def test_hidden_entries_are_found():
     """The check itself: a thin curve under a wider one is hidden, one with markers or drawn over is not."""
     fig, ax = plotting.plt.subplots()
@@ -816,8 +862,8 @@ def test_procrustes_panels_share_one_scaled_range_and_the_line_styles_are_in_the
         assert "\n" not in ax.get_title()  # one line: the key is in the legend
     (legend,) = fig.legends
     entries = [t.get_text() for t in legend.get_texts()]
-    assert {"x residual", "y residual", "±σ"} <= set(entries)
-    assert texts_outside(fig) == [] and hidden_entries(fig) == []
+    assert {"x residual: solid, in the star's colour", "y residual: dotted, in the star's colour", "±σ"} <= set(entries)
+    assert texts_outside(fig) == [] and hidden_entries(fig) == [] and same_looking_entries(fig) == []
     plotting.save(fig, None)
 
 
@@ -843,7 +889,7 @@ def test_barycentre_titles_the_used_band_and_the_layout_read(residuals_product):
         _, scale = plotting._downscaled_layout(residual, star, 3.0)
         assert f"shrunk {1 / scale:,.0f} times" in fig.axes[2 * row + 1].get_title()
     assert f"positions {USED[0]}-{USED[1]} used" in legend_labels(fig)
-    assert texts_outside(fig) == [] and hidden_entries(fig) == []
+    assert texts_outside(fig) == [] and hidden_entries(fig) == [] and same_looking_entries(fig) == []
     plotting.save(fig, None)
 
 
