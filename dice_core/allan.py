@@ -53,6 +53,9 @@ xr = lazy.module("xarray")  # scipy too is imported where used: a job reaches it
 
 __all__ = [
     "AllanError",
+    "MIN_BATCHES",
+    "MIN_GROUPS_PIXEL",
+    "few_batches",
     "fringe_batches",
     "batch_offsets",
     "batch_floors",
@@ -74,6 +77,24 @@ log = logging.getLogger(__name__)
 
 class AllanError(ValueError):
     """An acquisition that cannot give an Allan deviation (too few frames for two batches...)."""
+
+
+#: Fewest groups a single pixel's deviation is drawn from (the Allan figure): over K groups it is uncertain by
+#: 1/sqrt(2 (K - 1)), 35% at 5; over fewer, one pixel's curve is noise that reaches far below every limit.
+MIN_GROUPS_PIXEL = 5
+
+#: Fewest batches whose Allan deviations have a slope (two group sizes, 1 and 2 batches: 4) and a single pixel's
+#: curve (:data:`MIN_GROUPS_PIXEL` groups of one batch).
+MIN_BATCHES = max(4, MIN_GROUPS_PIXEL)
+
+
+def few_batches(n_batches: int, frames_per_batch: float) -> str | None:
+    """The sentence saying a baseline has too few batches for Allan deviations (fewer than :data:`MIN_BATCHES`:
+    no slope, or no pixel's curve), or None: the Allan step's warning and its figure's title."""
+    if n_batches >= MIN_BATCHES:
+        return None
+    return (f"too few batches for Allan deviations: {n_batches} batches of {frames_per_batch:.0f} frames; at least "
+            f"{MIN_BATCHES} needed")
 
 
 def fringe_batches(phase, *, span: float = 2 * np.pi, equal_length: bool = True) -> np.ndarray:
@@ -945,6 +966,8 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
     log.info("%s: %d batches of %d frames (any %d frames sweep a fringe period), %d frames left over",
              label, len(batches), batches[0, 1] - batches[0, 0], batches[0, 1] - batches[0, 0],
              phase.size - batches[-1, 1])
+    if few_batches(len(batches), batches[0, 1] - batches[0, 0]):  # the figure says it too, in its title
+        log.warning("%s: %s", label, few_batches(len(batches), batches[0, 1] - batches[0, 0]))
     offsets_map = metrology["projected_offset"].values
     rows, cols = np.nonzero(np.isfinite(offsets_map))
     k = np.array([float(metrology["kx"]), float(metrology["ky"])])

@@ -608,9 +608,28 @@ class PositionCentroids:
     n_bad_pixels: np.ndarray = None  # (position, star): bad pixels of the mask in the star's window
 
 
-def _noise_weights(window_image, n_frames, gain, read_noise):
-    """1 / sigma of each pixel of a mean of ``n_frames`` frames, adu."""
-    return 1.0 / np.sqrt((np.clip(window_image, 0, None) / gain + read_noise**2) / n_frames)
+def _noise_weights(images, windows, flags, n_frames, gain, read_noise, *, where):
+    """1 / sigma (1/adu) of each pixel of the stars' mean windows of ``n_frames`` frames, 0 at a flagged pixel.
+
+    Raises
+    ------
+    WindowError
+        An unflagged pixel of zero (or not finite) noise: no signal above the dark and no read noise, whose
+        weight would be 1/0; said before any division.
+    """
+    weights = []
+    for s, (image, w) in enumerate(zip(images, windows)):
+        variance = (np.clip(image, 0, None) / gain + read_noise[w.slices] ** 2) / n_frames
+        usable = flags[w.slices] == 0
+        if not np.all(variance[usable] > 0):  # NaN included
+            r, c = np.argwhere(usable & ~(variance > 0))[0]
+            raise WindowError(f"star {s} at {where}: pixel row {w.row0 + r}, col {w.col0 + c} has zero noise "
+                              "(no signal above the dark and no read noise, e.g. zero in every frame and in the "
+                              "dark): flag it in the bad-pixel mask or check the data")
+        weight = np.zeros(variance.shape)
+        np.divide(1.0, np.sqrt(variance, where=usable, out=np.ones(variance.shape)), out=weight, where=usable)
+        weights.append(weight)
+    return weights
 
 
 def _pixel_list(window, bad, flags):
@@ -875,14 +894,7 @@ def measure_positions(stacks, positions, *, approx, detector, dark, read_noise, 
                    for s, (r, c) in enumerate(centres)]
         corrected = calibrations.corrected(np.concatenate([mean[None], batch_means]), windows, where=where)
         images, batch_images = corrected[0], corrected[1:]
-        noise = [np.where(flags[w.slices] != 0, 0.0, _noise_weights(image, n, detector.gain, read_noise[w.slices]))
-                 for image, w in zip(images, windows)]
-        for s, (weights, w) in enumerate(zip(noise, windows)):
-            if not np.all(np.isfinite(weights)):  # no signal and no read noise: a weight of 1/0
-                r, c = np.argwhere(~np.isfinite(weights))[0]
-                raise WindowError(f"star {s} at {where}: pixel row {w.row0 + r}, col {w.col0 + c} has zero noise "
-                                  "(no signal above the dark and no read noise, e.g. zero in every frame and in the "
-                                  "dark): flag it in the bad-pixel mask or check the data")
+        noise = _noise_weights(images, windows, flags, n, detector.gain, read_noise, where=where)
         for s, w in enumerate(windows):
             n_bad[i, s] = int(np.count_nonzero(flags[w.slices]))
         if locate is None:

@@ -156,7 +156,8 @@ def check_dataset(path, *, config: dict | None, data: bool = False) -> Report:
     try:
         manifest = load_manifest(path, check_files=False)  # each missing file is said below, not the first alone
     except DatasetError as exc:
-        report.problem(exc)
+        for problem in getattr(exc, "problems", None) or (exc.problem,):  # a ManifestError's: every one
+            report.problem(f"{exc.path}: {problem}")
         return report
     rows, cols = manifest.detector.science_rows, manifest.detector.science_cols
     report.lines.append(f"dataset {manifest.name} ({manifest.path}): detector {manifest.detector.shape[0]}x"

@@ -38,6 +38,8 @@ __all__ = [
     "StarPosition",
     "Spectrum",
     "load_manifest",
+    "ManifestError",
+    "schema_problems",
     "same_wavelength",
     "parse_manifest",
     "FORMAT",
@@ -344,19 +346,76 @@ def _error_rank(error) -> tuple:
     return kind, [str(p) for p in error.absolute_path]
 
 
-def _error_text(error) -> str:
-    """A schema error as the user needs it: the format with the value found; an unknown key with the nearest
-    valid one; else the validator's message."""
+def _where(path) -> str:
+    return ".".join(str(p) for p in path) or "(top level)"
+
+
+def _error_lines(error) -> list:
+    """A schema error as the user needs it, one line per problem, each naming the key path: a name with the value
+    found; the format with the value found; each unknown key with the nearest valid one; else the validator's
+    message."""
+    where = _where(error.absolute_path)
+    if _is_name_error(error):
+        key = "name" if where == "name" else f"{where} key"
+        return [f"manifest {key} {name_problem(error.instance)}"]
     if list(error.absolute_path) == ["format"]:
-        return f"format is {_shown(error.instance)}, and this version reads {FORMAT!r} (docs/dataset-format.md)"
+        return [f"manifest violates {FORMAT} at format: format is {_shown(error.instance)}, and this version reads "
+                f"{FORMAT!r} (docs/dataset-format.md)"]
     if error.validator == "additionalProperties" and isinstance(error.instance, dict):
-        known = list(error.schema.get("properties", {}))
-        hints = []
+        known, required = list(error.schema.get("properties", {})), error.schema.get("required", [])
+        lines = []
         for key in sorted(set(map(str, error.instance)) - set(known)):
             near = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
-            hints.append(f"did you mean {near[0]}?" if near else f"keys allowed: {', '.join(known)}")
-        return f"{error.message}; {'; '.join(hints)}"
-    return error.message
+            hint = (f"did you mean {near[0]}?{' (a required key)' if near[0] in required else ''}" if near else
+                    f"keys allowed: {', '.join(known)}")
+            lines.append(f"manifest violates {FORMAT} at {_where([*error.absolute_path, key])}: unknown key; {hint}")
+        return lines
+    return [f"manifest violates {FORMAT} at {where}: {error.message}"]
+
+
+def _missing_key(error):
+    """The required key a ``required`` error says is missing (None for any other error)."""
+    if error.validator != "required" or not isinstance(error.instance, dict):
+        return None
+    return next((k for k in error.validator_value if f"{k!r} is a required property" == error.message), None)
+
+
+def _typo_targets(error) -> set:
+    """(mapping's path, key) of the keys an unknown key is the nearest to: the typo, said once, is the cause of
+    their being missing."""
+    if error.validator != "additionalProperties" or not isinstance(error.instance, dict):
+        return set()
+    known = list(error.schema.get("properties", {}))
+    where = tuple(map(str, error.absolute_path))
+    return {(where, near) for key in set(map(str, error.instance)) - set(known)
+            for near in difflib.get_close_matches(key, known, n=1, cutoff=0.6)}
+
+
+def schema_problems(document) -> list:
+    """Every way a parsed manifest violates the format's schema, one line each (without the manifest's path), in
+    the order :func:`_error_rank` gives; a required key missing because a key near it is misspelt is said once,
+    as the misspelt key."""
+    validator = jsonschema.Draft202012Validator(_schema())
+    errors = sorted(validator.iter_errors(document), key=_error_rank)
+    typos = set().union(*map(_typo_targets, errors))
+    return [line for error in errors
+            if (tuple(map(str, error.absolute_path)), _missing_key(error)) not in typos
+            for line in _error_lines(error)]
+
+
+class ManifestError(DatasetError):
+    """A manifest that violates the format's schema: ``problems``, one line each (without the path); the message
+    is the first, with how many more and the command that says them all."""
+
+    def __init__(self, path, problems):
+        self.problems = tuple(problems)
+        more = len(self.problems) - 1
+        tail = (f" (and {more} more problem{'s' if more > 1 else ''}: python -m dice_core check {path} "
+                "lists them all)" if more else "")
+        super().__init__(path, self.problems[0] + tail)
+
+    def __reduce__(self):
+        return type(self), (self.path, self.problems)
 
 
 def load_manifest(path, *, check_files: bool = True) -> Manifest:
@@ -408,16 +467,9 @@ def parse_manifest(document, path) -> Manifest:
     if not isinstance(document, dict):
         _fail(path, f"manifest is a {type(document).__name__}, not a mapping of keys (format, name, "
                     f"detector, ...): {_shown(document)}")
-    validator = jsonschema.Draft202012Validator(_schema())
-    errors = sorted(validator.iter_errors(document), key=_error_rank)
-    if errors:
-        first = errors[0]
-        where = ".".join(str(p) for p in first.absolute_path) or "(top level)"
-        more = f" (and {len(errors) - 1} more problems)" if len(errors) > 1 else ""
-        if _is_name_error(first):
-            key = "name" if where == "name" else f"{where} key"
-            _fail(path, f"manifest {key} {name_problem(first.instance)}{more}")
-        _fail(path, f"manifest violates {FORMAT} at {where}: {_error_text(first)}{more}")
+    problems = schema_problems(document)
+    if problems:
+        raise ManifestError(path, problems)
 
     root = path.parent
 

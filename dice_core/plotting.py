@@ -18,6 +18,7 @@ import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
 from dice_core import error_budget  # noqa: E402
+from dice_core.allan import MIN_GROUPS_PIXEL, few_batches  # noqa: E402
 from dice_core.manifest import Detector  # noqa: E402
 
 __all__ = ["map_figure", "maps_figure", "metrology_figure", "allan_figure", "centroids_figure", "procrustes_figure",
@@ -211,10 +212,6 @@ def metrology_figure(ds, detector, *, title):
     return fig
 
 
-#: Fewest groups a single pixel's deviation is drawn from: over K groups it is uncertain by 1/sqrt(2 (K - 1)),
-#: 35% at 5; over fewer, one pixel's curve is noise that reaches far below every limit.
-MIN_GROUPS_PIXEL = 5
-
 #: Curves closer than this ratio at every point are drawn once, their legend entries merged: on a log axis
 #: spanning several decades 3% is under a line's width, so the later curve would hide under the earlier.
 COINCIDENT = 1.03
@@ -307,7 +304,7 @@ def allan_figure(ds, *, title):
         curves.append((ds["photon_limit_pixel_first_frame"].values,
                        f"measured photon limit (first frame{noise}), pixels", dict(color="red", lw=1.2, gid="first frame")))
     measured = []
-    for kind, colour, label in (("pixel", "black", f"pixels, rms (slope {float(ds['slope']):.2f})"),
+    for kind, colour, label in (("pixel", "black", f"pixels, rms ({_slope_text(ds['slope'])})"),
                                 ("block", "tab:blue", f"{block}x{block} blocks, rms")):
         values = ds["deviation_mean" if kind == "pixel" else "deviation_block_mean"].values
         error = values / np.sqrt(2 * np.maximum(groups - 1, 1) * max(counts[kind], 1))
@@ -322,7 +319,7 @@ def allan_figure(ds, *, title):
                     dict(color=colour, ls="-.", lw=0.8, alpha=0.7))]
     if "deviation_mean_batch_means" in ds:
         batch_means = ds["deviation_mean_batch_means"].values
-        label = f"pixels, groups as means of batch fits (slope {float(ds['slope_batch_means']):.2f})"
+        label = f"pixels, groups as means of batch fits ({_slope_text(ds['slope_batch_means'])})"
         if _coincides(batch_means, ds["deviation_mean"].values):  # the paper's way gives ours: one curve
             _also_names(measured[0], label)
         else:
@@ -335,25 +332,80 @@ def allan_figure(ds, *, title):
     for line in _plot_distinct(ax, n, curves):
         line.set_zorder(2.5)  # the limits over the measured curves' markers
     ax.set_xlabel("frames per group")
-    # plain numbers (30, 40, 100) instead of 3x10^1, and minor ticks labelled too where the axis spans few
-    # decades (the group sizes often span 1-2: one power of ten alone would be the only label)
-    ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}"))
-    ax.xaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(
-        lambda value, _: f"{value:g}" if round(value / 10.0 ** np.floor(np.log10(value)))
-        in _labelled_mantissas(np.log10(ax.get_xlim()[1] / ax.get_xlim()[0])) else ""))
+    _frame_ticks(ax.xaxis)
     ax.set_ylabel("deviation of projected offsets [pixel]")
-    ax.set_title(f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (any that many "
-                 f"frames sweep a fringe period); each fits the pixels' phases alone", fontsize=9)
+    too_few = few_batches(ds.sizes["batch"], ds.attrs["frames_per_batch"])
+    ax.set_title(too_few or f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (any that "
+                 f"many frames sweep a fringe period); each fits the pixels' phases alone",
+                 fontsize=11 if too_few else 9, color="firebrick" if too_few else "black")
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
-    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", fontsize=7, ncol=2)  # off the curves
+    fig.legend(*_drawn_entries(ax), loc="outside lower center", fontsize=7, ncol=2)  # off the curves
     fig.suptitle(title, fontsize=11)
     return fig
 
 
-def _labelled_mantissas(decades):
-    """The mantissas (2 for 200, 2000...) of the minor ticks to label on a log axis spanning ``decades``:
-    more on a short axis, none beyond three decades, so that at least three ticks read and none overlap."""
-    return (2, 3, 4, 5, 6, 8) if decades < 1 else (2, 3, 5) if decades < 2 else (2, 5) if decades < 3 else ()
+def _slope_text(slope) -> str:
+    """'slope -0.49' of a log-log slope, or 'no slope' where it is NaN (one group size)."""
+    return f"slope {float(slope):.2f}" if np.isfinite(float(slope)) else "no slope: one group size"
+
+
+def _drawn_entries(ax):
+    """(handles, labels) of ``ax``'s legend entries for what shows: a line or error bars with a finite point (a
+    curve of NaN alone, as a pixel's where every size has too few groups, is not listed), any other artist."""
+    def shows(handle):
+        line = handle.lines[0] if isinstance(handle, matplotlib.container.ErrorbarContainer) else handle
+        if not isinstance(line, matplotlib.lines.Line2D):
+            return True
+        x, y = (np.asarray(v, float) for v in line.get_data())
+        return bool(np.any(np.isfinite(x) & np.isfinite(y)))
+
+    entries = [(h, label) for h, label in zip(*ax.get_legend_handles_labels()) if shows(h)]
+    return [h for h, _ in entries], [label for _, label in entries]
+
+
+#: Mantissas of the labelled ticks on a log axis, sparsest first (:class:`_LogTicks` takes the first that reads).
+TICK_MANTISSAS = ((1,), (1, 2, 5), (1, 2, 3, 5), (1, 1.5, 2, 3, 4, 5, 6, 8),
+                  (1, 1.2, 1.4, 1.6, 1.8, 2, 2.5, 3, 3.5, 4, 5, 6, 7, 8, 9))
+
+
+def log_ticks(low, high):
+    """Labelled tick values (in the axis's unit) of a log axis viewing ``low``-``high``: the sparsest mantissas
+    of :data:`TICK_MANTISSAS` giving at least three ticks in view and no stretch without a label (between two
+    ticks, or a tick and the view's end) longer than 0.2 decade or, on a longer axis, 30% of it. So a view of
+    320-2000 frames is labelled 400, 500, 600, 800, 1000, 1500 (not up to 1000 alone), one of 10-30000 at the
+    powers of ten."""
+    low, high = sorted((float(low), float(high)))
+    if not (low > 0 and np.isfinite(high) and high > low):
+        return np.array([])
+    edges = np.log10([low, high])
+    longest = max(0.2, 0.3 * (edges[1] - edges[0]))
+    decades = np.arange(np.floor(edges[0]), np.ceil(edges[1]) + 1)
+    for mantissas in TICK_MANTISSAS:
+        ticks = np.array([m * 10.0**k for k in decades for m in mantissas])
+        ticks = ticks[(ticks >= low * (1 - 1e-9)) & (ticks <= high * (1 + 1e-9))]
+        gaps = np.diff(np.concatenate([edges[:1], np.log10(ticks), edges[1:]]))
+        if ticks.size >= 3 and gaps.max() <= longest:
+            break
+    return ticks
+
+
+class _LogTicks(matplotlib.ticker.Locator):
+    """:func:`log_ticks` of the axis's view, as it is when the figure is drawn."""
+
+    def __call__(self):
+        return self.tick_values(*self.axis.get_view_interval())
+
+    def tick_values(self, vmin, vmax):
+        return log_ticks(vmin, vmax)
+
+
+def _frame_ticks(axis):
+    """A log axis of frames labelled by :func:`log_ticks`, in plain numbers (1500, not 1.5x10^3); unlabelled
+    minor ticks at every integer mantissa for the grid."""
+    axis.set_major_locator(_LogTicks())
+    axis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}"))
+    axis.set_minor_locator(matplotlib.ticker.LogLocator(subs=np.arange(2, 10), numticks=99))
+    axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
 
 
 def _used_positions(position, positions):
@@ -509,9 +561,23 @@ def _central_star(ds, mode):
     return int(np.nanargmin(np.hypot(x - np.nanmean(x), y - np.nanmean(y))))
 
 
+#: The stars' colours after the central star's black: matplotlib's cycle without its grey (C7), which the line-style
+#: key's grey (:data:`KEY_GREY`) would look like.
+STAR_COLOURS = tuple(f"C{i}" for i in range(10) if i != 7)
+
+#: The colour of the line-style key (x plain, y dotted): a mid grey, which no star is drawn in.
+KEY_GREY = "0.65"
+
+
 def _star_style(s, central):
-    """Colour and legend label of star ``s``: the central star black."""
-    return ("black", f"star {s} (central)") if s == central else (f"C{s}", f"star {s}")
+    """Colour and legend label of star ``s``: the central star black, the others :data:`STAR_COLOURS`."""
+    return ("black", f"star {s} (central)") if s == central else (STAR_COLOURS[s % len(STAR_COLOURS)], f"star {s}")
+
+
+def _axis_key():
+    """The line-style key's entries of the residual figures, in words too: its grey is no star's colour."""
+    return (("x residual: solid, in the star's colour", dict(color=KEY_GREY, lw=1.2)),
+            ("y residual: dotted, in the star's colour", dict(color=KEY_GREY, lw=1.2, ls=":")))
 
 
 def _removal_line(ds, mode) -> str:
@@ -581,8 +647,7 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
                      f"{accuracy:.2e} pixel{_removal_line(ds, mode)}", fontsize=9)  # the longest mode fits
         ax.grid(True, axis="y", alpha=0.3)
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    key = _style_key(("x residual", dict(color="0.3", lw=0.9)), ("y residual", dict(color="0.3", lw=0.9, ls=":")),
-                     ("±σ", dict(color="0.35", ls="--", lw=0.8)))
+    key = _style_key(*_axis_key(), ("±σ", dict(color="0.35", ls="--", lw=0.8)))
     fig.legend(handles + key, labels + [k.get_label() for k in key], loc="outside lower center", fontsize=7,
                ncol=4)  # off the data
     axes[-1, 0].set_xlabel("position index")
@@ -695,7 +760,7 @@ def barycentre_figure(ds, *, title="Barycentre residuals", spread: float = 3.0):
     handles, labels = axes[0, 0].get_legend_handles_labels()
     from matplotlib.patches import Patch
 
-    key = _style_key(("x residual", dict(color="0.3", lw=0.9)), ("y residual", dict(color="0.3", lw=0.9, ls=":")),
+    key = _style_key(*_axis_key(),
                      ("used position (circled)", dict(ls="none", marker="o", ms=4.5, mfc="none", mec="black",
                                                       mew=0.5)),
                      *([("the corner stars' square, shrunk (+: each star's place)", dict(color="0.55", ls="--",

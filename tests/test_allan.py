@@ -1,6 +1,7 @@
 """Allan deviations: against allantools, against the photon-noise limit on simulated metrology, and
 their response to correlated noise."""
 
+import logging
 from pathlib import Path
 
 import allantools
@@ -268,6 +269,22 @@ def test_too_few_frames_for_two_batches(photon_limited, tmp_path):
     stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
     with pytest.raises(allan.AllanError, match="6000 frames, its solution"):
         allan.allan_of_baseline(stream, short, dark=xr.Dataset(), detector=manifest.detector)
+
+
+def test_a_baseline_of_too_few_batches_is_warned_of_in_the_log_and_said_in_its_figure(tmp_path, caplog):
+    """1400 frames of 350-frame batches: 4 batches, one short of a single pixel's curve (5 groups): a WARNING
+    with the sentence the figure's title says."""
+    from dice_core import plotting
+
+    with caplog.at_level(logging.WARNING, logger="dice_core.allan"):
+        ds, _, _ = simulate_and_fit(tmp_path, frames=1400)
+    sentence = ("too few batches for Allan deviations: 4 batches of 350 frames; at least "
+                f"{allan.MIN_BATCHES} needed")
+    assert ds.sizes["batch"] == 4 and allan.MIN_BATCHES == 5
+    assert [(r.levelname, r.getMessage()) for r in caplog.records] == [("WARNING", f"baseline: {sentence}")]
+    fig = plotting.allan_figure(ds, title="test")
+    assert fig.axes[0].get_title() == sentence
+    plotting.save(fig, None)
 
 
 def synthetic_fringes(rng, *, n_frames=1200, shape=(12, 14), k=(2.6, 0.15), noise=1.0):

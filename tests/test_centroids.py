@@ -577,10 +577,12 @@ def test_without_width_spread_the_width_mode_is_no_worse_than_flat_and_metrology
     assert ratio_base < 1.2
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")
 @pytest.mark.parametrize("method", ["fourier", "gaussian"])
 def test_a_pixel_zero_in_every_frame_and_the_dark_is_named(star_dataset, method):
-    """Zero signal and zero read noise give the pixel an infinite weight: an error naming the star, the
-    position and the pixel, not the fit's bare "Residuals are not finite"."""
+    """Zero signal and zero read noise would give the pixel an infinite weight: an error naming the star, the
+    position and the pixel, not the fit's bare "Residuals are not finite", said before dividing by zero (no
+    RuntimeWarning)."""
     from dice_core.io import Chunk, FrameStream
 
     manifest, truth = star_dataset

@@ -138,9 +138,28 @@ def test_a_misspelt_manifest_key_is_one_line_with_the_nearest_key(default_datase
     path = variant(default_dataset, "typo", misspell)
     status, lines, _, cpu = run_check(path)
     assert status == 1 and len(problems(lines)) == 1 and len(lines) == 2, lines
-    assert problems(lines)[0].startswith(f"problem: {path}: manifest violates dice-dataset/1 at detector: ")
-    assert "'saturaton'" in lines[0] and "did you mean saturation?" in lines[0]
+    assert problems(lines)[0] == (f"problem: {path}: manifest violates dice-dataset/1 at detector.saturaton: unknown "
+                                  "key; did you mean saturation? (a required key)"), lines
+    assert lines[1].startswith("1 problem(s): "), lines
     assert cpu < SECONDS
+
+
+def test_every_schema_problem_of_a_manifest_is_its_own_line_and_counted(default_dataset):
+    """Two misspelt keys and a value of the wrong type: three lines, each naming the file and the key path (the
+    right spelling of a misspelt key said, its being missing not said again), and the summary counts three."""
+    def edit(document):
+        document["detector"]["saturaton"] = document["detector"].pop("saturation")
+        document["dark"]["fles"] = document["dark"].pop("files")
+        document["detector"]["read_noise"] = "low"
+
+    path = variant(default_dataset, "three", edit)
+    status, lines, _, _ = run_check(path)
+    at = f"problem: {path}: manifest violates dice-dataset/1 at"
+    assert status == 1 and sorted(problems(lines)) == sorted([
+        f"{at} dark.fles: unknown key; did you mean files? (a required key)",
+        f"{at} detector.saturaton: unknown key; did you mean saturation? (a required key)",
+        f"{at} detector.read_noise: 'low' is not of type 'number'"]), lines
+    assert lines[-1].startswith("3 problem(s): "), lines
 
 
 def test_data_finds_what_headers_do_not_a_checksum_that_does_not_verify(default_dataset):

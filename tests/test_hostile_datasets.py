@@ -205,9 +205,8 @@ def test_start_up_errors_are_the_one_line_and_nothing_else_the_workflow_prints(s
                                                      "dice-dataset/1 at format: format is 'dice-dataset/2', and this "
                                                      "version reads 'dice-dataset/1'"),
         "manifest key": (["--config", f"dataset={misspelt}"], f"dice: config dataset: {misspelt}: manifest violates "
-                                                              "dice-dataset/1 at detector: Additional properties are "
-                                                              "not allowed ('gian' was unexpected); did you mean "
-                                                              "gain?"),
+                                                              "dice-dataset/1 at detector.gian: unknown key; did you "
+                                                              "mean gain? (a required key)"),
     }
     results = run_together(repo, [args for args, _ in cases.values()])
     for (name, (_, expected)), (status, said) in zip(cases.items(), results):

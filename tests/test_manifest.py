@@ -1,12 +1,13 @@
 """Manifest validation: a valid dataset loads; every violation names the file and the problem."""
 
 import copy
+import pickle
 
 import pytest
 import yaml
 
 from dice_core import DatasetError
-from dice_core.manifest import load_manifest, parse_manifest
+from dice_core.manifest import ManifestError, load_manifest, parse_manifest
 from dice_core.simulation import dataset_layout
 
 from conftest import renamed, small_config
@@ -57,7 +58,7 @@ def test_only_required_sections(tmp_path, layout):
         (lambda d: d["metrology"]["pairs"].update(P99=["H1H4", "X"]), "unknown baseline"),
         (lambda d: d["metrology"]["pairs"].update(P99=["H1H4", "H1H4"]), "twice"),
         (lambda d: d["dark"].update(files=[]), "at dark.files"),
-        (lambda d: d.update(extra=1), "Additional properties"),
+        (lambda d: d.update(extra=1), "at extra: unknown key; keys allowed: format, name, detector"),
         (lambda d: d["stars"]["positions"].append(dict(d["stars"]["positions"][0])), "repeated indices"),
         (lambda d: d["stars"].update(approx=[[100, 3]]), "outside the detector"),
     ],
@@ -158,8 +159,36 @@ def test_a_name_problem_comes_before_the_manifest_s_other_problems(layout, tmp_p
     document = renamed(layout, "baseline", "../../victim")
     document["detector"]["gain"] = -1  # sorts before metrology.baselines
     with pytest.raises(DatasetError, match=r"metrology.baselines key '../../victim' is not a valid name:"
-                                           r".* \(and 1 more problems\)"):
+                                           r".* \(and 1 more problem: python -m dice_core check .*dataset.yaml "
+                                           r"lists them all\)$"):
         parse_manifest(document, tmp_path / "dataset.yaml")
+
+
+def misspelt(layout, *keys):
+    """The layout with each ``(section, key)`` of ``keys`` misspelt by a dropped letter."""
+    document = copy.deepcopy(layout)
+    for section, key in keys:
+        document[section][key[:-2] + key[-1]] = document[section].pop(key)
+    return document
+
+
+@pytest.mark.parametrize("keys, more", [
+    ([("detector", "saturation")], ""),
+    ([("detector", "saturation"), ("dark", "files")], " (and 1 more problem: "),
+    ([("detector", "saturation"), ("dark", "files"), ("detector", "gain")], " (and 2 more problems: "),
+])
+def test_each_schema_problem_is_one_line_naming_the_key_path_and_the_message_counts_the_rest(layout, tmp_path,
+                                                                                             keys, more):
+    path = tmp_path / "dataset.yaml"
+    with pytest.raises(ManifestError) as info:
+        parse_manifest(misspelt(layout, *keys), path)
+    error = info.value
+    expected = sorted(f"manifest violates dice-dataset/1 at {section}.{key[:-2] + key[-1]}: unknown key; did you "
+                      f"mean {key}? (a required key)" for section, key in keys)
+    assert sorted(error.problems) == expected  # the key made missing by each typo is not a second problem
+    assert str(error).startswith(f"{path.resolve()}: {error.problems[0]}{more}") and "\n" not in str(error)
+    assert str(error).endswith(f"python -m dice_core check {path.resolve()} lists them all)" if more else "(a required key)")
+    assert pickle.loads(pickle.dumps(error)).problems == error.problems  # crosses from a worker process intact
 
 
 @pytest.mark.parametrize("text, expected", [
@@ -266,7 +295,7 @@ def test_a_baseline_without_a_wavelength_takes_the_geometry_s(layout, tmp_path):
     (lambda d: d["metrology"]["baselines"]["H2H4"].update(wavelength=450.0),
      r"metrology.baselines.H2H4.wavelength 450.0 is not in metres"),
     (lambda d: d["flats"]["fiber_b"].update(wavelength=0.45), r"flats.fiber_b.wavelength 0.45 is not in metres"),
-    (lambda d: d["dark"].update(wavelength=450e-9), "at dark: Additional properties"),  # a dark has none
+    (lambda d: d["dark"].update(wavelength=450e-9), "at dark.wavelength: unknown key"),  # a dark has none
     (lambda d: d["stars"]["spectrum"].update(weight=[1, float("inf"), 1, 1]),
      r"stars.spectrum.weight holds a value that is not finite and non-negative"),
     # a spectrum with no stated wavelength of the lasers to go with: the issue's second case, read the other way

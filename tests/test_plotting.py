@@ -3,6 +3,8 @@
 import re
 
 import matplotlib.colors
+import matplotlib.container
+import matplotlib.lines
 import matplotlib.text
 import numpy as np
 import pytest
@@ -483,16 +485,23 @@ def test_procrustes_title_of_the_longest_mode_fits(rng):
     plotting.save(fig, None)
 
 
-@pytest.mark.parametrize("sizes", [(100, 200, 300, 400), (150, 400, 1200, 3700), (10, 100, 1000, 30000)])
+@pytest.mark.parametrize("sizes", [(100, 200, 300, 400), (150, 400, 1200, 3700), (10, 100, 1000, 30000),
+                                   (350, 700, 1050, 1400, 1750), (1050, 1400, 1750)])
 def test_allan_axis_has_labelled_ticks_across_the_group_sizes(rng, sizes):
-    """At least three labelled ticks within the group sizes (on 150-3700, not 1000 alone), none overlapping."""
-    args, keywords = allan_inputs(rng)
-    ds = allan.allan_dataset(*args, **keywords).assign_coords(n_frames=np.array(sizes, float))
+    """At least three labelled ticks within the group sizes (on 150-3700, not 1000 alone), none overlapping, and
+    no stretch of the axis unlabelled over 0.2 decade or, on a longer axis, 30% of it (on 350-1750 frames, not
+    1000 the last label)."""
+    args, keywords = allan_inputs(rng, n_batches=2 * len(sizes))
+    ds = allan.allan_dataset(*args, **keywords)
+    ds = ds.isel(n_frames=slice(len(sizes))).assign_coords(n_frames=np.array(sizes, float))
     fig = plotting.allan_figure(ds, title="test")
     (ax,) = fig.axes
     labels = labelled_ticks(fig, ax.xaxis)
     assert len(labels) >= 3, labels
     assert not overlapping_labels(fig, ax.xaxis)
+    view = np.log10(sorted(ax.get_xlim()))
+    stretches = np.diff(np.sort(np.concatenate([view, np.log10([float(label) for label in labels])])))
+    assert stretches.max() <= max(0.2, 0.3 * (view[1] - view[0])) + 1e-9, (labels, ax.get_xlim())
     plotting.save(fig, None)
 
 
@@ -713,6 +722,52 @@ def legend_labels(fig):
             for t in legend.get_texts()]
 
 
+def same_looking_entries(fig):
+    """Pairs of legend entries whose keys look alike: lines of one colour, line style and marker (and marker
+    colours), or patches of one colour: the central star's black line and a black line-style key, say."""
+    def look(handle):
+        if isinstance(handle, matplotlib.lines.Line2D):
+            style = handle.get_linestyle() if handle.get_linestyle() not in ("None", "none", "") else "none"
+            colours = [handle.get_color()] if style != "none" else []
+            if handle.get_marker() not in ("None", "none", "", None):
+                colours += [handle.get_markerfacecolor(), handle.get_markeredgecolor()]
+            return ("line", style, str(handle.get_marker()), tuple(matplotlib.colors.to_hex(c, keep_alpha=True)
+                                                                   if c != "none" else c for c in colours))
+        return ("patch", matplotlib.colors.to_hex(handle.get_facecolor(), keep_alpha=True))
+
+    seen, alike = {}, []
+    for legend in [ax.get_legend() for ax in fig.axes if ax.get_legend()] + list(fig.legends):
+        for handle, text in zip(legend.legend_handles, legend.get_texts()):
+            key = look(handle)
+            if key in seen:
+                alike.append((seen[key], text.get_text()))
+            seen.setdefault(key, text.get_text())
+    return alike
+
+
+@pytest.mark.parametrize("stars", [5, 9])
+def test_the_residual_figures_line_style_key_looks_like_no_star(residuals_product, stars):
+    """The x and y keys in a grey no star is drawn in (the central star black, the others matplotlib's cycle
+    without its grey), also with 9 stars, where star 7 would take the cycle's grey."""
+    product, _ = residuals_product
+    product = product.isel(star=np.arange(stars) % product.sizes["star"])
+    for figure in (plotting.procrustes_figure, plotting.barycentre_figure):
+        fig = figure(product)
+        assert same_looking_entries(fig) == [], figure.__name__
+        (legend,) = fig.legends
+        hsv = {text.get_text(): matplotlib.colors.rgb_to_hsv(matplotlib.colors.to_rgb(handle.get_color()))
+               for handle, text in zip(legend.legend_handles, legend.get_texts())
+               if isinstance(handle, matplotlib.lines.Line2D)}
+        stars_ = {label: v for label, v in hsv.items() if label.startswith("star ")}
+        keys = {label: v for label, v in hsv.items() if label.startswith(("x residual", "y residual"))}
+        assert len(stars_) == stars and len(keys) == 2
+        # the stars: black (the central one) or a colour; the key: a grey far from black
+        assert all(label.endswith("(central)") == (v[2] == 0) for label, v in stars_.items())
+        assert all(v[1] >= 0.3 for label, v in stars_.items() if v[2] > 0), stars_
+        assert all(v[1] == 0 and v[2] >= 0.5 for v in keys.values()), keys
+        plotting.save(fig, None)
+
+
 def test_hidden_entries_are_found():
     """The check itself: a thin curve under a wider one is hidden, one with markers or drawn over is not."""
     fig, ax = plotting.plt.subplots()
@@ -734,6 +789,26 @@ def allan_product(rng, *, coincide=True):
         ds["photon_limit_pixel_paper"] = ds["photon_limit_pixel"] * 1.01
         ds["photon_limit_pixel_first_frame"] = ds["photon_limit_pixel"] * 0.995
     return ds
+
+
+@pytest.mark.parametrize("n_batches", [2, 3, 4])
+def test_an_allan_figure_of_too_few_batches_says_so_and_lists_only_what_it_draws(rng, n_batches):
+    """Under 5 batches no single pixel reaches 5 groups (and under 4 there is no slope): the title says so in
+    plain words, and the legend lists no curve that is not drawn (no pixels' entry, no slope of NaN)."""
+    args, keywords = allan_inputs(rng, n_batches=n_batches, frames=350)
+    ds = allan.allan_dataset(*args, **keywords)
+    fig = plotting.allan_figure(ds, title="test")
+    (ax,) = fig.axes
+    assert ax.get_title() == (f"too few batches for Allan deviations: {n_batches} batches of 350 frames; at least "
+                              f"{allan.MIN_BATCHES} needed")
+    labels = legend_labels(fig)
+    assert not [label for label in labels if "individual pixels" in label or "nan" in label], labels
+    assert any(("no slope" in label) == (n_batches < 4) for label in labels if label.startswith("pixels, rms"))
+    for handle, label in zip(*ax.get_legend_handles_labels()):  # the artists the legend's entries stand for
+        line = handle.lines[0] if isinstance(handle, matplotlib.container.ErrorbarContainer) else handle
+        if label in labels and isinstance(line, matplotlib.lines.Line2D):
+            assert np.isfinite(np.asarray(line.get_ydata(), float)).any(), label
+    plotting.save(fig, None)
 
 
 def test_allan_figure_draws_every_entry_and_single_pixels_only_over_enough_groups(rng):
@@ -787,8 +862,8 @@ def test_procrustes_panels_share_one_scaled_range_and_the_line_styles_are_in_the
         assert "\n" not in ax.get_title()  # one line: the key is in the legend
     (legend,) = fig.legends
     entries = [t.get_text() for t in legend.get_texts()]
-    assert {"x residual", "y residual", "±σ"} <= set(entries)
-    assert texts_outside(fig) == [] and hidden_entries(fig) == []
+    assert {"x residual: solid, in the star's colour", "y residual: dotted, in the star's colour", "±σ"} <= set(entries)
+    assert texts_outside(fig) == [] and hidden_entries(fig) == [] and same_looking_entries(fig) == []
     plotting.save(fig, None)
 
 
@@ -814,7 +889,7 @@ def test_barycentre_titles_the_used_band_and_the_layout_read(residuals_product):
         _, scale = plotting._downscaled_layout(residual, star, 3.0)
         assert f"shrunk {1 / scale:,.0f} times" in fig.axes[2 * row + 1].get_title()
     assert f"positions {USED[0]}-{USED[1]} used" in legend_labels(fig)
-    assert texts_outside(fig) == [] and hidden_entries(fig) == []
+    assert texts_outside(fig) == [] and hidden_entries(fig) == [] and same_looking_entries(fig) == []
     plotting.save(fig, None)
 
 
