@@ -608,6 +608,12 @@ class PositionCentroids:
     n_bad_pixels: np.ndarray = None  # (position, star): bad pixels of the mask in the star's window
 
 
+def _noise_variance(image, n_frames, gain, read_noise):
+    """Variance (adu^2) of each pixel of a mean of ``n_frames`` frames: photon noise of ``image`` (adu, at
+    ``gain`` e-/adu) plus ``read_noise`` (adu)."""
+    return (np.clip(image, 0, None) / gain + read_noise**2) / n_frames
+
+
 def _noise_weights(images, windows, flags, n_frames, gain, read_noise, *, where):
     """1 / sigma (1/adu) of each pixel of the stars' mean windows of ``n_frames`` frames, 0 at a flagged pixel.
 
@@ -619,7 +625,7 @@ def _noise_weights(images, windows, flags, n_frames, gain, read_noise, *, where)
     """
     weights = []
     for s, (image, w) in enumerate(zip(images, windows)):
-        variance = (np.clip(image, 0, None) / gain + read_noise[w.slices] ** 2) / n_frames
+        variance = _noise_variance(image, n_frames, gain, read_noise[w.slices])
         usable = flags[w.slices] == 0
         if not np.all(variance[usable] > 0):  # NaN included
             r, c = np.argwhere(usable & ~(variance > 0))[0]

@@ -222,12 +222,12 @@ def fit_weights(image: np.ndarray, star: Star = Star(), *, weighting: str = "pip
 
     ``"pipeline"``: the Gaussian method's weights in ``measure_positions``,
     photon plus read noise of the window itself (the pipeline's own
-    ``_noise_weights``, at unit gain, electrons); ``"uniform"``: none.
+    ``_noise_variance``, at unit gain, electrons); ``"uniform"``: none.
     """
     _check(SOURCES[0], weighting)
     if weighting == "uniform":
         return None
-    return centroids._noise_weights(image, 1, 1.0, star.read_noise)
+    return 1.0 / np.sqrt(centroids._noise_variance(image, 1, 1.0, star.read_noise))
 
 
 def _perturbed(source, amplitude, x0, y0, window, star, normals):
