@@ -373,7 +373,7 @@ def log_ticks(low, high):
     of :data:`TICK_MANTISSAS` giving at least three ticks in view and no stretch without a label (between two
     ticks, or a tick and the view's end) longer than 0.2 decade or, on a longer axis, 30% of it. So a view of
     320-2000 frames is labelled 400, 500, 600, 800, 1000, 1500 (not up to 1000 alone), one of 10-30000 at the
-    powers of ten."""
+    powers of ten. A view too narrow for any (one group size) is labelled at its middle, to 3 digits."""
     low, high = sorted((float(low), float(high)))
     if not (low > 0 and np.isfinite(high) and high > low):
         return np.array([])
@@ -386,6 +386,8 @@ def log_ticks(low, high):
         gaps = np.diff(np.concatenate([edges[:1], np.log10(ticks), edges[1:]]))
         if ticks.size >= 3 and gaps.max() <= longest:
             break
+    if ticks.size == 0:  # a view narrower than any mantissa step (one group size): label its middle
+        ticks = np.array([float(f"{np.sqrt(low * high):.3g}")])
     return ticks
 
 

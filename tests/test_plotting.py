@@ -505,6 +505,17 @@ def test_allan_axis_has_labelled_ticks_across_the_group_sizes(rng, sizes):
     plotting.save(fig, None)
 
 
+@pytest.mark.parametrize("frames", [350, 450, 650])
+def test_a_one_group_size_allan_axis_still_says_its_frames(rng, frames):
+    """Two or three batches make one group size: its axis, a few percent wide, must still carry a label (450
+    and 650 frames had none: no mantissa falls in so narrow a view)."""
+    args, keywords = allan_inputs(rng, n_batches=3, frames=frames)
+    fig = plotting.allan_figure(allan.allan_dataset(*args, **keywords), title="test")
+    labels = labelled_ticks(fig, fig.axes[0].xaxis)
+    assert len(labels) == 1 and abs(float(labels[0]) / frames - 1) < 0.01, labels
+    plotting.save(fig, None)
+
+
 @pytest.mark.parametrize("positions", [USED, (1, 12)])
 def test_centroids_legends_leave_the_points_and_list_only_what_is_drawn(rng, positions):
     ds = central_centroids(rng)
