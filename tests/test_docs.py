@@ -25,3 +25,16 @@ def test_the_docs_index_names_every_page_and_every_page_it_names_exists():
     assert all((REPO / "docs" / name).is_file() for name in named), named
     readme = (REPO / "README.md").read_text()
     assert "docs/README.md" in readme
+
+
+def test_every_figure_of_a_reduction_has_a_caption_in_docs_figures():
+    """docs/figures.md names every figure the reduction's stages make (as figures/<name>, wildcards in angle
+    brackets), so a figure added to the catalogue without a caption fails here."""
+    from dice_core import products
+
+    page = (REPO / "docs" / "figures.md").read_text()
+    stages = {"dark and flat field", "metrology", "pseudo stars", "astrometry"}
+    missing = [p.path for p in products.CATALOGUE.values()
+               if p.kind == "figure" and p.stage in stages
+               and f"`{p.path.removeprefix('figures/').replace('{', '<').replace('}', '>')}`" not in page]
+    assert not missing, missing

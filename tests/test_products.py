@@ -99,3 +99,11 @@ def test_the_products_page_is_generated_from_the_catalogue():
     with pytest.raises(ValueError, match="no generated part"):
         products_page.replace_generated("# a page\n", generated)
     assert products_page.replace_generated(page, generated) == page
+
+
+def test_the_accuracy_table_entry_names_every_column_the_table_has():
+    """The catalogue's columns of tables/accuracy.csv are the writer's own, in its order: a column added to
+    the writer and not to the entry (as n, rms_residual and factor once were) fails here."""
+    from dice_core import accuracies, products
+
+    assert products.entry("accuracy_table").columns == accuracies.CSV_COLUMNS
