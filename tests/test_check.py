@@ -201,7 +201,8 @@ def test_the_worked_example_turns_another_program_s_frames_into_a_dataset_the_wo
     made = subprocess.run([sys.executable, str(converter), str(manifest_path), str(bench)], capture_output=True,
                           text=True, timeout=300)
     assert made.returncode == 0, made.stderr
-    assert "for make_dataset.py:" in made.stdout and (bench / "dark" / "frame_10.fits").exists()
+    assert "for make_dataset.py:" in made.stdout and "BASELINES = {" in made.stdout
+    assert (bench / "dark" / "frame_10.fits").exists()
     header = fits.getheader(bench / "dark" / "frame_1.fits")
     assert (header["NAXIS"], header["BITPIX"], header["BZERO"]) == (2, 16, 32768)
 
