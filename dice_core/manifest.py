@@ -19,6 +19,7 @@ import difflib
 import math
 import os
 import re
+import shlex
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -410,8 +411,9 @@ class ManifestError(DatasetError):
     def __init__(self, path, problems):
         self.problems = tuple(problems)
         more = len(self.problems) - 1
-        tail = (f" (and {more} more problem{'s' if more > 1 else ''}: python -m dice_core check {path} "
-                "lists them all)" if more else "")
+        # the command as the README gives it, pasteable whatever the path holds
+        tail = (f" (and {more} more problem{'s' if more > 1 else ''}: python3 -m dice_core check "
+                f"{shlex.quote(str(path))} lists them all)" if more else "")
         super().__init__(path, self.problems[0] + tail)
 
     def __reduce__(self):

@@ -159,7 +159,7 @@ def test_a_name_problem_comes_before_the_manifest_s_other_problems(layout, tmp_p
     document = renamed(layout, "baseline", "../../victim")
     document["detector"]["gain"] = -1  # sorts before metrology.baselines
     with pytest.raises(DatasetError, match=r"metrology.baselines key '../../victim' is not a valid name:"
-                                           r".* \(and 1 more problem: python -m dice_core check .*dataset.yaml "
+                                           r".* \(and 1 more problem: python3 -m dice_core check .*dataset.yaml "
                                            r"lists them all\)$"):
         parse_manifest(document, tmp_path / "dataset.yaml")
 
@@ -187,7 +187,7 @@ def test_each_schema_problem_is_one_line_naming_the_key_path_and_the_message_cou
                       f"mean {key}? (a required key)" for section, key in keys)
     assert sorted(error.problems) == expected  # the key made missing by each typo is not a second problem
     assert str(error).startswith(f"{path.resolve()}: {error.problems[0]}{more}") and "\n" not in str(error)
-    assert str(error).endswith(f"python -m dice_core check {path.resolve()} lists them all)" if more else "(a required key)")
+    assert str(error).endswith(f"python3 -m dice_core check {path.resolve()} lists them all)" if more else "(a required key)")
     assert pickle.loads(pickle.dumps(error)).problems == error.problems  # crosses from a worker process intact
 
 
