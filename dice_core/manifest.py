@@ -367,7 +367,8 @@ def _error_lines(error) -> list:
         lines = []
         for key in sorted(set(map(str, error.instance)) - set(known)):
             near = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
-            hint = (f"did you mean {near[0]}?{' (a required key)' if near[0] in required else ''}" if near else
+            missing = near and near[0] in required and near[0] not in error.instance  # then the typo is why
+            hint = (f"did you mean {near[0]}?{' (a required key)' if missing else ''}" if near else
                     f"keys allowed: {', '.join(known)}")
             lines.append(f"manifest violates {FORMAT} at {_where([*error.absolute_path, key])}: unknown key; {hint}")
         return lines

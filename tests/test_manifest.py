@@ -191,6 +191,15 @@ def test_each_schema_problem_is_one_line_naming_the_key_path_and_the_message_cou
     assert pickle.loads(pickle.dumps(error)).problems == error.problems  # crosses from a worker process intact
 
 
+def test_a_typo_beside_the_key_it_resembles_is_not_called_a_missing_required_key(layout, tmp_path):
+    document = copy.deepcopy(layout)
+    document["detector"]["gian"] = 1.0  # gain is there: the typo is an extra key, not why gain is missing
+    with pytest.raises(ManifestError) as info:
+        parse_manifest(document, tmp_path / "dataset.yaml")
+    assert info.value.problems == ("manifest violates dice-dataset/1 at detector.gian: unknown key; did you mean "
+                                   "gain?",)
+
+
 @pytest.mark.parametrize("text, expected", [
     ("", "manifest is empty"),
     ("# only a comment\n", "manifest is empty"),
