@@ -331,6 +331,10 @@ def allan_figure(ds, *, title):
                        dict(color="0.3", lw=0.8)))
     for line in _plot_distinct(ax, n, curves):
         line.set_zorder(2.5)  # the limits over the measured curves' markers
+        if n.size == 1:  # one group size: a line of one point shows nothing; a marker (one a line style) does
+            line.set_marker(_SINGLE_POINT_MARKERS.get(line.get_linestyle(), "_"))
+            line.set_markersize(12)
+            line.set_markeredgewidth(1.5)
     ax.set_xlabel("frames per group")
     _frame_ticks(ax.xaxis)
     ax.set_ylabel("deviation of projected offsets [pixel]")
@@ -339,9 +343,15 @@ def allan_figure(ds, *, title):
                  f"many frames sweep a fringe period); each fits the pixels' phases alone",
                  fontsize=11 if too_few else 9, color="firebrick" if too_few else "black")
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
-    fig.legend(*_drawn_entries(ax), loc="outside lower center", fontsize=7, ncol=2)  # off the curves
+    # off the curves; one column when the labels are long (no slope to give, said in two of them)
+    fig.legend(*_drawn_entries(ax), loc="outside lower center", fontsize=7, ncol=1 if too_few else 2)
     fig.suptitle(title, fontsize=11)
     return fig
+
+
+#: The marker of a limit drawn at one group size, by the line style it has at several (solid, dashed, dotted,
+#: dash-dotted), so that the legend still tells them apart.
+_SINGLE_POINT_MARKERS = {"-": "_", "--": "1", ":": "x", "-.": "+"}
 
 
 def _slope_text(slope) -> str:

@@ -819,6 +819,8 @@ def test_an_allan_figure_of_too_few_batches_says_so_and_lists_only_what_it_draws
         line = handle.lines[0] if isinstance(handle, matplotlib.container.ErrorbarContainer) else handle
         if label in labels and isinstance(line, matplotlib.lines.Line2D):
             assert np.isfinite(np.asarray(line.get_ydata(), float)).any(), label
+            assert len(line.get_ydata()) > 1 or line.get_marker() not in (None, "None", "", " "), label  # shows
+    assert texts_outside(fig) == []  # the legend's long labels included
     plotting.save(fig, None)
 
 
