@@ -966,8 +966,8 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
     log.info("%s: %d batches of %d frames (any %d frames sweep a fringe period), %d frames left over",
              label, len(batches), batches[0, 1] - batches[0, 0], batches[0, 1] - batches[0, 0],
              phase.size - batches[-1, 1])
-    if few_batches(len(batches), batches[0, 1] - batches[0, 0]):  # the figure says it too, in its title
-        log.warning("%s: %s", label, few_batches(len(batches), batches[0, 1] - batches[0, 0]))
+    if too_few := few_batches(len(batches), batches[0, 1] - batches[0, 0]):  # the figure says it too, in its title
+        log.warning("%s: %s", label, too_few)
     offsets_map = metrology["projected_offset"].values
     rows, cols = np.nonzero(np.isfinite(offsets_map))
     k = np.array([float(metrology["kx"]), float(metrology["ky"])])

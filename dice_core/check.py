@@ -57,12 +57,17 @@ def workflow_config(root, configfiles=()) -> dict:
     files = [root / "config" / "config.yaml", *map(Path, configfiles)]
     values: dict = {}
     for path in files:
-        for key, value in (yamlfile.read(path) or {}).items():
-            if isinstance(value, dict) and isinstance(values.get(key), dict):
-                values[key] = {**values[key], **value}
-            else:
-                values[key] = value
+        _merge(values, yamlfile.read(path) or {})
     return settings.checked(values, schema, files=files)
+
+
+def _merge(values: dict, overrides: dict) -> None:
+    """``overrides`` into ``values`` at every depth, as Snakemake merges ``--configfile`` files."""
+    for key, value in overrides.items():
+        if isinstance(value, dict) and isinstance(values.get(key), dict):
+            _merge(values[key], value)
+        else:
+            values[key] = value
 
 
 def _workflow_root(given) -> Path | None:
@@ -81,13 +86,15 @@ def _check_file(path, manifest, report: Report, *, data: bool) -> None:
     from dice_core.manifest import Acquisition
 
     try:
-        cube = io.open_cube(path, manifest.detector)
-        report.files += 1
-        report.frames += cube.n_frames
+        stream = io.FrameStream(Acquisition(str(path), (Path(path),)), manifest.detector, dtype="float32")
+        saturated = 0
         if data:
-            for chunk in io.FrameStream(Acquisition(str(path), (Path(path),)), manifest.detector, dtype="float32"):
+            for chunk in stream:
                 if chunk.any_saturated:
-                    report.saturated += int(chunk.saturated.sum())
+                    saturated += int(chunk.saturated.sum())
+        report.files += 1  # counted once it has been read as far as asked: a bad checksum is not "readable"
+        report.frames += stream.n_frames
+        report.saturated += saturated
     except DatasetError as exc:
         report.problem(exc)
     except OSError as exc:  # a file that vanished or cannot be read while it is read

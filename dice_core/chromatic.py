@@ -116,7 +116,7 @@ def absorption_length(wavelength):
 
 
 #: The wavelengths the per-pixel model across wavelength covers, m: silicon's absorption table's.
-MODEL_RANGE = (380e-9, 1000e-9)
+MODEL_RANGE = (min(EXTINCTION), max(EXTINCTION))
 
 
 def wavelength_problem(wavelength: float) -> str | None:

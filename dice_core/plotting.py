@@ -220,8 +220,10 @@ COINCIDENT = 1.03
 def _coincides(a, b, tolerance=COINCIDENT):
     """Whether two positive curves agree within the ratio ``tolerance`` wherever both are finite."""
     a, b = np.asarray(a, float), np.asarray(b, float)
+    if a.shape != b.shape:
+        return False
     both = np.isfinite(a) & np.isfinite(b) & (a > 0) & (b > 0)
-    return bool(both.any() and a.shape == b.shape and np.all(np.abs(np.log(a[both] / b[both])) < np.log(tolerance)))
+    return bool(both.any() and np.all(np.abs(np.log(a[both] / b[both])) < np.log(tolerance)))
 
 
 def _also_names(line, label):

@@ -221,3 +221,16 @@ def test_the_worked_example_turns_another_program_s_frames_into_a_dataset_the_wo
         ours = np.concatenate([c.frames for c in io.FrameStream(converted.baselines[name], converted.detector)])
         theirs = np.concatenate([c.frames for c in io.FrameStream(original.baselines[name], original.detector)])
         np.testing.assert_array_equal(ours, theirs)
+
+
+def test_the_checker_merges_configuration_files_at_every_depth_as_snakemake_does(tmp_path):
+    """A file that changes one value deep in a section keeps the section's other values, as Snakemake's
+    --configfile does: before, the checker merged one level deep and refused a sweep that lost its study."""
+    from dice_core import check
+
+    override = tmp_path / "override.yaml"
+    override.write_text("sweeps: {offset_bias: {values: [1.0e-4]}}\nastrometry: {pose: {off_axis_deg: 0.5}}\n")
+    config = check.workflow_config(REPO, [override])
+    sweep = config["sweeps"]["offset_bias"]
+    assert (sweep["study"], sweep["parameter"], sweep["values"]) == ("offset_bias", "detector.prnu_rms", [1.0e-4])
+    assert config["astrometry"]["pose"]["off_axis_deg"] == 0.5 and config["astrometry"]["pose"]["distance"] == 25000

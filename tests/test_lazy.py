@@ -2,13 +2,12 @@
 
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
+from conftest import REPO
 
 from dice_core import lazy
 
-REPO = Path(__file__).resolve().parents[1]
 HEAVY = ("xarray", "pandas", "astropy", "scipy", "netCDF4", "matplotlib", "jsonschema")
 
 CHECK = """

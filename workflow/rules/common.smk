@@ -228,10 +228,7 @@ if getattr(workflow, "is_main_process", True):
 _SKIPPED = vars(workflow).setdefault("_dice_skipped", {})  # message: said yet
 for _message in PLAN.skipped:
     _SKIPPED.setdefault(_message, False)
-DRY_RUN = any(
-    arg in ("--dry-run", "--dryrun") or (arg.startswith("-") and not arg.startswith("--") and "n" in arg[1:])
-    for arg in sys.argv[1:]
-)
+DRY_RUN = any(arg in ("--dry-run", "--dryrun") or re.fullmatch(r"-[A-Za-z]*n[A-Za-z]*", arg) for arg in sys.argv[1:])
 
 
 def say_skipped():

@@ -18,7 +18,7 @@ def reduction_sweep_summary(tables, points, csv_path, png, pdf, sweep):
     # the figure draws each superimposition in its own panel, Procrustes (the paper's) first
     figure = plotting.reduction_sweep_figure(rows, list(points[0]), title=f"sweep {sweep}")
     # the units in the column names, as every summary has them, from the accuracy tables' column unit
-    rows = [{(f"{k} [{row['unit']}]" if k in ("accuracy", "error", "rms_residual") else k): v
+    rows = [{(f"{k} [{row.get('unit', 'pixel')}]" if k in ("accuracy", "error", "rms_residual") else k): v
              for k, v in row.items() if k != "unit"} for row in rows]
     columns = list(points[0]) + [c for c in rows[0] if c not in points[0]]
     buffer = text_io.StringIO()
