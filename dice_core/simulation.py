@@ -1389,19 +1389,23 @@ def _flat_sensitivity(truth: xr.Dataset, name: str, prf: PixelResponse) -> np.nd
 
 def _broadband_stars(truth: xr.Dataset, position: xr.Dataset, stars) -> np.ndarray:
     """Every star's image at one position (row, col), adu: at each wavelength of the truth's grid, the star's
-    share of light there (``star_spectrum_weight``) through the detector's response at that wavelength. Each star
-    is integrated over a window reaching 8 PSF sigma (its light beyond is below 1e-13 of it)."""
-    shape = truth["sensitivity"].shape
-    image = np.zeros(shape)
-    reach = int(np.ceil(8 * stars.psf_sigma)) + 1
+    share of light there (``star_spectrum_weight``) through the detector's response at that wavelength."""
     weights = truth["star_spectrum_weight"].values
     maps = [truth[f"{v}_wavelength"].values for v in ("sensitivity", "dx", "dy", "prf_sigma_x", "prf_sigma_y")]
     slopes = [truth[v].values if v in truth else None for v in ("prf_slope_x", "prf_slope_y")]
-    for j, weight in enumerate(weights):
-        if weight == 0:
-            continue
-        prf = PixelResponse(*(m[j] for m in maps), float(truth.attrs["prf_order"]),
-                            float(truth.attrs["prf_half_width"]), *slopes)
+    responses = [(PixelResponse(*(m[j] for m in maps), float(truth.attrs["prf_order"]),
+                                float(truth.attrs["prf_half_width"]), *slopes), weight)
+                 for j, weight in enumerate(weights) if weight != 0]
+    return _stars_image(responses, position, stars, truth["sensitivity"].shape)
+
+
+def _stars_image(responses, position: xr.Dataset, stars, shape) -> np.ndarray:
+    """Every star's image at one position (row, col), adu, through each of ``responses`` ((PixelResponse,
+    share of the light)), summed. Each star is integrated over a window reaching 8 PSF sigma (its light beyond
+    is below 1e-13 of it): on the whole detector, 20 times the work on 80x84 pixels for the same image."""
+    image = np.zeros(shape)
+    reach = int(np.ceil(8 * stars.psf_sigma)) + 1
+    for prf, weight in responses:
         for x, y in zip(position["star_x"].values, position["star_y"].values):
             rows = slice(max(0, int(y) - reach), min(shape[0], int(y) + reach + 1))
             cols = slice(max(0, int(x) - reach), min(shape[1], int(x) + reach + 1))
@@ -1471,8 +1475,7 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, n
         if "star_spectrum_weight" in truth:  # broadband: the sum of the stars' monochromatic images
             image = st.background + _broadband_stars(truth, p, st)
         else:
-            image = st.background + sum(st.flux * prf.gaussian_response(float(x), float(y), st.psf_sigma)
-                                        for x, y in zip(p["star_x"].values, p["star_y"].values))
+            image = st.background + _stars_image([(prf, 1.0)], p, st, shape)
         flux = 1 + st.flux_rsd * _rng(cfg, "star flux", name).standard_normal(st.frames)
     elif kind != "dark":
         raise ValueError(f"unknown acquisition kind {kind!r}")
