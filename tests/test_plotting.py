@@ -1025,3 +1025,25 @@ def test_stripe_ratios_measure_rows_and_columns_that_share_an_offset(rng):
         assert f"row-mean ratio {rows:.2f}, column-mean ratio {cols:.2f}" in ax.get_title()
     assert texts_outside(fig) == []
     plotting.save(fig, None)
+
+
+def test_the_pdf_keeps_the_layout_made_for_the_png(tmp_path):
+    """save lays a figure out once, for the PNG, and writes the PDF with that layout: where a PDF laid out
+    anew would put the axes, to 2e-3 of the figure (constrained layout, colour bars, long titles)."""
+    def figure():
+        fig, axes = plotting.plt.subplots(2, 3, figsize=(11, 7), layout="constrained")
+        for i, ax in enumerate(axes.flat):
+            image = ax.imshow(np.arange(80 * 84.0).reshape(80, 84) ** (1 + i / 3))
+            fig.colorbar(image, ax=ax, label="offset (pixel)")
+            ax.set_title(f"a long title of panel {i}, with units (1e-4 pixel)")
+        fig.suptitle("layout")
+        return fig
+
+    kept = figure()
+    plotting.save(kept, tmp_path / "kept.png", pdf=tmp_path / "kept.pdf")
+    fresh = figure()
+    fresh.savefig(tmp_path / "fresh.pdf")
+    assert (tmp_path / "kept.pdf").read_bytes().startswith(b"%PDF") and (tmp_path / "kept.png").stat().st_size
+    moved = max(np.abs(np.subtract(a.get_position().bounds, b.get_position().bounds)).max()
+                for a, b in zip(kept.axes, fresh.axes))
+    assert len(kept.axes) == 12 and moved < 2e-3, moved
