@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = ["StepCost", "COSTS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
-           "step_cost", "job_data", "part_files", "FileFrames"]
+           "step_cost", "job_data", "part_files", "position_groups", "FileFrames"]
 
 #: Factor on the modelled memory: the spread of repeated runs (383-419 MB for one fit) and of library versions.
 MEMORY_MARGIN = 1.5
@@ -187,6 +187,25 @@ def part_files(files, frames_of, *, parts: int, part: int) -> list:
     return list(files[slice(*groups[part])]) if part < len(groups) else []
 
 
+def position_groups(positions, frames_of, *, pixels: int, samples: float) -> list[tuple]:
+    """The star positions in consecutive groups, one workflow job a group (config ``centroids.job_samples``):
+    each group takes positions in acquisition order while its samples (``pixels`` x frames) stay within
+    ``samples``; a position of more is a group of its own.
+
+    ``positions`` are the manifest's (``.index``, ``.acquisition``); ``frames_of(file)`` gives a raw file's
+    frames. Returns tuples of position indices, every position once, in order.
+    """
+    groups, group, group_samples = [], [], 0.0
+    for position in positions:
+        position_samples = pixels * sum(frames_of(f) for f in position.acquisition.files)
+        if group and group_samples + position_samples > samples:
+            groups.append(tuple(group))
+            group, group_samples = [], 0.0
+        group.append(position.index)
+        group_samples += position_samples
+    return groups + [tuple(group)] if group else groups
+
+
 def job_data(step: str, wildcards: dict, *, manifest, frames_of, raw=None, parts: int = 1) -> dict:
     """What one job of ``step`` reads (or writes, for the simulation), for :func:`job_resources`:
     ``frames`` over all its files and ``positions``.
@@ -198,8 +217,9 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, raw=None, parts
         return sum(frames_of(f) for f in acq.files)
 
     positions = len(manifest.positions)
-    if step == "simulate_file":
-        return {"frames": frames_of(Path(raw) / f"{wildcards['relpath']}.fits")}
+    if step == "simulate_file":  # one file, or a group of star positions' files ("relpaths")
+        files = wildcards.get("relpaths") or [Path(raw) / f"{wildcards['relpath']}.fits"]
+        return {"frames": sum(frames_of(f) for f in files)}
     if step == "simulate_truth":
         return {"frames": sum(frames_of(f) for f in manifest.all_files()), "positions": positions}
     if step == "measure_dark":
@@ -214,9 +234,9 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, raw=None, parts
                                                                   part=int(wildcards["part"])))}
     if step == "fit_start":  # the first chunk only
         return {"frames": 0}
-    if step == "stack_position":
-        position = next(p for p in manifest.positions if str(p.index) == str(wildcards["position"]))
-        return {"frames": acquisition(position.acquisition)}
+    if step == "stack_position":  # a group of positions (position_groups), its indices as the job's "positions"
+        group = {str(index) for index in wildcards["positions"]}
+        return {"frames": sum(acquisition(p.acquisition) for p in manifest.positions if str(p.index) in group)}
     return {"positions": positions}
 
 

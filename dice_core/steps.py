@@ -17,6 +17,11 @@ settings or scripts re-runs it (and, through its missing inputs, them).
 studies and report), which a reduction sweep's point, the whole workflow again
 for one dataset, leaves out.
 
+The star positions' steps (``stack_position``; ``simulate_file`` for the
+positions' files) run one job per group of consecutive positions, each group a
+rule of its own, named by :func:`group_rule` (``stack_position_1_to_90``);
+:func:`step_of_rule` gives any rule's step.
+
 Keys no step declares only plan what is made, not how: the dataset and where
 results go (``dataset``, ``results``, ``raw``, ``simulation``: another results
 folder), the sweeps' points (``sweeps.<name>.values``...: which points exist),
@@ -29,11 +34,13 @@ from __future__ import annotations
 import ast
 import functools
 import hashlib
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["Step", "STEPS", "PLANNING_KEYS", "DESCRIPTIVE", "step", "settings_keys", "code_hash", "code_modules",
-           "dice_core_imports"]
+__all__ = ["Step", "STEPS", "PLANNING_KEYS", "DESCRIPTIVE", "step", "settings_keys", "GROUPED_BY_POSITIONS", "group_rule",
+           "step_of_rule",
+           "code_hash", "code_modules", "dice_core_imports"]
 
 
 @dataclass(frozen=True)
@@ -139,6 +146,8 @@ PLANNING_KEYS = {
     "simulation": "the preset's overrides: another dataset, named by their hash, in its own folder",
     "sweeps": "which sweeps and points exist; a point's own settings are its step's (sweeps.<name>.study, "
               "bench, options)",
+    "centroids.job_samples": "how the star positions are cut into jobs: the same stacks whatever the jobs, but "
+                             "a position whose job changed is stacked again, and what reads the stacks re-runs",
     "metrology.split": "how the fit runs, as one job or as many: its product is the single job's bit for bit, but "
                        "another rule makes it, so switching re-runs the fits, and what follows, once",
 }
@@ -150,6 +159,30 @@ def step(name: str) -> Step:
         return STEPS[name]
     except KeyError:
         raise KeyError(f"no step {name!r} in the step table (steps: {', '.join(STEPS)})") from None
+
+
+#: The steps with one job per group of star positions (the simulation: for the positions' files only).
+GROUPED_BY_POSITIONS = ("simulate_file", "stack_position")
+
+
+def group_rule(name: str, positions) -> str:
+    """The rule of step ``name`` (of :data:`GROUPED_BY_POSITIONS`) for a group of star positions (their
+    indices, in order): ``<name>_<first>`` for one position, ``<name>_<first>_to_<last>`` for several."""
+    if name not in GROUPED_BY_POSITIONS:
+        raise KeyError(f"step {name!r} has no jobs by groups of positions ({', '.join(GROUPED_BY_POSITIONS)})")
+    first, last = positions[0], positions[-1]
+    return f"{name}_{first}" if len(positions) == 1 else f"{name}_{first}_to_{last}"
+
+
+def step_of_rule(rule: str) -> str:
+    """The step a workflow rule runs: the rule's own name, or the step of a group of positions' rule
+    (:func:`group_rule`); a KeyError for a name that is neither."""
+    if rule in STEPS:
+        return rule
+    match = re.fullmatch(r"(\w+?)_\d+(?:_to_\d+)?", rule)
+    if match and match.group(1) in GROUPED_BY_POSITIONS:
+        return match.group(1)
+    raise KeyError(f"no step runs rule {rule!r} (steps: {', '.join(STEPS)})")
 
 
 def settings_keys(name: str) -> tuple[str, ...]:

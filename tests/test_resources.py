@@ -76,3 +76,18 @@ def test_a_split_fits_part_asks_for_its_own_files_only():
     assert part["mem_mb"] < single["mem_mb"]
     assert part["runtime"] < single["runtime"] / 30
     assert job_resources("fit_part", pixels=pixels, frames=2 * frames // 64)["mem_mb"] > part["mem_mb"]
+
+
+def test_star_positions_are_cut_into_consecutive_jobs_by_their_samples():
+    """Positions of unequal sizes, indexed as another writer's manifest may index them (not 1..n): each job
+    takes consecutive positions while their samples stay within the budget, and a position over it alone."""
+    from types import SimpleNamespace
+
+    frames = {"a": 100, "b": 100, "c": 100, "d1": 300, "d2": 200, "e": 50, "f": 50}
+    files = {3: ["a"], 7: ["b"], 8: ["c"], 20: ["d1", "d2"], 21: ["e"], 40: ["f"]}
+    positions = [SimpleNamespace(index=i, acquisition=SimpleNamespace(files=f)) for i, f in files.items()]
+    groups = resources.position_groups(positions, frames.get, pixels=10, samples=2500)
+    assert groups == [(3, 7), (8,), (20,), (21, 40)]
+    assert resources.position_groups(positions, frames.get, pixels=10, samples=1) == [(i,) for i in files]
+    assert resources.position_groups(positions, frames.get, pixels=10, samples=1e9) == [tuple(files)]
+    assert resources.position_groups([], frames.get, pixels=10, samples=1e9) == []

@@ -17,19 +17,22 @@ SCHEMA = settings.config_schema(REPO / "workflow" / "schemas" / "config.schema.y
 
 
 def rule_blocks():
-    """{rule name: its text} of every rule of the workflow (``use rule ... as X with:`` included)."""
+    """[(rule name, its text)] of every rule of the workflow (``use rule ... as X with:`` included; a rule made
+    once per group of star positions, named by ``steps.group_rule("<step>", ...)``, as its step)."""
     text = "\n".join(path.read_text() for path in sorted(RULES.glob("*.smk"))) + "\n" + (REPO / "Snakefile").read_text()
-    starts = list(re.finditer(r"^\s*(?:rule (\w+):|use rule \w+ as (\w+) with:)", text, re.M))
-    return {(m.group(1) or m.group(2)): text[m.end():(starts[i + 1].start() if i + 1 < len(starts) else len(text))]
-            for i, m in enumerate(starts)}
+    starts = list(re.finditer(r'^\s*(?:rule (\w+):|use rule \w+ as (\w+) with:|rule:\s+name:\s+steps\.group_rule\("(\w+)")',
+                              text, re.M))
+    return [((m.group(1) or m.group(2) or m.group(3)), text[m.end():(starts[i + 1].start() if i + 1 < len(starts)
+                                                                     else len(text))])
+            for i, m in enumerate(starts)]
 
 
 def test_every_rule_is_a_step_and_hands_its_script_the_step_s_params():
-    blocks = {name: block for name, block in rule_blocks().items() if name not in ("all", "paper")}
-    assert set(blocks) == set(steps.STEPS)
-    for name, block in blocks.items():
+    blocks = [(name, block) for name, block in rule_blocks() if name not in ("all", "paper")]
+    assert {name for name, _ in blocks} == set(steps.STEPS)
+    for name, block in blocks:
         assert re.search(rf'\*\*step_params\(\s*"{name}"', block), f"rule {name} takes no params of its own step"
-        assert f'step_resources("{name}")' in block or name == "measure_centroids_by_method", name
+        assert re.search(rf'step_resources\("{name}"[,)]', block) or name == "measure_centroids_by_method", name
         script = re.search(r'"\.\./scripts/(\w+)\.py"', block)
         if script:
             assert script.group(1) == steps.step(name).script_name, name
@@ -84,7 +87,7 @@ def dice_core_modules(path):
 
 def test_resources_name_steps_of_the_table():
     assert set(resources.COSTS) <= set(steps.STEPS)
-    for name, block in rule_blocks().items():  # a rule whose jobs are benchmarked has a measured cost
+    for name, block in rule_blocks():  # a rule whose jobs are benchmarked has a measured cost
         if "benchmark:" in block and name in steps.STEPS and name != "measure_centroids_by_method":
             assert name in resources.COSTS or name in ("prf_widths", "procrustes_deflation"), name
 
@@ -119,3 +122,16 @@ def test_a_step_s_code_is_its_script_s_imports_and_not_the_workflow_s_descriptio
     assert "centroids" not in modules("measure_dark") | modules("simulate_truth")
     assert {"centroids", "stacks"} <= modules("measure_centroids")
     assert {"fringe_fit"} <= modules("fit_finish") and modules("fit_part") <= modules("fit_finish")
+
+
+def test_a_group_of_positions_rule_names_its_step_and_its_positions():
+    assert steps.group_rule("stack_position", (1, 2, 90)) == "stack_position_1_to_90"
+    assert steps.group_rule("simulate_file", (7,)) == "simulate_file_7"
+    for rule, step in [("stack_position_1_to_90", "stack_position"), ("simulate_file_7", "simulate_file"),
+                       ("simulate_file", "simulate_file"), ("plot_dark", "plot_dark")]:
+        assert steps.step_of_rule(rule) == step
+    with pytest.raises(KeyError, match="no jobs by groups of positions"):
+        steps.group_rule("plot_dark", (1,))
+    for rule in ("plot_dark_3", "stack_position_1_to", "stack_positions_1"):
+        with pytest.raises(KeyError, match="no step runs rule"):
+            steps.step_of_rule(rule)

@@ -426,6 +426,33 @@ def test_a_mode_added_to_the_sweep_runs_only_its_own_jobs(workdir, out):
     assert (out / "centroids" / "metrology.nc").is_file()
 
 
+def test_star_positions_cut_into_other_jobs_make_the_same_stacks(workdir, out, tmp_path):
+    """centroids.job_samples cuts the star positions into jobs (the ci preset's 4 positions of 40x44 x 4 frames,
+    7040 samples each, are one job by default). With 15,000 samples a job: two stack jobs of two positions, and
+    two for the simulation's files. On the complete run this re-stacks and re-runs what reads the stacks, and
+    simulates nothing again; stacked anew from the same raw files into another folder, each position's stack
+    holds the one job's values exactly."""
+    from dice_core import steps
+
+    per_two = "centroids={job_samples: 15000}"
+    plan = plans_of(workdir, ["--config", "dataset=ci", per_two])[0]
+    planned = {rule for rule, _ in plan}
+    assert {r for r in planned if r.startswith("stack_position")} == {"stack_position_1_to_2", "stack_position_3_to_4"}
+    assert not {steps.step_of_rule(r) for r in planned} & {"simulate_file", "simulate_truth", "fit_fringes"}
+    dry = snakemake(workdir, "-n", "--list-rules", "--config", "dataset=ci", per_two).stdout.split()
+    assert {"simulate_file_1_to_2", "simulate_file_3_to_4", "simulate_file"} <= set(dry)
+
+    other = tmp_path / "results"
+    stacks = [f"{other}/sim-ci/stars/{index}.nc" for index in range(1, 5)]
+    ran = snakemake(workdir, *stacks, "--config", "dataset=ci", f"raw={out / 'raw'}", f"results={other}", per_two)
+    ran_rules = re.findall(r"^(?:local)?rule (\w+):", ran.stdout + ran.stderr, re.M)
+    assert sorted(ran_rules) == ["stack_position_1_to_2", "stack_position_3_to_4"], ran_rules
+    for index, path in enumerate(stacks, start=1):
+        with xr.open_dataset(path) as regrouped, xr.open_dataset(out / "stars" / f"{index}.nc") as one_job:
+            assert regrouped.attrs["position"] == index
+            xr.testing.assert_identical(regrouped.drop_attrs(), one_job.drop_attrs())
+
+
 # A valid value other than the default of every key of the configuration that a step reads, for the ci preset
 # (dice_core.steps.PLANNING_KEYS choose what is made, not how: they are not in it).
 OTHER_VALUES = {
@@ -520,7 +547,9 @@ def check_key_triggers_its_steps(workdir, key, tmp_path, configfile=None, datase
     from dice_core import products, steps
 
     rules = rules_of(workdir)  # the split fit's steps are rules only with metrology.split
-    declaring = [name for name, step in steps.STEPS.items() if key in steps.settings_keys(name) and name in rules]
+    # the rules of the steps that declare the key (a step of the star positions has a rule per group of them)
+    declaring = [rule for rule in sorted(rules - {"all", "paper"})
+                 if key in steps.settings_keys(steps.step_of_rule(rule))]
     extra = tmp_path / "more.yaml"
     extra.write_text(yaml.safe_dump(merged(EXTRA_SWEEP, configfile or {})))
     args = ["--configfile", str(extra), "--config", f"dataset={dataset}", command_line(key, OTHER_VALUES[key])]
@@ -534,14 +563,15 @@ def check_key_triggers_its_steps(workdir, key, tmp_path, configfile=None, datase
 
     # the default target's steps: forcing a step of the run as a whole (the paper's), or one this dataset has no
     # job of (calibration/chromatic.nc on a single wavelength), would add it to the plan
-    in_default = [name for name in declaring if not steps.step(name).whole_run and has_jobs_on(name, dataset)]
+    in_default = [rule for rule in declaring if not steps.step(steps.step_of_rule(rule)).whole_run
+                  and has_jobs_on(steps.step_of_rule(rule), dataset)]
     natural, forced_plan = plans_of(workdir, args, [*args, *(["--forcerun", *in_default] if in_default else [])])
     same_plans(natural, forced_plan, "default target")
     forced = ["--forcerun", *declaring] if declaring else []
     own = sorted({out for (rule, outputs) in forced_plan if rule in declaring for out in outputs.split(", ")} | {
         products.path_of(p, dataset_root=f"results/sim-{dataset}", sweeps_root="results/sweeps",
                          suffix=".png" if products.entry(p).kind == "figure" else "")
-        for name in declaring for p in steps.step(name).writes if not products.entry(p).wildcards})
+        for rule in declaring for p in steps.step(steps.step_of_rule(rule)).writes if not products.entry(p).wildcards})
     if own:
         natural, forced_plan = plans_of(workdir, [*own, *args], [*own, *args, *forced])
         same_plans(natural, forced_plan, "own products")

@@ -3,24 +3,31 @@
 # (config centroids.modes) and method (centroids.methods).
 
 
-rule stack_position:
-    input:
-        manifest=MANIFEST_FILE,
-        cubes=position_files,
-    output:
-        stack=output_of("stack"),
-    log:
-        f"{OUT}/logs/stack_position_{{position}}.log",
-    benchmark:
-        f"{OUT}/benchmarks/stack_position_{{position}}.tsv"
-    conda:
-        "../envs/dice.yaml"
-    resources:
-        **step_resources("stack_position"),
-    params:
-        **step_params("stack_position"),
-    script:
-        "../scripts/stack_position.py"
+# One stack job a group of consecutive positions (config centroids.job_samples): a job's start costs more
+# than stacking a small position, so the paper preset's 90 positions are one job, and a large detector's spread
+# over many. A change to one position's files re-stacks its group.
+for _group in POSITION_GROUPS:
+
+    rule:
+        name:
+            steps.group_rule("stack_position", _group)
+        input:
+            manifest=MANIFEST_FILE,
+            cubes=group_files(_group),
+        output:
+            stacks=[output_of("stack", position=index) for index in _group],
+        log:
+            f"{OUT}/logs/{steps.group_rule('stack_position', _group)}.log",
+        benchmark:
+            f"{OUT}/benchmarks/{steps.group_rule('stack_position', _group)}.tsv"
+        conda:
+            "../envs/dice.yaml"
+        resources:
+            **step_resources("stack_position", positions=_group),
+        params:
+            **step_params("stack_position", positions=list(_group)),
+        script:
+            "../scripts/stack_position.py"
 
 
 rule measure_centroids:

@@ -82,7 +82,6 @@ wildcard_constraints:
     flat="|".join(map(re.escape, MANIFEST.flats)) or "(?!)",
     baseline="|".join(map(re.escape, MANIFEST.baselines)) or "(?!)",
     pair="|".join(map(re.escape, MANIFEST.pairs)) or "(?!)",
-    position="|".join(str(p.index) for p in MANIFEST.positions) or "(?!)",
     mode="|".join(map(re.escape, dice_settings.choices()["modes"])),
     method="|".join(map(re.escape, dice_settings.choices()["methods"])),
     model="|".join(map(re.escape, dice_settings.choices()["superimpositions"][1:])),
@@ -146,13 +145,9 @@ def pair_baselines(wildcards):
     return list(MANIFEST.pairs[wildcards.pair])
 
 
-def manifest_position(wildcards):
-    """The manifest's star position of the {position} wildcard (its index)."""
-    return next(p for p in MANIFEST.positions if str(p.index) == wildcards.position)
-
-
-def position_files(wildcards):
-    return acquisition_files(manifest_position(wildcards).acquisition)
+def group_files(group):
+    """The raw files of a group of star positions (indices), in acquisition order."""
+    return [f for p in MANIFEST.positions if p.index in group for f in acquisition_files(p.acquisition)]
 
 
 def position_stacks(wildcards):
@@ -219,6 +214,13 @@ def file_frames(path):
 if getattr(workflow, "is_main_process", True):
     for _file in MANIFEST.all_files():
         file_frames(_file)
+# The star positions' jobs (stacks; the simulation's files): consecutive positions grouped by their samples.
+POSITION_GROUPS = dice_resources.position_groups(
+    MANIFEST.positions,
+    file_frames,
+    pixels=MANIFEST.detector.shape[0] * MANIFEST.detector.shape[1],
+    samples=config["centroids"]["job_samples"],
+)
 
 # What the run skips and why, said once every start-up check has passed (a run refused at start says its one
 # problem alone): by a run in its onstart, after the checks of the planned jobs (preflight.smk); by a dry run,
@@ -249,15 +251,16 @@ def part_files(wildcards):
     return dice_resources.part_files(files, file_frames, parts=config["metrology"]["parts"], part=int(wildcards.part))
 
 
-def step_resources(step):
+def step_resources(step, **fixed):
     """A rule's resources block, ``resources: **step_resources("<rule>")``: mem_mb (MB) and runtime (minutes)
-    of each job from its step's measured cost and the job's data, times the attempt on a retry."""
+    of each job from its step's measured cost and the job's data, times the attempt on a retry. ``fixed``: what
+    the job's wildcards would say of a rule without them (a group of positions' ``positions``)."""
     pixels = MANIFEST.detector.shape[0] * MANIFEST.detector.shape[1]
 
     def needs(wildcards, attempt):
         data = dice_resources.job_data(
             step,
-            dict(wildcards.items()),
+            {**dict(wildcards.items()), **fixed},
             manifest=MANIFEST,
             frames_of=file_frames,
             raw=RAW,

@@ -1,6 +1,7 @@
 # Simulated testbed (only when config dataset names a preset): truth first, then
-# one job per FITS file, then the manifest that makes it a dataset. Their
-# settings are the preset with config simulation's overrides, handed over whole.
+# one job per FITS file (the star positions' files one job per group of positions,
+# as their stacks), then the manifest that makes it a dataset. Their settings are
+# the preset with config simulation's overrides, handed over whole.
 
 if SIMULATE:
     SIM_CONFIG = SIMULATION.to_dict()
@@ -30,7 +31,7 @@ if SIMULATE:
         benchmark:
             f"{OUT}/benchmarks/simulate/{{relpath}}.tsv"
         wildcard_constraints:
-            relpath="(dark|flat|metrology|stars)/[A-Za-z0-9._-]+",
+            relpath="(dark|flat|metrology)/[A-Za-z0-9._-]+",
         conda:
             "../envs/dice.yaml"
         resources:
@@ -39,6 +40,28 @@ if SIMULATE:
             **step_params("simulate_file", simulation=SIM_CONFIG),
         script:
             "../scripts/simulate_file.py"
+
+    for _group in POSITION_GROUPS:
+
+        rule:
+            name:
+                steps.group_rule("simulate_file", _group)
+            input:
+                truth=rules.simulate_truth.output.truth,
+            output:
+                cubes=group_files(_group),
+            log:
+                f"{OUT}/logs/simulate/{steps.group_rule('simulate_file', _group)}.log",
+            benchmark:
+                f"{OUT}/benchmarks/simulate/{steps.group_rule('simulate_file', _group)}.tsv"
+            conda:
+                "../envs/dice.yaml"
+            resources:
+                **step_resources("simulate_file", relpaths=group_files(_group)),
+            params:
+                **step_params("simulate_file", simulation=SIM_CONFIG),
+            script:
+                "../scripts/simulate_file.py"
 
     rule simulate_manifest:
         input:

@@ -1,4 +1,4 @@
-"""Snakemake step: simulate one FITS file of the testbed dataset."""
+"""Snakemake step: simulate FITS files of the testbed dataset (one file, or a group of star positions' files)."""
 
 from pathlib import Path
 
@@ -7,11 +7,14 @@ from dice_core import simulation
 from dice_core.io import read_product
 
 
-def simulate_file(settings, truth_path, output):
+def simulate_files(settings, truth_path, outputs):
+    """Simulate each of ``outputs`` (paths under the truth product's folder), one after the other."""
     cfg = simulation.SimulationConfig.from_dict(settings)
     raw = Path(truth_path).parent
-    simulation.write_file(cfg, read_product(truth_path), relpath=Path(output).relative_to(raw).as_posix(), outdir=raw)
+    truth = read_product(truth_path)
+    for output in outputs:
+        simulation.write_file(cfg, truth, relpath=Path(output).relative_to(raw).as_posix(), outdir=raw)
 
 
-dice_core.run_logged(snakemake.log[0], simulate_file, snakemake.params.simulation, snakemake.input.truth,
-                     snakemake.output.cube)
+dice_core.run_logged(snakemake.log[0], simulate_files, snakemake.params.simulation, snakemake.input.truth,
+                     list(snakemake.output))
