@@ -51,6 +51,14 @@ def part_frames(results, manifest, baseline, npass, part, parts):
     return sum(counts[slice(*groups[part])]) if part < len(groups) else 0
 
 
+def group_positions(manifest, match):
+    """The manifest's positions of a group's job, from its rule's name: the first to the last, in order."""
+    indices = [str(p.index) for p in manifest.positions]
+    first = indices.index(match.group(2))
+    last = indices.index(match.group(3) or match.group(2))
+    return manifest.positions[first:last + 1]
+
+
 def jobs(results, *, parts=None, since=0.0):
     """(step, pixels, frames, positions, max_rss MB, wall s, benchmark file) of each benchmark of a run.
 
@@ -61,13 +69,15 @@ def jobs(results, *, parts=None, since=0.0):
     manifest = load_manifest(results / "raw" / "dataset.yaml")
     pixels = manifest.detector.shape[0] * manifest.detector.shape[1]
     positions = len(manifest.positions)
-    by_index = {str(p.index): p for p in manifest.positions}
     for tsv in sorted((results / "benchmarks").rglob("*.tsv")):
         if tsv.stat().st_mtime < since:
             continue
         rel = tsv.relative_to(results / "benchmarks").with_suffix("").as_posix()
         name = rel.split("/")[-1]
-        if rel.startswith("simulate/"):
+        if group := re.fullmatch(r"(?:simulate/)?(simulate_file|stack_position)_(\d+)(?:_to_(\d+))?", rel):
+            # a group of star positions' job (dice_core.steps.group_rule): its positions, first to last
+            step, n, k = group.group(1), sum(frames(p.acquisition) for p in group_positions(manifest, group)), 0
+        elif rel.startswith("simulate/"):
             step, n, k = "simulate_file", int(fits.getheader(results / "raw" / f"{rel[9:]}.fits")["NAXIS3"]), 0
         elif name == "measure_dark":
             step, n, k = name, frames(manifest.dark), 0
@@ -83,8 +93,6 @@ def jobs(results, *, parts=None, since=0.0):
             step, n, k = "fit_start", 0, 0
         elif m := re.fullmatch(r"(fit_fringes|allan_deviation|fit_finish)_(.+)", name):
             step, n, k = m.group(1), frames(manifest.baselines[m.group(2)]), 0
-        elif m := re.fullmatch(r"stack_position_(\d+)", name):
-            step, n, k = "stack_position", frames(by_index[m.group(1)].acquisition), 0
         elif name.startswith("measure_centroids_"):
             step, n, k = "measure_centroids", 0, positions
         else:

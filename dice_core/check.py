@@ -101,23 +101,14 @@ def _check_file(path, manifest, report: Report, *, data: bool) -> None:
         report.problem(f"{path}: {error_line(exc)}")
 
 
-def _acquisitions(manifest):
-    """(label, Acquisition) of every acquisition of the manifest, in the order the workflow reduces them."""
-    found = [("dark", manifest.dark)] if manifest.dark else []
-    found += [(f"flat {name}", a) for name, a in manifest.flats.items()]
-    found += [(f"baseline {name}", a) for name, a in manifest.baselines.items()]
-    found += [(f"star position {p.index}", p.acquisition) for p in manifest.positions]
-    return found
-
-
 def _read_files(manifest, report: Report, *, data: bool) -> None:
     """Every acquisition's files checked, and one line per kind of acquisition: files and frames."""
     counts: dict = {}
-    for label, acquisition in _acquisitions(manifest):
+    for acquisition in manifest.acquisitions():
         before = report.files, report.frames
         for path in acquisition.files:
             _check_file(path, manifest, report, data=data)
-        kind = "star positions" if label.startswith("star") else label
+        kind = "star positions" if acquisition.label.startswith("position") else acquisition.label
         files, frames, n = counts.get(kind, (0, 0, 0))
         counts[kind] = (files + report.files - before[0], frames + report.frames - before[1], n + 1)
     shape = "x".join(map(str, manifest.detector.shape))

@@ -668,10 +668,6 @@ def write_text(path, text: str):
             f.write(text)
 
 
-#: Units and long names of the coordinates the products share (the catalogue's, :mod:`dice_core.products`).
-COORDINATE_ATTRS = products.COORDINATE_ATTRS
-INDEX_DIMS = products.INDEX_DIMS
-
 _PROVENANCE = contextvars.ContextVar("dice_core_provenance", default=None)
 _DIGESTS: dict = {}  # (path, size, mtime) -> sha256, so a file read by several products is hashed once
 
@@ -814,11 +810,11 @@ def _history_of(path) -> list[str]:
 
 
 def _annotate_coordinates(ds: xr.Dataset) -> xr.Dataset:
-    """Index coordinates for the shared dims that have none (:data:`INDEX_DIMS`), and the units and long names of
-    :data:`COORDINATE_ATTRS` where the step set none."""
-    missing = {dim: np.arange(ds.sizes[dim]) for dim in INDEX_DIMS if dim in ds.dims and dim not in ds.coords}
+    """Index coordinates for the shared dims that have none (:data:`dice_core.products.INDEX_DIMS`), and the
+    units and long names of :data:`dice_core.products.COORDINATE_ATTRS` where the step set none."""
+    missing = {dim: np.arange(ds.sizes[dim]) for dim in products.INDEX_DIMS if dim in ds.dims and dim not in ds.coords}
     ds = ds.assign_coords(missing)
-    for dim, attrs in COORDINATE_ATTRS.items():
+    for dim, attrs in products.COORDINATE_ATTRS.items():
         if dim in ds.coords:
             ds[dim].attrs = {**attrs, **ds[dim].attrs}
     return ds
@@ -836,9 +832,9 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
 
     Every data variable with a physical meaning must carry a ``units`` attribute
     (``"1"`` for dimensionless): a variable without one is refused. The shared
-    index coordinates (:data:`INDEX_DIMS`: row, col, frame, position, star,
+    index coordinates (:data:`dice_core.products.INDEX_DIMS`: row, col, frame, position, star,
     batch, iteration) get one where the dataset has none; every coordinate gets
-    the units and long name of :data:`COORDINATE_ATTRS` where the step set none,
+    the units and long name of :data:`dice_core.products.COORDINATE_ATTRS` where the step set none,
     and a coordinate left without a long name (or, numeric, without units) is
     refused. The global attributes receive ``Conventions``,
     ``title``, ``source`` and ``dice_core_version`` (the software),

@@ -366,7 +366,7 @@ def _error_lines(error) -> list:
         known, required = list(error.schema.get("properties", {})), error.schema.get("required", [])
         lines = []
         for key in sorted(set(map(str, error.instance)) - set(known)):
-            near = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+            near = _nearest(key, known)
             missing = near and near[0] in required and near[0] not in error.instance  # then the typo is why
             hint = (f"did you mean {near[0]}?{' (a required key)' if missing else ''}" if near else
                     f"keys allowed: {', '.join(known)}")
@@ -389,8 +389,12 @@ def _typo_targets(error) -> set:
         return set()
     known = list(error.schema.get("properties", {}))
     where = tuple(map(str, error.absolute_path))
-    return {(where, near) for key in set(map(str, error.instance)) - set(known)
-            for near in difflib.get_close_matches(key, known, n=1, cutoff=0.6)}
+    return {(where, near) for key in set(map(str, error.instance)) - set(known) for near in _nearest(key, known)}
+
+
+def _nearest(key: str, known) -> list:
+    """The known key an unknown one is most likely a typo of, in a list (empty where none is near)."""
+    return difflib.get_close_matches(key, known, n=1, cutoff=0.6)
 
 
 def schema_problems(document) -> list:

@@ -414,7 +414,8 @@ def test_provenance_appends_history_and_records_relative_inputs_with_checksums_a
     import hashlib
     import json
 
-    from dice_core.io import COORDINATE_ATTRS, provenance
+    from dice_core.io import provenance
+    from dice_core.products import COORDINATE_ATTRS
 
     dataset, results = tmp_path / "bench", tmp_path / "results" / "bench"
     raw = dataset / "raw" / "dark.fits"
