@@ -1349,18 +1349,21 @@ def _read_out(signal: np.ndarray, truth: xr.Dataset, cfg: SimulationConfig, phot
     return samples
 
 
-#: Samples of one chunk of simulated frames: each float64 temporary of the signal and noise is 16 MiB.
-SIMULATION_CHUNK_SAMPLES = 2**21
+#: Samples of one chunk of simulated frames: each float64 temporary of the signal and noise is 2 MiB, which
+#: stays in a core's cache while the noise's passes stream over it. A paper-preset metrology file took 0.75 of
+#: the time it took in chunks of 2**21 samples (16 MiB temporaries), the same file bit for bit
+#: (``benchmarks/simulation_chunks.py``, BENCHMARKS.md "The simulation's chunk").
+SIMULATION_CHUNK_SAMPLES = 2**18
 
 
 def simulation_chunk_frames(cfg: SimulationConfig) -> int:
     """Frames simulated at once: ``cfg.chunk_frames``, fewer where they would exceed
     :data:`SIMULATION_CHUNK_SAMPLES` samples (at least one frame).
 
-    A simulation job's memory is a few float64 temporaries of one chunk: 256
-    frames of 80x84 pixels are 14 MB each, of 1024x1024 pixels 2.1 GB. The
-    frames do not depend on the chunk (every generator is drawn in frame
-    order), so this changes memory only.
+    A simulation job's memory is a few float64 temporaries of one chunk: 39
+    frames of 80x84 pixels are 2 MB each, one frame of 1024x1024 pixels 8 MB.
+    The frames do not depend on the chunk (every generator is drawn in frame
+    order), so this changes memory and speed only.
     """
     pixels = cfg.detector.shape[0] * cfg.detector.shape[1]
     return max(1, min(cfg.chunk_frames, SIMULATION_CHUNK_SAMPLES // pixels))
@@ -1402,7 +1405,7 @@ def _broadband_stars(truth: xr.Dataset, position: xr.Dataset, stars) -> np.ndarr
 def _stars_image(responses, position: xr.Dataset, stars, shape) -> np.ndarray:
     """Every star's image at one position (row, col), adu, through each of ``responses`` ((PixelResponse,
     share of the light)), summed. Each star is integrated over a window reaching 8 PSF sigma (its light beyond
-    is below 1e-13 of it): on the whole detector, 20 times the work on 80x84 pixels for the same image."""
+    is below 1e-13 of it)."""
     image = np.zeros(shape)
     reach = int(np.ceil(8 * stars.psf_sigma)) + 1
     for prf, weight in responses:
@@ -1475,7 +1478,8 @@ def acquisition_chunks(cfg: SimulationConfig, truth: xr.Dataset, *, kind: str, n
         if "star_spectrum_weight" in truth:  # broadband: the sum of the stars' monochromatic images
             image = st.background + _broadband_stars(truth, p, st)
         else:
-            image = st.background + _stars_image([(prf, 1.0)], p, st, shape)
+            image = st.background + sum(st.flux * prf.gaussian_response(float(x), float(y), st.psf_sigma)
+                                        for x, y in zip(p["star_x"].values, p["star_y"].values))
         flux = 1 + st.flux_rsd * _rng(cfg, "star flux", name).standard_normal(st.frames)
     elif kind != "dark":
         raise ValueError(f"unknown acquisition kind {kind!r}")

@@ -81,11 +81,11 @@ def test_a_large_detector_is_simulated_in_chunks_of_few_frames(dataset, monkeypa
     cfg, _, truth = dataset
     pixels = cfg.detector.shape[0] * cfg.detector.shape[1]
     large = dataclasses.replace(cfg, detector=dataclasses.replace(cfg.detector, shape=(1024, 1024)))
-    assert simulation.simulation_chunk_frames(cfg) == cfg.chunk_frames == 256
-    for preset in ("ci", "default", "paper"):  # their data as before: chunks of 256 frames
+    assert simulation.simulation_chunk_frames(cfg) == simulation.SIMULATION_CHUNK_SAMPLES // pixels < cfg.chunk_frames
+    for preset, frames in (("ci", 148), ("default", 39), ("paper", 39)):  # 2 MiB of float64 a temporary
         path = Path(__file__).parents[1] / "config" / "presets" / f"{preset}.yaml"
-        assert simulation.simulation_chunk_frames(simulation.load_preset(path)) == 256
-    assert simulation.simulation_chunk_frames(large) == 2  # 2 x 1024 x 1024 float64 = 16 MiB a temporary
+        assert simulation.simulation_chunk_frames(simulation.load_preset(path)) == frames
+    assert simulation.simulation_chunk_frames(large) == 1  # 1024 x 1024 float64 = 8 MiB a temporary
     whole = np.concatenate(list(simulation.acquisition_chunks(cfg, truth, kind="baseline", name="H1H4", start=0,
                                                               stop=20)))
     monkeypatch.setattr(simulation, "SIMULATION_CHUNK_SAMPLES", 3 * pixels + 1)
@@ -465,7 +465,7 @@ def test_chromatic_keys_are_checked():
 
 
 def test_a_star_image_integrated_over_its_window_is_the_whole_detector_s():
-    """Each star is integrated over a window reaching 8 PSF sigma, not over the whole detector: the same image
+    """A broadband star is integrated over a window reaching 8 PSF sigma, not the whole detector: the same image
     to 1e-15 of its peak, on a bench the presets do not use (asymmetric, flat-topped pixels of unequal widths,
     a wide PSF, stars at the detector's edges and corners, two wavelengths' responses)."""
     from types import SimpleNamespace
