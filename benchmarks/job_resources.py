@@ -29,7 +29,7 @@ import numpy as np
 from astropy.io import fits
 from scipy.optimize import nnls
 
-from dice_core import resources
+from dice_core import resources, steps
 from dice_core.io import file_groups
 from dice_core.manifest import load_manifest
 
@@ -51,12 +51,13 @@ def part_frames(results, manifest, baseline, npass, part, parts):
     return sum(counts[slice(*groups[part])]) if part < len(groups) else 0
 
 
-def group_positions(manifest, match):
-    """The manifest's positions of a group's job, from its rule's name: the first to the last, in order."""
-    indices = [str(p.index) for p in manifest.positions]
-    first = indices.index(match.group(2))
-    last = indices.index(match.group(3) or match.group(2))
-    return manifest.positions[first:last + 1]
+def group_frames(manifest, step, first, last):
+    """Frames of a group's job: the star positions first to last (stack_position), or the manifest's files
+    first to last, numbered from 1 (simulate_file)."""
+    if step == "simulate_file":
+        return sum(int(fits.getheader(f)["NAXIS3"]) for f in manifest.all_files()[first - 1:last])
+    indices = [p.index for p in manifest.positions]
+    return sum(frames(p.acquisition) for p in manifest.positions[indices.index(first):indices.index(last) + 1])
 
 
 def jobs(results, *, parts=None, since=0.0):
@@ -74,10 +75,9 @@ def jobs(results, *, parts=None, since=0.0):
             continue
         rel = tsv.relative_to(results / "benchmarks").with_suffix("").as_posix()
         name = rel.split("/")[-1]
-        if group := re.fullmatch(r"(?:simulate/)?(simulate_file|stack_position)_(\d+)(?:_to_(\d+))?", rel):
-            # a group of star positions' job (dice_core.steps.group_rule): its positions, first to last
-            step, n, k = group.group(1), sum(frames(p.acquisition) for p in group_positions(manifest, group)), 0
-        elif rel.startswith("simulate/"):
+        if group := steps.rule_group(name):  # a group's job (dice_core.steps.group_rule): its inputs' frames
+            step, n, k = group[0], group_frames(manifest, *group), 0
+        elif rel.startswith("simulate/"):  # a group of one file, named by the file
             step, n, k = "simulate_file", int(fits.getheader(results / "raw" / f"{rel[9:]}.fits")["NAXIS3"]), 0
         elif name == "measure_dark":
             step, n, k = name, frames(manifest.dark), 0

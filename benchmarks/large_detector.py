@@ -97,6 +97,7 @@ def benchmark_rows(out: Path, parts: int, since: float) -> list[dict]:
     name's fields, wall s, max_rss MB, frames it read (its files')."""
     from astropy.io import fits
 
+    from dice_core import steps
     from dice_core.io import file_groups
     from dice_core.manifest import load_manifest
 
@@ -113,9 +114,13 @@ def benchmark_rows(out: Path, parts: int, since: float) -> list[dict]:
         with open(tsv, newline="") as handle:
             row = next(csv.DictReader(handle, delimiter="\t"))
         job = {"job": name, "s": float(row["s"]), "max_rss_mb": float(row["max_rss"])}
-        if name.startswith("simulate/"):
-            job |= {"rule": "simulate_file" + (" (metrology)" if "/metrology/" in f"/{name}" else " (other)"),
-                    "frames": int(fits.getheader(out / "raw" / f"{name[len('simulate/'):]}.fits")["NAXIS3"])}
+        if name.startswith("simulate/"):  # one file's job (named by it), or a group of files' (by its rule)
+            group = steps.rule_group(name[len("simulate/"):])
+            simulated = (manifest.all_files()[group[1] - 1:group[2]] if group
+                         else [out / "raw" / f"{name[len('simulate/'):]}.fits"])
+            metrology = any(Path(f).parent.name == "metrology" for f in simulated)
+            job |= {"rule": "simulate_file" + (" (metrology)" if metrology else " (other)"),
+                    "frames": sum(int(fits.getheader(f)["NAXIS3"]) for f in simulated)}
         elif m := re.fullmatch(rf"fit_part_{BASELINE}_(\d+)_(\d+)", name):
             npass, part = int(m.group(1)), int(m.group(2))
             frames = sum(counts[slice(*groups[part])]) if part < len(groups) else 0

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = ["StepCost", "COSTS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
-           "step_cost", "job_data", "part_files", "position_groups", "FileFrames"]
+           "step_cost", "job_data", "part_files", "sample_groups", "position_groups", "FileFrames"]
 
 #: Factor on the modelled memory: the spread of repeated runs (383-419 MB for one fit) and of library versions.
 MEMORY_MARGIN = 1.5
@@ -187,23 +187,30 @@ def part_files(files, frames_of, *, parts: int, part: int) -> list:
     return list(files[slice(*groups[part])]) if part < len(groups) else []
 
 
-def position_groups(positions, frames_of, *, pixels: int, samples: float) -> list[tuple]:
-    """The star positions in consecutive groups, one workflow job a group (config ``centroids.job_samples``):
-    each group takes positions in acquisition order while its samples (``pixels`` x frames) stay within
-    ``samples``; a position of more is a group of its own.
+def sample_groups(sizes, *, samples: float) -> list[tuple[int, ...]]:
+    """Consecutive items in groups, one workflow job a group (config ``job_samples``): each group takes items
+    in order while its samples stay within ``samples``; an item of more is a group of its own.
 
-    ``positions`` are the manifest's (``.index``, ``.acquisition``); ``frames_of(file)`` gives a raw file's
-    frames. Returns tuples of position indices, every position once, in order.
+    ``sizes`` are the items' samples (pixels x frames), in order. Returns tuples of the items' numbers, from 1,
+    every item once, in order.
     """
     groups, group, group_samples = [], [], 0.0
-    for position in positions:
-        position_samples = pixels * sum(frames_of(f) for f in position.acquisition.files)
-        if group and group_samples + position_samples > samples:
+    for number, size in enumerate(sizes, start=1):
+        if group and group_samples + size > samples:
             groups.append(tuple(group))
             group, group_samples = [], 0.0
-        group.append(position.index)
-        group_samples += position_samples
+        group.append(number)
+        group_samples += size
     return groups + [tuple(group)] if group else groups
+
+
+def position_groups(positions, frames_of, *, pixels: int, samples: float) -> list[tuple]:
+    """The star positions in groups of consecutive positions by their samples (:func:`sample_groups`): tuples
+    of the positions' indices. ``positions`` are the manifest's (``.index``, ``.acquisition``);
+    ``frames_of(file)`` gives a raw file's frames."""
+    positions = list(positions)
+    sizes = [pixels * sum(frames_of(f) for f in p.acquisition.files) for p in positions]
+    return [tuple(positions[n - 1].index for n in group) for group in sample_groups(sizes, samples=samples)]
 
 
 def job_data(step: str, wildcards: dict, *, manifest, frames_of, raw=None, parts: int = 1) -> dict:
@@ -217,9 +224,8 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, raw=None, parts
         return sum(frames_of(f) for f in acq.files)
 
     positions = len(manifest.positions)
-    if step == "simulate_file":  # one file, or a group of star positions' files ("relpaths")
-        files = wildcards.get("relpaths") or [Path(raw) / f"{wildcards['relpath']}.fits"]
-        return {"frames": sum(frames_of(f) for f in files)}
+    if step == "simulate_file":  # a group of files (sample_groups), their paths as the job's "files"
+        return {"frames": sum(frames_of(f) for f in wildcards["files"])}
     if step == "simulate_truth":
         return {"frames": sum(frames_of(f) for f in manifest.all_files()), "positions": positions}
     if step == "measure_dark":

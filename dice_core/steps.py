@@ -17,10 +17,11 @@ settings or scripts re-runs it (and, through its missing inputs, them).
 studies and report), which a reduction sweep's point, the whole workflow again
 for one dataset, leaves out.
 
-The star positions' steps (``stack_position``; ``simulate_file`` for the
-positions' files) run one job per group of consecutive positions, each group a
-rule of its own, named by :func:`group_rule` (``stack_position_1_to_90``);
-:func:`step_of_rule` gives any rule's step.
+The steps of many small inputs (``stack_position``: the star positions;
+``simulate_file``: the simulated files) run one job per group of consecutive
+inputs (config ``job_samples``), each group a rule of its own, named by
+:func:`group_rule` (``stack_position_1_to_90``); :func:`step_of_rule` gives any
+rule's step.
 
 Keys no step declares only plan what is made, not how: the dataset and where
 results go (``dataset``, ``results``, ``raw``, ``simulation``: another results
@@ -38,7 +39,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["Step", "STEPS", "PLANNING_KEYS", "DESCRIPTIVE", "step", "settings_keys", "GROUPED_BY_POSITIONS", "group_rule",
+__all__ = ["Step", "STEPS", "PLANNING_KEYS", "DESCRIPTIVE", "step", "settings_keys", "GROUPED", "group_rule", "rule_group",
            "step_of_rule",
            "code_hash", "code_modules", "dice_core_imports"]
 
@@ -146,8 +147,9 @@ PLANNING_KEYS = {
     "simulation": "the preset's overrides: another dataset, named by their hash, in its own folder",
     "sweeps": "which sweeps and points exist; a point's own settings are its step's (sweeps.<name>.study, "
               "bench, options)",
-    "centroids.job_samples": "how the star positions are cut into jobs: the same stacks whatever the jobs, but "
-                             "a position whose job changed is stacked again, and what reads the stacks re-runs",
+    "job_samples": "how the simulated files and the star positions are cut into jobs: the same files and stacks "
+                   "whatever the jobs, but a position whose job changed is stacked again, and what reads the stacks "
+                   "re-runs",
     "metrology.split": "how the fit runs, as one job or as many: its product is the single job's bit for bit, but "
                        "another rule makes it, so switching re-runs the fits, and what follows, once",
 }
@@ -161,27 +163,36 @@ def step(name: str) -> Step:
         raise KeyError(f"no step {name!r} in the step table (steps: {', '.join(STEPS)})") from None
 
 
-#: The steps with one job per group of star positions (the simulation: for the positions' files only).
-GROUPED_BY_POSITIONS = ("simulate_file", "stack_position")
+#: The steps with one job per group of consecutive inputs (config ``job_samples``): the simulation's files, the
+#: star positions' stacks.
+GROUPED = ("simulate_file", "stack_position")
 
 
-def group_rule(name: str, positions) -> str:
-    """The rule of step ``name`` (of :data:`GROUPED_BY_POSITIONS`) for a group of star positions (their
-    indices, in order): ``<name>_<first>`` for one position, ``<name>_<first>_to_<last>`` for several."""
-    if name not in GROUPED_BY_POSITIONS:
-        raise KeyError(f"step {name!r} has no jobs by groups of positions ({', '.join(GROUPED_BY_POSITIONS)})")
-    first, last = positions[0], positions[-1]
-    return f"{name}_{first}" if len(positions) == 1 else f"{name}_{first}_to_{last}"
+def group_rule(name: str, numbers) -> str:
+    """The rule of step ``name`` (of :data:`GROUPED`) for a group of its inputs, numbered in order (the star
+    positions' indices; the simulated files' places in the manifest, from 1): ``<name>_<first>`` for one,
+    ``<name>_<first>_to_<last>`` for several."""
+    if name not in GROUPED:
+        raise KeyError(f"step {name!r} has no jobs by groups of inputs ({', '.join(GROUPED)})")
+    first, last = numbers[0], numbers[-1]
+    return f"{name}_{first}" if len(numbers) == 1 else f"{name}_{first}_to_{last}"
+
+
+def rule_group(rule: str) -> tuple[str, int, int] | None:
+    """(step, first, last) of a group's rule (:func:`group_rule`), None for any other rule."""
+    match = re.fullmatch(r"(\w+?)_(\d+)(?:_to_(\d+))?", rule)
+    if match is None or match.group(1) not in GROUPED:
+        return None
+    return match.group(1), int(match.group(2)), int(match.group(3) or match.group(2))
 
 
 def step_of_rule(rule: str) -> str:
-    """The step a workflow rule runs: the rule's own name, or the step of a group of positions' rule
-    (:func:`group_rule`); a KeyError for a name that is neither."""
+    """The step a workflow rule runs: the rule's own name, or the step of a group's rule (:func:`group_rule`);
+    a KeyError for a name that is neither."""
     if rule in STEPS:
         return rule
-    match = re.fullmatch(r"(\w+?)_\d+(?:_to_\d+)?", rule)
-    if match and match.group(1) in GROUPED_BY_POSITIONS:
-        return match.group(1)
+    if (group := rule_group(rule)) is not None:
+        return group[0]
     raise KeyError(f"no step runs rule {rule!r} (steps: {', '.join(STEPS)})")
 
 

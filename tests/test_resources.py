@@ -91,3 +91,4 @@ def test_star_positions_are_cut_into_consecutive_jobs_by_their_samples():
     assert resources.position_groups(positions, frames.get, pixels=10, samples=1) == [(i,) for i in files]
     assert resources.position_groups(positions, frames.get, pixels=10, samples=1e9) == [tuple(files)]
     assert resources.position_groups([], frames.get, pixels=10, samples=1e9) == []
+    assert resources.sample_groups([3, 3, 9, 1, 1, 1], samples=6) == [(1, 2), (3,), (4, 5, 6)]

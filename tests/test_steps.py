@@ -124,13 +124,15 @@ def test_a_step_s_code_is_its_script_s_imports_and_not_the_workflow_s_descriptio
     assert {"fringe_fit"} <= modules("fit_finish") and modules("fit_part") <= modules("fit_finish")
 
 
-def test_a_group_of_positions_rule_names_its_step_and_its_positions():
+def test_a_group_s_rule_names_its_step_and_its_inputs():
     assert steps.group_rule("stack_position", (1, 2, 90)) == "stack_position_1_to_90"
     assert steps.group_rule("simulate_file", (7,)) == "simulate_file_7"
     for rule, step in [("stack_position_1_to_90", "stack_position"), ("simulate_file_7", "simulate_file"),
                        ("simulate_file", "simulate_file"), ("plot_dark", "plot_dark")]:
         assert steps.step_of_rule(rule) == step
-    with pytest.raises(KeyError, match="no jobs by groups of positions"):
+    assert steps.rule_group("stack_position_1_to_90") == ("stack_position", 1, 90)
+    assert steps.rule_group("simulate_file_7") == ("simulate_file", 7, 7) and steps.rule_group("plot_dark") is None
+    with pytest.raises(KeyError, match="no jobs by groups of inputs"):
         steps.group_rule("plot_dark", (1,))
     for rule in ("plot_dark_3", "stack_position_1_to", "stack_positions_1"):
         with pytest.raises(KeyError, match="no step runs rule"):

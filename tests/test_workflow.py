@@ -426,21 +426,24 @@ def test_a_mode_added_to_the_sweep_runs_only_its_own_jobs(workdir, out):
     assert (out / "centroids" / "metrology.nc").is_file()
 
 
-def test_star_positions_cut_into_other_jobs_make_the_same_stacks(workdir, out, tmp_path):
-    """centroids.job_samples cuts the star positions into jobs (the ci preset's 4 positions of 40x44 x 4 frames,
-    7040 samples each, are one job by default). With 15,000 samples a job: two stack jobs of two positions, and
-    two for the simulation's files. On the complete run this re-stacks and re-runs what reads the stacks, and
-    simulates nothing again; stacked anew from the same raw files into another folder, each position's stack
-    holds the one job's values exactly."""
+def test_inputs_cut_into_other_jobs_make_the_same_stacks_and_simulate_nothing_again(workdir, out, tmp_path):
+    """job_samples cuts the simulated files and the star positions into jobs: the ci preset's 15 files and 4
+    positions (40x44 pixels x 4 frames, 7040 samples each) are one job each by default. With 15,000 samples a
+    job the dark, the flats and the metrology files are each a job of their own, and the positions' files and
+    stacks two jobs of two. On the complete run this re-stacks and re-runs what reads the stacks, and simulates
+    nothing again; stacked anew from the same raw files into another folder, each position's stack holds the one
+    job's values exactly."""
     from dice_core import steps
 
-    per_two = "centroids={job_samples: 15000}"
+    per_two = "job_samples=15000"
     plan = plans_of(workdir, ["--config", "dataset=ci", per_two])[0]
     planned = {rule for rule, _ in plan}
     assert {r for r in planned if r.startswith("stack_position")} == {"stack_position_1_to_2", "stack_position_3_to_4"}
     assert not {steps.step_of_rule(r) for r in planned} & {"simulate_file", "simulate_truth", "fit_fringes"}
-    dry = snakemake(workdir, "-n", "--list-rules", "--config", "dataset=ci", per_two).stdout.split()
-    assert {"simulate_file_1_to_2", "simulate_file_3_to_4", "simulate_file"} <= set(dry)
+    listed = set(snakemake(workdir, "--list-rules", "--config", "dataset=ci", per_two).stdout.split())
+    assert {f"simulate_file_{n}" for n in range(1, 12)} | {"simulate_file_12_to_13", "simulate_file_14_to_15"} == {
+        r for r in listed if r.startswith("simulate_file")}
+    assert {"simulate_file_1_to_15", "stack_position_1_to_4"} <= rules_of(workdir)  # the default: one job each
 
     other = tmp_path / "results"
     stacks = [f"{other}/sim-ci/stars/{index}.nc" for index in range(1, 5)]

@@ -3,7 +3,7 @@
 # (config centroids.modes) and method (centroids.methods).
 
 
-# One stack job a group of consecutive positions (config centroids.job_samples): a job's start costs more
+# One stack job a group of consecutive positions (config job_samples): a job's start costs more
 # than stacking a small position, so the paper preset's 90 positions are one job, and a large detector's spread
 # over many. A change to one position's files re-stacks its group.
 for _group in POSITION_GROUPS:

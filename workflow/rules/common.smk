@@ -214,13 +214,29 @@ def file_frames(path):
 if getattr(workflow, "is_main_process", True):
     for _file in MANIFEST.all_files():
         file_frames(_file)
-# The star positions' jobs (stacks; the simulation's files): consecutive positions grouped by their samples.
+# The jobs of the steps with many small inputs (config job_samples): the star positions' stacks, and the
+# simulation's files (numbered from 1 in the manifest's order), consecutive ones grouped by their samples.
+PIXELS = MANIFEST.detector.shape[0] * MANIFEST.detector.shape[1]
 POSITION_GROUPS = dice_resources.position_groups(
-    MANIFEST.positions,
-    file_frames,
-    pixels=MANIFEST.detector.shape[0] * MANIFEST.detector.shape[1],
-    samples=config["centroids"]["job_samples"],
+    MANIFEST.positions, file_frames, pixels=PIXELS, samples=config["job_samples"]
 )
+SIM_GROUPS = dice_resources.sample_groups(
+    [PIXELS * frames for frames in SIM_FRAMES.values()], samples=config["job_samples"]
+)
+SIM_FILES = list(SIM_FRAMES)  # relative to the raw folder, in the manifest's order
+
+
+def simulated_files(group):
+    """The simulated files of a group (their numbers, from 1), as the workflow spells them."""
+    return [f"{RAW}/{SIM_FILES[number - 1]}" for number in group]
+
+
+def simulated_job(group):
+    """A group of simulated files' log and benchmark name under simulate/: its one file's path, or its rule."""
+    if len(group) == 1:
+        return SIM_FILES[group[0] - 1].removesuffix(".fits")
+    return steps.group_rule("simulate_file", group)
+
 
 # What the run skips and why, said once every start-up check has passed (a run refused at start says its one
 # problem alone): by a run in its onstart, after the checks of the planned jobs (preflight.smk); by a dry run,

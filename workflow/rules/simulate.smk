@@ -1,11 +1,10 @@
 # Simulated testbed (only when config dataset names a preset): truth first, then
-# one job per FITS file (the star positions' files one job per group of positions,
-# as their stacks), then the manifest that makes it a dataset. Their settings are
-# the preset with config simulation's overrides, handed over whole.
+# the FITS files, one job per group of consecutive files (config job_samples),
+# then the manifest that makes it a dataset. Their settings are the preset with
+# config simulation's overrides, handed over whole.
 
 if SIMULATE:
     SIM_CONFIG = SIMULATION.to_dict()
-    SIM_FILES = list(simulation.file_jobs(SIMULATION))
 
     rule simulate_truth:
         output:
@@ -21,27 +20,7 @@ if SIMULATE:
         script:
             "../scripts/simulate_truth.py"
 
-    rule simulate_file:
-        input:
-            truth=rules.simulate_truth.output.truth,
-        output:
-            cube=output_of("cube"),
-        log:
-            f"{OUT}/logs/simulate/{{relpath}}.log",
-        benchmark:
-            f"{OUT}/benchmarks/simulate/{{relpath}}.tsv"
-        wildcard_constraints:
-            relpath="(dark|flat|metrology)/[A-Za-z0-9._-]+",
-        conda:
-            "../envs/dice.yaml"
-        resources:
-            **step_resources("simulate_file"),
-        params:
-            **step_params("simulate_file", simulation=SIM_CONFIG),
-        script:
-            "../scripts/simulate_file.py"
-
-    for _group in POSITION_GROUPS:
+    for _group in SIM_GROUPS:
 
         rule:
             name:
@@ -49,15 +28,15 @@ if SIMULATE:
             input:
                 truth=rules.simulate_truth.output.truth,
             output:
-                cubes=group_files(_group),
+                cubes=simulated_files(_group),
             log:
-                f"{OUT}/logs/simulate/{steps.group_rule('simulate_file', _group)}.log",
+                f"{OUT}/logs/simulate/{simulated_job(_group)}.log",
             benchmark:
-                f"{OUT}/benchmarks/simulate/{steps.group_rule('simulate_file', _group)}.tsv"
+                f"{OUT}/benchmarks/simulate/{simulated_job(_group)}.tsv"
             conda:
                 "../envs/dice.yaml"
             resources:
-                **step_resources("simulate_file", relpaths=group_files(_group)),
+                **step_resources("simulate_file", files=simulated_files(_group)),
             params:
                 **step_params("simulate_file", simulation=SIM_CONFIG),
             script:
