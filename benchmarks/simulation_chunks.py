@@ -54,7 +54,8 @@ def main(argv=None):
     first = statistics.median(times[args.sizes[0]])
     for size in args.sizes:
         median = statistics.median(times[size])
-        chunk = max(1, min(cfg.chunk_frames, size // pixels))
+        simulation.SIMULATION_CHUNK_SAMPLES = size
+        chunk = simulation.simulation_chunk_frames(cfg)
         print(f"| {size} | {chunk} | {median:.2f} | {median / (frames * pixels) * 1e9:.1f} | "
               f"{median / first:.2f} | {', '.join(d[:12] for d in sorted(digests[size]))} |")
     if len({d for found in digests.values() for d in found}) != 1:

@@ -75,10 +75,6 @@ class PixelResponse:
         barycentre is off its centre by slope x width^2, and the phase of its
         response to a fringe is not that of its barycentre (it depends on the
         period). None: symmetric.
-
-    The arrays are read, never written: :meth:`gaussian_response` keeps the
-    pixels' kernels it makes (a response with other arrays is another
-    instance, e.g. ``dataclasses.replace``).
     """
 
     def __post_init__(self):
@@ -180,29 +176,18 @@ class PixelResponse:
         ndarray (row, col) over the window, sensitivity included.
         """
         sl = (rows or slice(None), cols or slice(None))
-        u, _ = _quadrature(self.half_width)
+        x0, y0 = (c[sl] for c in self.centres())
+        u, w = _quadrature(self.half_width)
 
-        def factor(axis, star):
-            centre, weighted, norm = self._weighted_kernel(axis, sl)
-            psf = np.exp(-0.5 * ((centre + u - star) / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma)
-            return (weighted * psf).sum(-1) / norm
-
-        return self.sensitivity[sl] * factor("x", x) * factor("y", y)
-
-    def _weighted_kernel(self, axis: str, sl) -> tuple:
-        """(pixel centres (row, col, 1), quadrature weights times the pixels' 1-D PRF kernels (row, col, node),
-        the kernels' integrals (row, col)) along ``axis`` over the window ``sl``: what every star's image
-        integrates against, the same for every star and position, so made once per window (the kernel's power
-        of a non-integer order is most of an image's time: 0.5 s of a position's 0.6 s on 80x84 pixels)."""
-        key = (axis, sl[0].start, sl[0].stop, sl[1].start, sl[1].stop)
-        cache = self.__dict__.setdefault("_weighted_kernels", {})
-        if key not in cache:
-            u, w = _quadrature(self.half_width)
-            centre = self.centres()[0 if axis == "x" else 1][sl][..., None]
-            scale, slope = (self.sigma_x, self.slope_x) if axis == "x" else (self.sigma_y, self.slope_y)
-            kern = _kernel(u, scale[sl][..., None], self.order)
+        def factor(centre, scale, slope, star):
+            kern = _kernel(u, scale[..., None], self.order)
             norm = (w * kern).sum(-1)  # the slope's odd term integrates to zero: the sensitivity stays
             if slope is not None:
-                kern = kern * (1 + slope[sl][..., None] * u)
-            cache[key] = (centre, w * kern, norm)
-        return cache[key]
+                kern = kern * (1 + slope[..., None] * u)
+            psf = np.exp(-0.5 * ((centre[..., None] + u - star) / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma)
+            return (w * kern * psf).sum(-1) / norm
+
+        slope_x = None if self.slope_x is None else self.slope_x[sl]
+        slope_y = None if self.slope_y is None else self.slope_y[sl]
+        return (self.sensitivity[sl] * factor(x0, self.sigma_x[sl], slope_x, x)
+                * factor(y0, self.sigma_y[sl], slope_y, y))

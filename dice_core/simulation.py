@@ -1349,10 +1349,10 @@ def _read_out(signal: np.ndarray, truth: xr.Dataset, cfg: SimulationConfig, phot
     return samples
 
 
-#: Samples of one chunk of simulated frames: each float64 temporary of the signal and noise is 2 MiB, which
-#: stays in a core's cache while the noise's passes stream over it. A paper-preset metrology file took 0.75 of
-#: the time it took in chunks of 2**21 samples (16 MiB temporaries), the same file bit for bit
-#: (``benchmarks/simulation_chunks.py``, BENCHMARKS.md "The simulation's chunk").
+#: Samples of one chunk of simulated frames: each float64 temporary of the signal and noise is 2 MiB, a few of
+#: which fit the test machine's 32 MiB shared L3 cache, as a few 16 MiB ones (2**21 samples) do not. A
+#: paper-preset metrology file took 0.75-0.80 of the time it took in chunks of 2**21 samples, the same file bit
+#: for bit (``benchmarks/simulation_chunks.py``, BENCHMARKS.md "The simulation's chunk").
 SIMULATION_CHUNK_SAMPLES = 2**18
 
 
@@ -1392,23 +1392,19 @@ def _flat_sensitivity(truth: xr.Dataset, name: str, prf: PixelResponse) -> np.nd
 
 def _broadband_stars(truth: xr.Dataset, position: xr.Dataset, stars) -> np.ndarray:
     """Every star's image at one position (row, col), adu: at each wavelength of the truth's grid, the star's
-    share of light there (``star_spectrum_weight``) through the detector's response at that wavelength."""
+    share of light there (``star_spectrum_weight``) through the detector's response at that wavelength. Each star
+    is integrated over a window reaching 8 PSF sigma (its light beyond is below 1e-13 of it)."""
+    shape = truth["sensitivity"].shape
+    image = np.zeros(shape)
+    reach = int(np.ceil(8 * stars.psf_sigma)) + 1
     weights = truth["star_spectrum_weight"].values
     maps = [truth[f"{v}_wavelength"].values for v in ("sensitivity", "dx", "dy", "prf_sigma_x", "prf_sigma_y")]
     slopes = [truth[v].values if v in truth else None for v in ("prf_slope_x", "prf_slope_y")]
-    responses = [(PixelResponse(*(m[j] for m in maps), float(truth.attrs["prf_order"]),
-                                float(truth.attrs["prf_half_width"]), *slopes), weight)
-                 for j, weight in enumerate(weights) if weight != 0]
-    return _stars_image(responses, position, stars, truth["sensitivity"].shape)
-
-
-def _stars_image(responses, position: xr.Dataset, stars, shape) -> np.ndarray:
-    """Every star's image at one position (row, col), adu, through each of ``responses`` ((PixelResponse,
-    share of the light)), summed. Each star is integrated over a window reaching 8 PSF sigma (its light beyond
-    is below 1e-13 of it)."""
-    image = np.zeros(shape)
-    reach = int(np.ceil(8 * stars.psf_sigma)) + 1
-    for prf, weight in responses:
+    for j, weight in enumerate(weights):
+        if weight == 0:
+            continue
+        prf = PixelResponse(*(m[j] for m in maps), float(truth.attrs["prf_order"]),
+                            float(truth.attrs["prf_half_width"]), *slopes)
         for x, y in zip(position["star_x"].values, position["star_y"].values):
             rows = slice(max(0, int(y) - reach), min(shape[0], int(y) + reach + 1))
             cols = slice(max(0, int(x) - reach), min(shape[1], int(x) + reach + 1))

@@ -67,23 +67,3 @@ def test_gaussian_response_conserves_flux_on_a_uniform_detector():
                         np.full(shape, 0.3), 4.0, 0.5)
     assert prf.gaussian_response(19.3, 20.6, 1.3).sum() == pytest.approx(1.0, rel=1e-4)
 
-
-def test_gaussian_response_of_a_window_is_the_whole_detector_s_there_whichever_comes_first(rng):
-    """The pixels' kernels are made once per window and kept: a window's response, asked before or after the
-    whole detector's and another window's, is the whole detector's response there, bit for bit, with slopes
-    and unequal x and y widths."""
-    shape = (12, 15)
-    prf = PixelResponse(1 + 0.05 * rng.standard_normal(shape), 0.1 * rng.standard_normal(shape),
-                        0.1 * rng.standard_normal(shape), 0.3 + 0.05 * rng.random(shape),
-                        0.4 + 0.05 * rng.random(shape), 3.5, 0.5, 0.4 * rng.standard_normal(shape).clip(-1.5, 1.5),
-                        0.4 * rng.standard_normal(shape).clip(-1.5, 1.5))
-    window = (slice(2, 9), slice(4, 13))
-    before = prf.gaussian_response(7.3, 5.1, 1.1, rows=window[0], cols=window[1])
-    whole = prf.gaussian_response(7.3, 5.1, 1.1)
-    other = prf.gaussian_response(3.0, 8.0, 0.9, rows=slice(0, 5), cols=slice(1, 6))
-    after = prf.gaussian_response(7.3, 5.1, 1.1, rows=window[0], cols=window[1])
-    assert np.array_equal(before, whole[window]) and np.array_equal(after, whole[window])
-    assert np.array_equal(other, prf.gaussian_response(3.0, 8.0, 0.9)[0:5, 1:6])
-    fresh = PixelResponse(prf.sensitivity, prf.dx, prf.dy, prf.sigma_x, prf.sigma_y, 3.5, 0.5, prf.slope_x,
-                          prf.slope_y)
-    assert np.array_equal(fresh.gaussian_response(3.0, 8.0, 0.9), prf.gaussian_response(3.0, 8.0, 0.9))

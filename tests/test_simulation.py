@@ -463,29 +463,3 @@ def test_chromatic_keys_are_checked():
     with pytest.raises(ValueError, match="chromatic: surface_share"):
         simulation.SimulationConfig.from_dict({"chromatic": {"surface_share": 2.0}})
 
-
-def test_a_star_image_integrated_over_its_window_is_the_whole_detector_s():
-    """A broadband star is integrated over a window reaching 8 PSF sigma, not the whole detector: the same image
-    to 1e-15 of its peak, on a bench the presets do not use (asymmetric, flat-topped pixels of unequal widths,
-    a wide PSF, stars at the detector's edges and corners, two wavelengths' responses)."""
-    from types import SimpleNamespace
-
-    from dice_core.detector import PixelResponse
-
-    rng = np.random.default_rng(5)
-    shape = (30, 34)
-
-    def response():
-        return PixelResponse(1 + 0.02 * rng.standard_normal(shape), 0.05 * rng.standard_normal(shape),
-                             0.05 * rng.standard_normal(shape), 0.3 + 0.05 * rng.random(shape),
-                             0.35 + 0.05 * rng.random(shape), 3.0, 0.5, 0.3 * rng.standard_normal(shape),
-                             0.3 * rng.standard_normal(shape))
-
-    responses = [(response(), 0.7), (response(), 0.3)]
-    position = xr.Dataset({"star_x": ("star", [0.2, 33.4, 16.7, 2.5]), "star_y": ("star", [0.4, 29.1, 14.2, 27.6])})
-    stars = SimpleNamespace(flux=5.0e4, psf_sigma=1.3)
-    windowed = simulation._stars_image(responses, position, stars, shape)
-    whole = sum(stars.flux * weight * prf.gaussian_response(float(x), float(y), stars.psf_sigma)
-                for prf, weight in responses for x, y in zip(position["star_x"].values, position["star_y"].values))
-    assert np.abs(windowed - whole).max() <= 1e-15 * whole.max()
-    assert np.count_nonzero(windowed) < windowed.size  # the windows left pixels out: a test of something
