@@ -51,15 +51,6 @@ def part_frames(results, manifest, baseline, npass, part, parts):
     return sum(counts[slice(*groups[part])]) if part < len(groups) else 0
 
 
-def group_frames(manifest, step, first, last):
-    """Frames of a group's job: the star positions first to last (stack_position), or the manifest's files
-    first to last, numbered from 1 (simulate_file)."""
-    if step == "simulate_file":
-        return sum(int(fits.getheader(f)["NAXIS3"]) for f in manifest.all_files()[first - 1:last])
-    indices = [p.index for p in manifest.positions]
-    return sum(frames(p.acquisition) for p in manifest.positions[indices.index(first):indices.index(last) + 1])
-
-
 def jobs(results, *, parts=None, since=0.0):
     """(step, pixels, frames, positions, max_rss MB, wall s, benchmark file) of each benchmark of a run.
 
@@ -76,7 +67,8 @@ def jobs(results, *, parts=None, since=0.0):
         rel = tsv.relative_to(results / "benchmarks").with_suffix("").as_posix()
         name = rel.split("/")[-1]
         if group := steps.rule_group(name):  # a group's job (dice_core.steps.group_rule): its inputs' frames
-            step, n, k = group[0], group_frames(manifest, *group), 0
+            files = resources.group_files(manifest, *group)
+            step, n, k = group[0], sum(int(fits.getheader(f)["NAXIS3"]) for f in files), 0
         elif rel.startswith("simulate/"):  # a group of one file, named by the file
             step, n, k = "simulate_file", int(fits.getheader(results / "raw" / f"{rel[9:]}.fits")["NAXIS3"]), 0
         elif name == "measure_dark":

@@ -794,8 +794,8 @@ def save(fig, png, *, pdf=None):
     """Write a figure as PNG (150 dpi) and, optionally, PDF; then close it.
 
     The layout (constrained layout, laid out again at every save) is made once, for the PNG, and kept for the
-    PDF: laying it out again moved no axes by more than 1e-3 of the figure, and took 0.4 of the PDF's 1.1 s on
-    the metrology figure.
+    PDF: a PDF laid out anew puts the axes within 2e-3 of the figure of where they are (tested), and the
+    layout is a third of the PDF's time (BENCHMARKS.md, "A figure's two saves").
     """
     from dice_core.io import atomic_write
 

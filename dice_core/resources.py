@@ -37,7 +37,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = ["StepCost", "COSTS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
-           "step_cost", "job_data", "part_files", "sample_groups", "position_groups", "FileFrames"]
+           "step_cost", "job_data", "part_files", "sample_groups", "position_groups", "simulation_groups",
+           "group_files", "FileFrames"]
 
 #: Factor on the modelled memory: the spread of repeated runs (383-419 MB for one fit) and of library versions.
 MEMORY_MARGIN = 1.5
@@ -211,6 +212,34 @@ def position_groups(positions, frames_of, *, pixels: int, samples: float) -> lis
     positions = list(positions)
     sizes = [pixels * sum(frames_of(f) for f in p.acquisition.files) for p in positions]
     return [tuple(positions[n - 1].index for n in group) for group in sample_groups(sizes, samples=samples)]
+
+
+def simulation_groups(manifest, frames_of, *, pixels: int, samples: float) -> list[tuple[int, ...]]:
+    """The dataset's files, numbered from 1 in the manifest's order (``manifest.all_files()``), in groups of one
+    simulation job each (:func:`sample_groups`, ``samples`` a job): the files of one acquisition (the dark, a
+    flat, a baseline) among themselves, the star positions' files among theirs. A group never holds two of the
+    other acquisitions' files, so that making one file again (Snakemake re-makes a job's every output) rewrites
+    no other acquisition's, whose reductions would then run again."""
+    segments, number = [], 1
+    for acquisition in [a for a in manifest.acquisitions() if a not in {p.acquisition for p in manifest.positions}]:
+        segments.append(list(acquisition.files))
+    segments.append([f for p in manifest.positions for f in p.acquisition.files])
+    groups = []
+    for files in segments:
+        groups += [tuple(number - 1 + n for n in group)
+                   for group in sample_groups([pixels * frames_of(f) for f in files], samples=samples)]
+        number += len(files)
+    return groups
+
+
+def group_files(manifest, step: str, first: int, last: int) -> list:
+    """The raw files of a group's job (:func:`dice_core.steps.group_rule`): the manifest's files ``first`` to
+    ``last`` (numbered from 1) of ``simulate_file``, or the files of the star positions of index ``first`` to
+    ``last`` of ``stack_position``."""
+    if step == "simulate_file":
+        return list(manifest.all_files()[first - 1:last])
+    indices = [p.index for p in manifest.positions]
+    return [f for p in manifest.positions[indices.index(first):indices.index(last) + 1] for f in p.acquisition.files]
 
 
 def job_data(step: str, wildcards: dict, *, manifest, frames_of, raw=None, parts: int = 1) -> dict:

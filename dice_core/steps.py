@@ -39,9 +39,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["Step", "STEPS", "PLANNING_KEYS", "DESCRIPTIVE", "step", "settings_keys", "GROUPED", "group_rule", "rule_group",
-           "step_of_rule",
-           "code_hash", "code_modules", "dice_core_imports"]
+__all__ = ["Step", "STEPS", "PLANNING_KEYS", "DESCRIPTIVE", "step", "settings_keys", "GROUPED", "group_rule",
+           "rule_group", "step_of_rule", "code_hash", "code_modules", "dice_core_imports"]
 
 
 @dataclass(frozen=True)
@@ -147,9 +146,8 @@ PLANNING_KEYS = {
     "simulation": "the preset's overrides: another dataset, named by their hash, in its own folder",
     "sweeps": "which sweeps and points exist; a point's own settings are its step's (sweeps.<name>.study, "
               "bench, options)",
-    "job_samples": "how the simulated files and the star positions are cut into jobs: the same files and stacks "
-                   "whatever the jobs, but a position whose job changed is stacked again, and what reads the stacks "
-                   "re-runs",
+    "job_samples": "how the simulated files and the star positions are cut into jobs, not what the jobs make "
+                   "(docs/running.md, \"Jobs\")",
     "metrology.split": "how the fit runs, as one job or as many: its product is the single job's bit for bit, but "
                        "another rule makes it, so switching re-runs the fits, and what follows, once",
 }
@@ -183,7 +181,8 @@ def rule_group(rule: str) -> tuple[str, int, int] | None:
     match = re.fullmatch(r"(\w+?)_(\d+)(?:_to_(\d+))?", rule)
     if match is None or match.group(1) not in GROUPED:
         return None
-    return match.group(1), int(match.group(2)), int(match.group(3) or match.group(2))
+    first, last = int(match.group(2)), int(match.group(3) or match.group(2))
+    return (match.group(1), first, last) if first < last or match.group(3) is None else None
 
 
 def step_of_rule(rule: str) -> str:

@@ -92,3 +92,27 @@ def test_star_positions_are_cut_into_consecutive_jobs_by_their_samples():
     assert resources.position_groups(positions, frames.get, pixels=10, samples=1e9) == [tuple(files)]
     assert resources.position_groups([], frames.get, pixels=10, samples=1e9) == []
     assert resources.sample_groups([3, 3, 9, 1, 1, 1], samples=6) == [(1, 2), (3,), (4, 5, 6)]
+
+
+def test_a_simulation_job_holds_one_acquisition_s_files_or_the_positions(tmp_path):
+    """The ci preset's files, numbered in the manifest's order, cut by job_samples: the dark, each flat and each
+    baseline's files among themselves (two 150-frame files of 40x44 a baseline), the positions' files among
+    theirs; and the files of a group's rule are the manifest's."""
+    from pathlib import Path
+
+    from dice_core import simulation
+    from dice_core.manifest import parse_manifest
+
+    cfg = simulation.load_preset(Path(__file__).parents[1] / "config" / "presets" / "ci.yaml")
+    manifest = parse_manifest(simulation.dataset_layout(cfg), tmp_path / "dataset.yaml")
+    planned = {tmp_path / rel: stop - start for rel, (_, _, start, stop) in simulation.file_jobs(cfg).items()}
+    pixels = 40 * 44
+    assert resources.simulation_groups(manifest, planned.get, pixels=pixels, samples=1e12) == [
+        (1,), (2,), (3,), (4, 5), (6, 7), (8, 9), (10, 11), (12, 13, 14, 15)]
+    assert resources.simulation_groups(manifest, planned.get, pixels=pixels, samples=1) == [(n,) for n in range(1, 16)]
+    # a metrology file is 264,000 samples: one a job, while the four positions' 28,160 stay one job
+    assert resources.simulation_groups(manifest, planned.get, pixels=pixels, samples=3e5) == [
+        *[(n,) for n in range(1, 12)], (12, 13, 14, 15)]
+    assert resources.group_files(manifest, "simulate_file", 4, 5) == list(manifest.baselines["H1H4"].files)
+    assert resources.group_files(manifest, "stack_position", 2, 3) == [
+        f for p in manifest.positions[1:3] for f in p.acquisition.files]

@@ -20,8 +20,8 @@ def rule_blocks():
     """[(rule name, its text)] of every rule of the workflow (``use rule ... as X with:`` included; a rule made
     once per group of star positions, named by ``steps.group_rule("<step>", ...)``, as its step)."""
     text = "\n".join(path.read_text() for path in sorted(RULES.glob("*.smk"))) + "\n" + (REPO / "Snakefile").read_text()
-    starts = list(re.finditer(r'^\s*(?:rule (\w+):|use rule \w+ as (\w+) with:|rule:\s+name:\s+steps\.group_rule\("(\w+)")',
-                              text, re.M))
+    starts = list(re.finditer(
+        r'^\s*(?:rule (\w+):|use rule \w+ as (\w+) with:|rule:\s+name:\s+steps\.group_rule\("(\w+)")', text, re.M))
     return [((m.group(1) or m.group(2) or m.group(3)), text[m.end():(starts[i + 1].start() if i + 1 < len(starts)
                                                                      else len(text))])
             for i, m in enumerate(starts)]
@@ -132,6 +132,7 @@ def test_a_group_s_rule_names_its_step_and_its_inputs():
         assert steps.step_of_rule(rule) == step
     assert steps.rule_group("stack_position_1_to_90") == ("stack_position", 1, 90)
     assert steps.rule_group("simulate_file_7") == ("simulate_file", 7, 7) and steps.rule_group("plot_dark") is None
+    assert steps.rule_group("stack_position_9_to_3") is None and steps.rule_group("sweep_a_stack_position_1") is None
     with pytest.raises(KeyError, match="no jobs by groups of inputs"):
         steps.group_rule("plot_dark", (1,))
     for rule in ("plot_dark_3", "stack_position_1_to", "stack_positions_1"):

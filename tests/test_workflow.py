@@ -427,10 +427,10 @@ def test_a_mode_added_to_the_sweep_runs_only_its_own_jobs(workdir, out):
 
 
 def test_inputs_cut_into_other_jobs_make_the_same_stacks_and_simulate_nothing_again(workdir, out, tmp_path):
-    """job_samples cuts the simulated files and the star positions into jobs: the ci preset's 15 files and 4
-    positions (40x44 pixels x 4 frames, 7040 samples each) are one job each by default. With 15,000 samples a
-    job the dark, the flats and the metrology files are each a job of their own, and the positions' files and
-    stacks two jobs of two. On the complete run this re-stacks and re-runs what reads the stacks, and simulates
+    """job_samples cuts the simulated files and the star positions into jobs, a simulation job never holding
+    two acquisitions' files but the positions'. The ci preset's 4 positions (40x44 pixels x 4 frames, 7040
+    samples each) are one job by default. With 15,000 samples a job the dark, the flats and the metrology files
+    are each a job of their own, and the positions' files and stacks two jobs of two. On the complete run this re-stacks and re-runs what reads the stacks, and simulates
     nothing again; stacked anew from the same raw files into another folder, each position's stack holds the one
     job's values exactly."""
     from dice_core import steps
@@ -443,7 +443,10 @@ def test_inputs_cut_into_other_jobs_make_the_same_stacks_and_simulate_nothing_ag
     listed = set(snakemake(workdir, "--list-rules", "--config", "dataset=ci", per_two).stdout.split())
     assert {f"simulate_file_{n}" for n in range(1, 12)} | {"simulate_file_12_to_13", "simulate_file_14_to_15"} == {
         r for r in listed if r.startswith("simulate_file")}
-    assert {"simulate_file_1_to_15", "stack_position_1_to_4"} <= rules_of(workdir)  # the default: one job each
+    # the default: a job for each of the dark and the flats, one for each baseline's two files, one for the
+    # positions' files, and one for their stacks
+    assert {"simulate_file_1", "simulate_file_4_to_5", "simulate_file_10_to_11", "simulate_file_12_to_15",
+            "stack_position_1_to_4"} <= rules_of(workdir)
 
     other = tmp_path / "results"
     stacks = [f"{other}/sim-ci/stars/{index}.nc" for index in range(1, 5)]

@@ -3,9 +3,7 @@
 # (config centroids.modes) and method (centroids.methods).
 
 
-# One stack job a group of consecutive positions (config job_samples): a job's start costs more
-# than stacking a small position, so the paper preset's 90 positions are one job, and a large detector's spread
-# over many. A change to one position's files re-stacks its group.
+# One stack job a group of consecutive positions (config job_samples, docs/running.md "Jobs").
 for _group in POSITION_GROUPS:
 
     rule:
@@ -13,7 +11,7 @@ for _group in POSITION_GROUPS:
             steps.group_rule("stack_position", _group)
         input:
             manifest=MANIFEST_FILE,
-            cubes=group_files(_group),
+            cubes=group_inputs("stack_position", _group),
         output:
             stacks=[output_of("stack", position=index) for index in _group],
         log:

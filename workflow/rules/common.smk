@@ -145,11 +145,6 @@ def pair_baselines(wildcards):
     return list(MANIFEST.pairs[wildcards.pair])
 
 
-def group_files(group):
-    """The raw files of a group of star positions (indices), in acquisition order."""
-    return [f for p in MANIFEST.positions if p.index in group for f in acquisition_files(p.acquisition)]
-
-
 def position_stacks(wildcards):
     """Every position's stars/<index>.nc, in acquisition order."""
     return [PLAN.path("stack", position=p.index) for p in MANIFEST.positions]
@@ -214,27 +209,33 @@ def file_frames(path):
 if getattr(workflow, "is_main_process", True):
     for _file in MANIFEST.all_files():
         file_frames(_file)
-# The jobs of the steps with many small inputs (config job_samples): the star positions' stacks, and the
-# simulation's files (numbered from 1 in the manifest's order), consecutive ones grouped by their samples.
+# The jobs of the steps with many small inputs (config job_samples, docs/running.md "Jobs"): groups of star
+# positions (their indices) for the stacks, groups of the simulation's files (numbered from 1 in the manifest's
+# order) for the simulation; each group a rule, named by steps.group_rule.
 PIXELS = MANIFEST.detector.shape[0] * MANIFEST.detector.shape[1]
 POSITION_GROUPS = dice_resources.position_groups(
     MANIFEST.positions, file_frames, pixels=PIXELS, samples=config["job_samples"]
 )
-SIM_GROUPS = dice_resources.sample_groups(
-    [PIXELS * frames for frames in SIM_FRAMES.values()], samples=config["job_samples"]
+SIM_GROUPS = (
+    dice_resources.simulation_groups(MANIFEST, file_frames, pixels=PIXELS, samples=config["job_samples"])
+    if SIMULATE
+    else []
 )
-SIM_FILES = list(SIM_FRAMES)  # relative to the raw folder, in the manifest's order
 
 
-def simulated_files(group):
-    """The simulated files of a group (their numbers, from 1), as the workflow spells them."""
-    return [f"{RAW}/{SIM_FILES[number - 1]}" for number in group]
+def group_inputs(step, group):
+    """The raw files of a group of step ``step``'s inputs (dice_core.resources.group_files), as the workflow
+    spells them."""
+    return [local_path(f) for f in dice_resources.group_files(MANIFEST, step, group[0], group[-1])]
 
 
 def simulated_job(group):
-    """A group of simulated files' log and benchmark name under simulate/: its one file's path, or its rule."""
+    """A group of simulated files' log and benchmark name under simulate/: its one file's path in the raw
+    folder, or its rule."""
     if len(group) == 1:
-        return SIM_FILES[group[0] - 1].removesuffix(".fits")
+        return (
+            Path(os.path.relpath(MANIFEST.all_files()[group[0] - 1], MANIFEST.path.parent)).with_suffix("").as_posix()
+        )
     return steps.group_rule("simulate_file", group)
 
 
@@ -271,7 +272,6 @@ def step_resources(step, **fixed):
     """A rule's resources block, ``resources: **step_resources("<rule>")``: mem_mb (MB) and runtime (minutes)
     of each job from its step's measured cost and the job's data, times the attempt on a retry. ``fixed``: what
     the job's wildcards would say of a rule without them (a group of positions' ``positions``)."""
-    pixels = MANIFEST.detector.shape[0] * MANIFEST.detector.shape[1]
 
     def needs(wildcards, attempt):
         data = dice_resources.job_data(
@@ -282,7 +282,7 @@ def step_resources(step, **fixed):
             raw=RAW,
             parts=config["metrology"]["parts"],
         )
-        return dice_resources.job_resources(step, pixels=pixels, **data, attempt=attempt)
+        return dice_resources.job_resources(step, pixels=PIXELS, **data, attempt=attempt)
 
     return {
         "mem_mb": lambda wildcards, attempt: needs(wildcards, attempt)["mem_mb"],

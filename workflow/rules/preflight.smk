@@ -34,14 +34,15 @@ def job_files(job):
 
 
 def simulated_bytes(jobs):
-    """Bytes of the FITS cubes the planned simulate_file jobs of this run write (headers aside; a reduction
-    sweep point's own simulation is not counted)."""
+    """Bytes of the FITS cubes the planned simulation jobs of this run write (headers aside; a reduction sweep
+    point's own simulation, whose rules carry its module's prefix, is not counted)."""
     if SIMULATION is None:
         return 0
     sample = np.dtype(SIMULATION.detector.dtype).itemsize
-    pixels = MANIFEST.detector.shape[0] * MANIFEST.detector.shape[1]
-    cubes = [f for job in jobs if job.rule.name == "simulate_file" for f in job.output]
-    return sum(sample * pixels * SIM_FRAMES.get(str(Path(f).relative_to(RAW)), 0) for f in cubes)
+    simulating = [job for job in jobs if (steps.rule_group(job.rule.name) or ("",))[0] == "simulate_file"]
+    return sum(
+        sample * PIXELS * SIM_FRAMES.get(str(Path(f).relative_to(RAW)), 0) for job in simulating for f in job.output
+    )
 
 
 def check_planned_jobs(dag):

@@ -28,7 +28,7 @@ if SIMULATE:
             input:
                 truth=rules.simulate_truth.output.truth,
             output:
-                cubes=simulated_files(_group),
+                cubes=group_inputs("simulate_file", _group),
             log:
                 f"{OUT}/logs/simulate/{simulated_job(_group)}.log",
             benchmark:
@@ -36,7 +36,7 @@ if SIMULATE:
             conda:
                 "../envs/dice.yaml"
             resources:
-                **step_resources("simulate_file", files=simulated_files(_group)),
+                **step_resources("simulate_file", files=group_inputs("simulate_file", _group)),
             params:
                 **step_params("simulate_file", simulation=SIM_CONFIG),
             script:
@@ -45,7 +45,7 @@ if SIMULATE:
     rule simulate_manifest:
         input:
             truth=rules.simulate_truth.output.truth,
-            cubes=[f"{RAW}/{f}" for f in SIM_FILES],
+            cubes=[local_path(f) for f in MANIFEST.all_files()],
         output:
             manifest=output_of("manifest"),
         log:

@@ -1,4 +1,4 @@
-"""Snakemake step: simulate FITS files of the testbed dataset (one file, or a group of star positions' files)."""
+"""Snakemake step: simulate FITS files of the testbed dataset (a group of consecutive files: config job_samples)."""
 
 from pathlib import Path
 
