@@ -188,7 +188,8 @@ def _combine(results, *, inputs: PassInputs, level, n_lanes):
         if halves[half] is None:
             halves[half] = lane_FtX[:, idx]
         else:
-            halves[half] += lane_FtX[:, idx]
+            for k in range(3):  # a factor at a time: no copy of the lane's F'X at the pixels
+                halves[half][k] += lane_FtX[k, idx]
         half_frames[half] += lane_products.shape[0]
     if len(products) != n_lanes:
         raise ValueError(f"{len(products)} lane result(s) for a pass of {n_lanes} lane(s)")
@@ -198,7 +199,9 @@ def _combine(results, *, inputs: PassInputs, level, n_lanes):
     F = coef[:, :3]
     # Sums over frames, from the frame factors kept for the product anyway: vectorised once
     # per pass instead of a few small operations per chunk.
-    FtI = FtX[:, idx] + np.outer(F.sum(axis=0), level[idx])
+    level_idx = level[idx]
+    FtI = _add_level(FtX[:, idx], F, level_idx)
+    del FtX  # (3, grid): the pass's largest array
     FtF, third = frame_moments(F)
     parts, start = [], 0
     for half_FtX, n in zip(halves, half_frames):
@@ -206,8 +209,16 @@ def _combine(results, *, inputs: PassInputs, level, n_lanes):
             continue
         F_half = F[start:start + n]
         start += n
-        parts.append((F_half, half_FtX + np.outer(F_half.sum(axis=0), level[idx])))
+        parts.append((F_half, _add_level(half_FtX, F_half, level_idx)))
     return coef, FtI, FtF, third, saturated[idx], threads, parts
+
+
+def _add_level(FtX, F, level):
+    """F'(X - d) from F'X (3, pixel) of frames X - r: F'X + (F'1) (r - d)', with ``level`` = r - d (pixel,);
+    in place, a factor at a time (the bits of the outer product's sum, without forming it)."""
+    for k, total in enumerate(F.sum(axis=0)):
+        FtX[k] += total * level
+    return FtX
 
 
 def _phase_coverage(phase, bins=16):
@@ -844,7 +855,9 @@ def reduce_dataset(state: xr.Dataset, parts) -> xr.Dataset:
 
     ``state`` is the state before the pass (:func:`state_dataset`, loaded), ``parts`` the paths or
     datasets of the pass's part products (:func:`part_dataset`) in part order, read one at a time. A
-    fit already done carries its state over.
+    fit already done carries its state over. Otherwise the variables the pass replaces without reading
+    them (the projector, ``FtI``, ``G``, the halves' ``part_*``) are dropped from ``state``, to free
+    their memory: the dataset is the state before the pass no more.
     """
     fit = state_from_dataset(state)
     label = fit.options["label"]
@@ -869,11 +882,24 @@ def reduce_dataset(state: xr.Dataset, parts) -> xr.Dataset:
     if len(full) != n_lanes:
         raise FringeError(f"{label}: pass {n_pass} has {len(full)} part product(s) for {n_lanes} part(s): "
                           f"{', '.join(_name(part) for part in full)}")
+    _release_replaced(fit, state)
     fit = reduce_pass(fit, (_part_result(part) for part in full), n_lanes=n_lanes)
     if fit.done:
         log.info("%s: %s after pass %d", label, "converged" if fit.converged else "not converged (max_passes)",
                  fit.n_pass)
     return state_dataset(fit)
+
+
+def _release_replaced(fit: FitState, state: xr.Dataset) -> None:
+    """Drop what a pass replaces without reading it from a state about to take the pass, and from its
+    dataset: the projector (the parts used it; the reduction needs its pixels and offset only), the normal
+    equations, pixel factors and halves of the pass before. Up to 150 bytes a pixel that would otherwise
+    stay in memory beside their successors (the caller's dataset holds them)."""
+    fit.next_pass.projector = None
+    fit.FtI = fit.G = None
+    fit.parts = []
+    for name in [name for name in state.data_vars if name in ("projector", "FtI", "G") or name.startswith("part_")]:
+        del state[name]
 
 
 def _name(part) -> str:

@@ -366,7 +366,8 @@ def frame_moments(F):
     return F.T @ F, third
 
 
-def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bool = False):
+def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bool = False,
+                 block: int = GAUGE_BLOCK):
     """Per-pixel 1-sigma offset error from photon and read noise for the unweighted temporal fit.
 
     Sample variance (adu^2) of pixel p at frame t: F_t.G_p / g + sigma_r^2; so
@@ -380,7 +381,23 @@ def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bo
     derivative along theta is J = dG/dtheta = (0, alpha cos theta,
     -alpha sin theta), the linearised estimate theta_hat - theta =
     J'F'n / (J'F'F J), so u = J / (J'F'F J).
+
+    ``read_noise`` (adu) and ``k_norm`` (rad/pixel) are per pixel or one
+    value. Formed ``block`` pixels at a time (its temporaries, 9 numbers a
+    pixel, never over every pixel), for the same bits whatever the block.
     """
+    G_phys = np.asarray(G_phys)
+    n = G_phys.shape[0]
+    read_noise = np.broadcast_to(np.asarray(read_noise, float), (n,))
+    k_norm = np.broadcast_to(np.asarray(k_norm, float), (n,))
+    floor = np.empty(n)
+    for s in _pixel_blocks(n, block):
+        floor[s] = _photon_floor_block(G_phys[s], FtF, third, gain, read_noise[s], k_norm[s], phase_only)
+    return floor
+
+
+def _photon_floor_block(G_phys, FtF, third, gain, read_noise, k_norm, phase_only):
+    """:func:`photon_floor` of a block of pixels (``read_noise``, ``k_norm`` per pixel)."""
     a, b = G_phys[:, 1], G_phys[:, 2]  # alpha sin theta, alpha cos theta
     if phase_only:
         J = np.column_stack([np.zeros_like(a), b, -a])
@@ -391,7 +408,7 @@ def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bo
         u = gradient @ np.linalg.inv(FtF)  # (F'F)^-1 is symmetric
     outer = (u[:, :, None] * u[:, None, :]).reshape(-1, 9)
     photon = np.sum(G_phys / gain * (outer @ third.reshape(3, 9).T), axis=1)  # sum_k G_pk/g u'M_k u
-    read = np.asarray(read_noise) ** 2 * (outer @ FtF.ravel())
+    read = read_noise ** 2 * (outer @ FtF.ravel())
     return np.sqrt(photon + read) / k_norm
 
 
