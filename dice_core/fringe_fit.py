@@ -347,7 +347,8 @@ class FitState:
     centre : ndarray (grid,)
         Reference frame r the samples are centred on (the first chunk's mean), adu.
     level : ndarray (grid,)
-        r - d, the reference minus the dark, adu.
+        r - d, the reference minus the dark, adu. These two and ``FtI`` are None in a done state
+        read back (:func:`state_dataset`): only a pass reads them.
     subtract_centre : bool
         Whether a pass subtracts r from each chunk itself (a stream that cannot centre its samples).
     k0 : ndarray (2,)
@@ -494,7 +495,7 @@ def reduce_pass(state: FitState, results, *, n_lanes) -> FitState:
     options, label = state.options, state.options["label"]
     coef, FtI, FtF, third, saturated, _, parts = _combine(results, inputs=state.next_pass, level=state.level,
                                                          n_lanes=n_lanes)
-    idx, x, y = state.idx, state.x, state.y
+    idx = state.idx
     if state.n_pass == 0:
         _check_sweep(coef, min_contrast=options["min_contrast"], label=label)
         state.k_frame = wavevector_per_frame(coef, state.k0)
@@ -516,7 +517,7 @@ def reduce_pass(state: FitState, results, *, n_lanes) -> FitState:
     active = state.active
     F = coef[:, :3]
     G_new = np.linalg.solve(FtF, FtI).T
-    fx, fy = x[active], y[active]
+    fx, fy = state.cols[active].astype(float), state.rows[active].astype(float)  # (not every pixel's x, y)
     flat_px = None if state.flat is None else np.nan_to_num(state.flat[active], nan=1.0)
     M = fix_gauge(F, G_new, flat=flat_px, x=fx, y=fy, smooth_degree=options["smooth_degree"])
     F_phys, G_phys = F @ M, G_new @ np.linalg.inv(M).T
@@ -591,10 +592,11 @@ def finish_fit(state: FitState, *, detector, read_noise=None,
     """
     label, smooth_degree = state.options["label"], state.options["smooth_degree"]
     passes = _converged_passes(state)
-    idx, x, y = state.idx, state.x, state.y
     active = passes.active
-    factors = _pixel_solution(passes, x[active], y[active], geometry=geometry,
-                              read_noise=None if read_noise is None else read_noise.ravel()[idx[active]],
+    # the active pixels' coordinates only, formed once (every array here spans the pixels)
+    idx, x, y = state.idx[active], state.cols[active].astype(float), state.rows[active].astype(float)
+    factors = _pixel_solution(passes, x, y, geometry=geometry,
+                              read_noise=None if read_noise is None else read_noise.ravel()[idx],
                               gain=detector.gain, label=label)
     offsets = passes.offsets if factors.two_source is None else _on_active(factors.two_source.offsets, active)
     if passes.faint.any():
@@ -602,8 +604,8 @@ def finish_fit(state: FitState, *, detector, read_noise=None,
     offsets_prnu_free = gauge_floor = None
     if state.flat is not None:
         offsets_prnu_free, gauge_floor = _gauge_diagnostic(
-            passes, factors, x[active], y[active], np.nan_to_num(state.flat[active], nan=1.0),
-            np.isin(passes.parts_idx, idx[active]), smooth_degree=smooth_degree, label=label)
+            passes, factors, x, y, np.nan_to_num(state.flat[active], nan=1.0),
+            np.isin(passes.parts_idx, idx), smooth_degree=smooth_degree, label=label)
         if offsets_prnu_free is not None:
             offsets_prnu_free = _on_active(offsets_prnu_free, active)
     reasons = {"bad_pixel": int(passes.flagged.sum()), "saturated": int(passes.saturated.sum()),
@@ -684,6 +686,8 @@ class _Passes:
 
 _OPTIONS = ("tolerance", "max_passes", "min_contrast", "min_relative_contrast", "smooth_degree", "label")
 _MASKS = ("flagged", "saturated", "faint", "unconverged", "active")
+#: What only a pass reads of a state (the reference frame, r - d, the last pass's normal equations).
+_PASS_ONLY = ("centre", "level", "FtI")
 
 #: The variables of a fit's state product: name: (dims, units, long_name). ``pixel``: the science pixels,
 #: ``fitted``: the active ones, ``grid``: every detector pixel, row-major.
@@ -717,8 +721,10 @@ _STATE_VARIABLES = {
 
 def state_dataset(state: FitState) -> xr.Dataset:
     """A fit's state (:class:`FitState`) as a dataset (the split fit's ``state`` products); see
-    :func:`state_from_dataset`. Scalars and options are attributes ``fit_*``."""
-    values = {name: getattr(state, name, None) for name in _STATE_VARIABLES}
+    :func:`state_from_dataset`. Scalars and options are attributes ``fit_*``. A done state leaves out what
+    only a further pass reads (:data:`_PASS_ONLY`: 40 bytes a pixel that ``fit_finish`` would hold unused)."""
+    values = {name: None if state.done and name in _PASS_ONLY else getattr(state, name, None)
+              for name in _STATE_VARIABLES}
     if state.next_pass is not None:
         values.update(projector=state.next_pass.projector, offset=state.next_pass.offset,
                       pixels=state.next_pass.pixels)
@@ -990,6 +996,7 @@ def _gauge_diagnostic(passes: _Passes, solution: _PixelSolution, x, y, flat, kee
         M_any = fix_gauge(F_any, G_any, flat=flat if use_flat else None, x=x, y=y, smooth_degree=smooth_degree)
         G_gauged = G_any @ np.linalg.inv(M_any).T
         theta_any = np.arctan2(G_gauged[:, 1], G_gauged[:, 2])
+        del G_gauged
         k_any, plane = projected_offsets(theta_any, x, y, k)
         if two_source is not None:  # against the same surface, the phases turned the same way
             return two_source.offsets_of(theta_any if k_any @ k > 0 else -theta_any)
@@ -1004,7 +1011,10 @@ def _gauge_diagnostic(passes: _Passes, solution: _PixelSolution, x, y, flat, kee
         halves = []
         for F_part, FtI_part in passes.parts:
             G_part = np.linalg.solve(F_part.T @ F_part, FtI_part[:, keep]).T
-            halves.append(offsets_under(F_part, G_part, True) - offsets_under(F_part, G_part, False))
+            difference = offsets_under(F_part, G_part, True)
+            difference -= offsets_under(F_part, G_part, False)
+            halves.append(difference)
+            del G_part, difference
     except (FringeError, np.linalg.LinAlgError) as exc:
         log.warning("%s: no noise floor for the gauge difference (%s)", label, exc)
         return free, None
