@@ -10,17 +10,19 @@ For each detector size given (rows x cols, or one number for a square), in one r
    tree), a fresh process per job that imports that tree's ``dice_core`` and does what the workflow's
    script does: ``fit_reduce`` of pass 1 and of the last pass (the state and the parts read, the state
    after the pass written) and ``fit_finish`` (the state its last reduction wrote read, the solution with
-   the bench's geometry and a read-noise map, the metrology product written). Each reports its peak RSS (``VmHWM``) and its RSS
-   once its imports are done (``VmRSS``): their difference is the step's own memory.
+   the bench's geometry and a read-noise map, the metrology product written). Each reports its peak RSS
+   (``VmHWM``) and its RSS once its imports are done (``VmRSS``): their difference is the step's own
+   memory.
 
 Printed: per size, tree and job, peak RSS, the step's own memory and that per detector pixel, and, for each
 tree after the first, the largest difference of its metrology product from the first tree's (pixel for
 offsets): of ``fit_finish`` from the same state, or with ``--compare`` of the whole fit (``fit_baseline``,
-the single job's path, whose product is the split fit's bit for bit) run by each tree from the raw files. Every number goes to ``<workdir>/fit_memory.json``.
+the single job's path, whose product is the split fit's bit for bit) run by each tree from the raw files.
+Every number goes to ``<workdir>/fit_memory.json``; the simulated files stay (``--drop-raw`` removes them).
 
     git archive main | tar -x -C /tmp/dice-main
     python benchmarks/fit_memory.py --workdir /tmp/dice-fitmem --tree main=/tmp/dice-main --tree new=$PWD \\
-        256 512 1024
+        --compare 256 512 1024
 """
 
 from __future__ import annotations

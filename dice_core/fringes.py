@@ -147,9 +147,11 @@ def _smooth_residual_gram(G, x, y, weight, degree, block):
 
 
 def _boost_regression(G, M, x, y, degree, block):
-    """The first harmonic of |rho|^2 in theta under the gauge M (:func:`fix_gauge`, step 3): the boost that
-    removes it, and v. Two sweeps over pixel blocks: |rho|^2 (for its median), then the least-squares fit
-    of |rho|^2 by the smooth polynomials and (v sin theta, v cos theta), by the QR of [design | |rho|^2]."""
+    """The boost (2,) that removes the first harmonic of |rho|^2 in theta under the gauge M (:func:`fix_gauge`,
+    step 3). Two sweeps over pixel blocks: |rho|^2 (for its median v^2), then the least-squares fit of
+    |rho|^2 by the smooth polynomials and (v sin theta, v cos theta), by the QR of [design | |rho|^2]."""
+    import scipy.linalg
+
     inv_t = np.linalg.inv(M).T
     rho2 = np.empty(G.shape[0])
     for s in _pixel_blocks(G.shape[0], block):
@@ -166,8 +168,6 @@ def _boost_regression(G, M, x, y, degree, block):
                                 v * np.sin(theta), v * np.cos(theta), rho2[s]])
 
     R = _stacked_r(rows(s) for s in _pixel_blocks(G.shape[0], block))
-    import scipy.linalg
-
     coef = scipy.linalg.solve_triangular(R[:-1, :-1], R[:-1, -1])
     return -coef[-2:] / (2 * (1 - v**2))
 
