@@ -188,7 +188,8 @@ def _combine(results, *, inputs: PassInputs, level, n_lanes):
         if halves[half] is None:
             halves[half] = lane_FtX[:, idx]
         else:
-            halves[half] += lane_FtX[:, idx]
+            for k in range(3):  # a factor at a time: no copy of the lane's F'X at the pixels
+                halves[half][k] += lane_FtX[k, idx]
         half_frames[half] += lane_products.shape[0]
     if len(products) != n_lanes:
         raise ValueError(f"{len(products)} lane result(s) for a pass of {n_lanes} lane(s)")
@@ -198,7 +199,9 @@ def _combine(results, *, inputs: PassInputs, level, n_lanes):
     F = coef[:, :3]
     # Sums over frames, from the frame factors kept for the product anyway: vectorised once
     # per pass instead of a few small operations per chunk.
-    FtI = FtX[:, idx] + np.outer(F.sum(axis=0), level[idx])
+    level_idx = level[idx]
+    FtI = _add_level(FtX[:, idx], F, level_idx)
+    del FtX  # (3, grid): the pass's largest array
     FtF, third = frame_moments(F)
     parts, start = [], 0
     for half_FtX, n in zip(halves, half_frames):
@@ -206,8 +209,16 @@ def _combine(results, *, inputs: PassInputs, level, n_lanes):
             continue
         F_half = F[start:start + n]
         start += n
-        parts.append((F_half, half_FtX + np.outer(F_half.sum(axis=0), level[idx])))
+        parts.append((F_half, _add_level(half_FtX, F_half, level_idx)))
     return coef, FtI, FtF, third, saturated[idx], threads, parts
+
+
+def _add_level(FtX, F, level):
+    """F'(X - d) from F'X (3, pixel) of frames X - r: F'X + (F'1) (r - d)', with ``level`` = r - d (pixel,);
+    in place, a factor at a time (the bits of the outer product's sum, without forming it)."""
+    for k, total in enumerate(F.sum(axis=0)):
+        FtX[k] += total * level
+    return FtX
 
 
 def _phase_coverage(phase, bins=16):
@@ -336,7 +347,8 @@ class FitState:
     centre : ndarray (grid,)
         Reference frame r the samples are centred on (the first chunk's mean), adu.
     level : ndarray (grid,)
-        r - d, the reference minus the dark, adu.
+        r - d, the reference minus the dark, adu. These two and ``FtI`` are None in a done state
+        read back (:func:`state_dataset`): only a pass reads them.
     subtract_centre : bool
         Whether a pass subtracts r from each chunk itself (a stream that cannot centre its samples).
     k0 : ndarray (2,)
@@ -483,7 +495,7 @@ def reduce_pass(state: FitState, results, *, n_lanes) -> FitState:
     options, label = state.options, state.options["label"]
     coef, FtI, FtF, third, saturated, _, parts = _combine(results, inputs=state.next_pass, level=state.level,
                                                          n_lanes=n_lanes)
-    idx, x, y = state.idx, state.x, state.y
+    idx = state.idx
     if state.n_pass == 0:
         _check_sweep(coef, min_contrast=options["min_contrast"], label=label)
         state.k_frame = wavevector_per_frame(coef, state.k0)
@@ -505,7 +517,7 @@ def reduce_pass(state: FitState, results, *, n_lanes) -> FitState:
     active = state.active
     F = coef[:, :3]
     G_new = np.linalg.solve(FtF, FtI).T
-    fx, fy = x[active], y[active]
+    fx, fy = state.cols[active].astype(float), state.rows[active].astype(float)  # (not every pixel's x, y)
     flat_px = None if state.flat is None else np.nan_to_num(state.flat[active], nan=1.0)
     M = fix_gauge(F, G_new, flat=flat_px, x=fx, y=fy, smooth_degree=options["smooth_degree"])
     F_phys, G_phys = F @ M, G_new @ np.linalg.inv(M).T
@@ -580,10 +592,11 @@ def finish_fit(state: FitState, *, detector, read_noise=None,
     """
     label, smooth_degree = state.options["label"], state.options["smooth_degree"]
     passes = _converged_passes(state)
-    idx, x, y = state.idx, state.x, state.y
     active = passes.active
-    factors = _pixel_solution(passes, x[active], y[active], geometry=geometry,
-                              read_noise=None if read_noise is None else read_noise.ravel()[idx[active]],
+    # the active pixels' coordinates only, formed once (every array here spans the pixels)
+    idx, x, y = state.idx[active], state.cols[active].astype(float), state.rows[active].astype(float)
+    factors = _pixel_solution(passes, x, y, geometry=geometry,
+                              read_noise=None if read_noise is None else read_noise.ravel()[idx],
                               gain=detector.gain, label=label)
     offsets = passes.offsets if factors.two_source is None else _on_active(factors.two_source.offsets, active)
     if passes.faint.any():
@@ -591,8 +604,8 @@ def finish_fit(state: FitState, *, detector, read_noise=None,
     offsets_prnu_free = gauge_floor = None
     if state.flat is not None:
         offsets_prnu_free, gauge_floor = _gauge_diagnostic(
-            passes, factors, x[active], y[active], np.nan_to_num(state.flat[active], nan=1.0),
-            np.isin(passes.parts_idx, idx[active]), smooth_degree=smooth_degree, label=label)
+            passes, factors, x, y, np.nan_to_num(state.flat[active], nan=1.0),
+            np.isin(passes.parts_idx, idx), smooth_degree=smooth_degree, label=label)
         if offsets_prnu_free is not None:
             offsets_prnu_free = _on_active(offsets_prnu_free, active)
     reasons = {"bad_pixel": int(passes.flagged.sum()), "saturated": int(passes.saturated.sum()),
@@ -673,6 +686,8 @@ class _Passes:
 
 _OPTIONS = ("tolerance", "max_passes", "min_contrast", "min_relative_contrast", "smooth_degree", "label")
 _MASKS = ("flagged", "saturated", "faint", "unconverged", "active")
+#: What only a pass reads of a state (the reference frame, r - d, the last pass's normal equations).
+_PASS_ONLY = ("centre", "level", "FtI")
 
 #: The variables of a fit's state product: name: (dims, units, long_name). ``pixel``: the science pixels,
 #: ``fitted``: the active ones, ``grid``: every detector pixel, row-major.
@@ -706,8 +721,10 @@ _STATE_VARIABLES = {
 
 def state_dataset(state: FitState) -> xr.Dataset:
     """A fit's state (:class:`FitState`) as a dataset (the split fit's ``state`` products); see
-    :func:`state_from_dataset`. Scalars and options are attributes ``fit_*``."""
-    values = {name: getattr(state, name, None) for name in _STATE_VARIABLES}
+    :func:`state_from_dataset`. Scalars and options are attributes ``fit_*``. A done state leaves out what
+    only a further pass reads (:data:`_PASS_ONLY`: 40 bytes a pixel that ``fit_finish`` would hold unused)."""
+    values = {name: None if state.done and name in _PASS_ONLY else getattr(state, name, None)
+              for name in _STATE_VARIABLES}
     if state.next_pass is not None:
         values.update(projector=state.next_pass.projector, offset=state.next_pass.offset,
                       pixels=state.next_pass.pixels)
@@ -844,7 +861,9 @@ def reduce_dataset(state: xr.Dataset, parts) -> xr.Dataset:
 
     ``state`` is the state before the pass (:func:`state_dataset`, loaded), ``parts`` the paths or
     datasets of the pass's part products (:func:`part_dataset`) in part order, read one at a time. A
-    fit already done carries its state over.
+    fit already done carries its state over. Otherwise the variables the pass replaces without reading
+    them (the projector, ``FtI``, ``G``, the halves' ``part_*``) are dropped from ``state``, to free
+    their memory: the dataset is the state before the pass no more.
     """
     fit = state_from_dataset(state)
     label = fit.options["label"]
@@ -869,11 +888,24 @@ def reduce_dataset(state: xr.Dataset, parts) -> xr.Dataset:
     if len(full) != n_lanes:
         raise FringeError(f"{label}: pass {n_pass} has {len(full)} part product(s) for {n_lanes} part(s): "
                           f"{', '.join(_name(part) for part in full)}")
+    _release_replaced(fit, state)
     fit = reduce_pass(fit, (_part_result(part) for part in full), n_lanes=n_lanes)
     if fit.done:
         log.info("%s: %s after pass %d", label, "converged" if fit.converged else "not converged (max_passes)",
                  fit.n_pass)
     return state_dataset(fit)
+
+
+def _release_replaced(fit: FitState, state: xr.Dataset) -> None:
+    """Drop what a pass replaces without reading it from a state about to take the pass, and from its
+    dataset: the projector (the parts used it; the reduction needs its pixels and offset only), the normal
+    equations, pixel factors and halves of the pass before. Up to 150 bytes a pixel that would otherwise
+    stay in memory beside their successors (the caller's dataset holds them)."""
+    fit.next_pass.projector = None
+    fit.FtI = fit.G = None
+    fit.parts = []
+    for name in [name for name in state.data_vars if name in ("projector", "FtI", "G") or name.startswith("part_")]:
+        del state[name]
 
 
 def _name(part) -> str:
@@ -964,6 +996,7 @@ def _gauge_diagnostic(passes: _Passes, solution: _PixelSolution, x, y, flat, kee
         M_any = fix_gauge(F_any, G_any, flat=flat if use_flat else None, x=x, y=y, smooth_degree=smooth_degree)
         G_gauged = G_any @ np.linalg.inv(M_any).T
         theta_any = np.arctan2(G_gauged[:, 1], G_gauged[:, 2])
+        del G_gauged
         k_any, plane = projected_offsets(theta_any, x, y, k)
         if two_source is not None:  # against the same surface, the phases turned the same way
             return two_source.offsets_of(theta_any if k_any @ k > 0 else -theta_any)
@@ -978,7 +1011,10 @@ def _gauge_diagnostic(passes: _Passes, solution: _PixelSolution, x, y, flat, kee
         halves = []
         for F_part, FtI_part in passes.parts:
             G_part = np.linalg.solve(F_part.T @ F_part, FtI_part[:, keep]).T
-            halves.append(offsets_under(F_part, G_part, True) - offsets_under(F_part, G_part, False))
+            difference = offsets_under(F_part, G_part, True)
+            difference -= offsets_under(F_part, G_part, False)
+            halves.append(difference)
+            del G_part, difference
     except (FringeError, np.linalg.LinAlgError) as exc:
         log.warning("%s: no noise floor for the gauge difference (%s)", label, exc)
         return free, None

@@ -46,7 +46,7 @@ import numpy as np
 
 from dice_core import lazy
 from dice_core.geometry import UNOBSERVABLE_MODE, TwoSourceFit, wrapped_about_mean
-from dice_core.polynomials import polynomial_design
+from dice_core.polynomials import polynomial_design, polynomial_scaling
 
 xr = lazy.module("xarray")
 
@@ -109,11 +109,70 @@ def initial_wavevector(frame: np.ndarray, mask: np.ndarray, *, pad: int = 8) -> 
     return 2 * np.pi * np.array([fx[ix] + dx / nx, fy[iy] + dy / ny])
 
 
-def _smooth_basis(x, y, weight, degree):
-    return polynomial_design(x, y, degree=degree) * weight[:, None]
+#: Pixels per block of the gauge's sweeps over the pixels (:func:`fix_gauge`): its smooth-polynomial basis
+#: is formed a block at a time, 8 MB at degree 6, never over every pixel (224 bytes a pixel at degree 6).
+GAUGE_BLOCK = 1 << 15
 
 
-def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 6):
+def _pixel_blocks(n, block):
+    """Consecutive slices of ``block`` of ``n`` pixels (the last one shorter)."""
+    return (slice(start, min(start + block, n)) for start in range(0, n, block))
+
+
+def _stacked_r(blocks) -> np.ndarray:
+    """R (column, column), square, of the QR factorisation of the rows of ``blocks`` stacked, taken a block
+    at a time (a sequential tall-skinny QR: the R of [R; next block] each time), so that the stacked matrix
+    is never formed; rows of zeros complete it when there are fewer rows than columns."""
+    R = None
+    for rows in blocks:
+        R = np.linalg.qr(rows if R is None else np.vstack([R, rows]), mode="r")
+    return np.vstack([R, np.zeros((R.shape[1] - R.shape[0], R.shape[1]))]) if R.shape[0] < R.shape[1] else R
+
+
+def _smooth_residual_gram(G, x, y, weight, degree, block):
+    """rough' rough (3, 3), rough = G minus its least-squares fit by the smooth basis (the polynomials of
+    ``degree`` times ``weight``, or unweighted for None): R22' R22 of the QR of [basis | G], swept over
+    pixel blocks."""
+    scaling = polynomial_scaling(x, y)
+
+    def rows(s):
+        basis = polynomial_design(x[s], y[s], degree=degree, scaling=scaling)
+        if weight is not None:
+            basis *= weight[s, None]
+        return np.hstack([basis, G[s]])
+
+    R = _stacked_r(rows(s) for s in _pixel_blocks(G.shape[0], block))
+    rough = R[-3:, -3:]
+    return rough.T @ rough
+
+
+def _boost_regression(G, M, x, y, degree, block):
+    """The boost (2,) that removes the first harmonic of |rho|^2 in theta under the gauge M (:func:`fix_gauge`,
+    step 3). Two sweeps over pixel blocks: |rho|^2 (for its median v^2), then the least-squares fit of
+    |rho|^2 by the smooth polynomials and (v sin theta, v cos theta), by the QR of [design | |rho|^2]."""
+    import scipy.linalg
+
+    inv_t = np.linalg.inv(M).T
+    rho2 = np.empty(G.shape[0])
+    for s in _pixel_blocks(G.shape[0], block):
+        Gp = G[s] @ inv_t
+        rho2[s] = np.sum((Gp[:, 1:] / Gp[:, :1]) ** 2, axis=1)
+    v = np.sqrt(np.median(rho2))
+    scaling = polynomial_scaling(x, y)
+
+    def rows(s):
+        Gp = G[s] @ inv_t
+        rho = Gp[:, 1:] / Gp[:, :1]
+        theta = np.arctan2(rho[:, 0], rho[:, 1])
+        return np.column_stack([polynomial_design(x[s], y[s], degree=degree, scaling=scaling),
+                                v * np.sin(theta), v * np.cos(theta), rho2[s]])
+
+    R = _stacked_r(rows(s) for s in _pixel_blocks(G.shape[0], block))
+    coef = scipy.linalg.solve_triangular(R[:-1, :-1], R[:-1, -1])
+    return -coef[-2:] / (2 * (1 - v**2))
+
+
+def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 6, block: int = GAUGE_BLOCK):
     """Physical frame and pixel factors from any rank-3 factorisation of the fringe data.
 
     Parameters
@@ -127,6 +186,9 @@ def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 
         Pixel positions, pixel.
     smooth_degree : int
         Degree of the polynomial that iota / flat is assumed to follow.
+    block : int
+        Pixels per block of the sweeps over the pixels (:data:`GAUGE_BLOCK`): the smooth basis is
+        formed a block at a time; the result is the same for any block, to rounding.
 
     Returns
     -------
@@ -141,13 +203,11 @@ def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 
         When the frame factors do not trace a cone (no fringe contrast).
     """
     F, G = np.asarray(frame_factors, float), np.asarray(pixel_factors, float)
+    x, y = np.asarray(x, float), np.asarray(y, float)
     # 1. pixel side: the combination of pixel factors that is smooth times the flat is iota
-    S = _smooth_basis(x, y, np.ones_like(x) if flat is None else flat, smooth_degree)
-    q, _ = np.linalg.qr(S)
-    rough = G - q @ (q.T @ G)
     import scipy.linalg
 
-    values, vectors = scipy.linalg.eigh(rough.T @ rough, G.T @ G)
+    values, vectors = scipy.linalg.eigh(_smooth_residual_gram(G, x, y, flat, smooth_degree, block), G.T @ G)
     if values[1] < 100 * max(values[0], 1e-300):
         raise FringeError("cannot separate the fringe from the mean level: the pixel factors have no "
                           "second oscillating component (no fringe contrast?)")
@@ -177,16 +237,8 @@ def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 
     # a first harmonic in theta that the regression below measures and removes.
     if flat is not None:
         return M
-    smooth = _smooth_basis(x, y, np.ones_like(x), smooth_degree)
     for _ in range(8):
-        Gp = G @ np.linalg.inv(M).T
-        rho = Gp[:, 1:] / Gp[:, :1]
-        rho2 = np.sum(rho**2, axis=1)
-        v = np.sqrt(np.median(rho2))
-        theta = np.arctan2(rho[:, 0], rho[:, 1])
-        design = np.column_stack([smooth, v * np.sin(theta), v * np.cos(theta)])
-        coef, *_ = np.linalg.lstsq(design, rho2, rcond=None)
-        boost = -coef[-2:] / (2 * (1 - v**2))
+        boost = _boost_regression(G, M, x, y, smooth_degree, block)
         M = M @ _lorentz_boost(boost)
         if np.hypot(*boost) < 1e-14:
             break
@@ -314,7 +366,8 @@ def frame_moments(F):
     return F.T @ F, third
 
 
-def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bool = False):
+def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bool = False,
+                 block: int = GAUGE_BLOCK):
     """Per-pixel 1-sigma offset error from photon and read noise for the unweighted temporal fit.
 
     Sample variance (adu^2) of pixel p at frame t: F_t.G_p / g + sigma_r^2; so
@@ -328,7 +381,23 @@ def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bo
     derivative along theta is J = dG/dtheta = (0, alpha cos theta,
     -alpha sin theta), the linearised estimate theta_hat - theta =
     J'F'n / (J'F'F J), so u = J / (J'F'F J).
+
+    ``read_noise`` (adu) and ``k_norm`` (rad/pixel) are per pixel or one
+    value. Formed ``block`` pixels at a time (its temporaries, 9 numbers a
+    pixel, never over every pixel), for the same bits whatever the block.
     """
+    G_phys = np.asarray(G_phys)
+    n = G_phys.shape[0]
+    read_noise = np.broadcast_to(np.asarray(read_noise, float), (n,))
+    k_norm = np.broadcast_to(np.asarray(k_norm, float), (n,))
+    floor = np.empty(n)
+    for s in _pixel_blocks(n, block):
+        floor[s] = _photon_floor_block(G_phys[s], FtF, third, gain, read_noise[s], k_norm[s], phase_only)
+    return floor
+
+
+def _photon_floor_block(G_phys, FtF, third, gain, read_noise, k_norm, phase_only):
+    """:func:`photon_floor` of a block of pixels (``read_noise``, ``k_norm`` per pixel)."""
     a, b = G_phys[:, 1], G_phys[:, 2]  # alpha sin theta, alpha cos theta
     if phase_only:
         J = np.column_stack([np.zeros_like(a), b, -a])
@@ -339,7 +408,7 @@ def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bo
         u = gradient @ np.linalg.inv(FtF)  # (F'F)^-1 is symmetric
     outer = (u[:, :, None] * u[:, None, :]).reshape(-1, 9)
     photon = np.sum(G_phys / gain * (outer @ third.reshape(3, 9).T), axis=1)  # sum_k G_pk/g u'M_k u
-    read = np.asarray(read_noise) ** 2 * (outer @ FtF.ravel())
+    read = read_noise ** 2 * (outer @ FtF.ravel())
     return np.sqrt(photon + read) / k_norm
 
 

@@ -119,9 +119,14 @@ def two_source_phase(x, y, tip_a, tip_b, *, wavelength, pixel_pitch):
     x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
     r = np.stack([x * pixel_pitch, y * pixel_pitch, np.zeros(x.shape)], axis=-1)
     to_a, to_b = r - np.asarray(tip_a, float), r - np.asarray(tip_b, float)
+    del r  # (temporaries formed in place where the bits are the same: this runs over every pixel)
     da, db = np.linalg.norm(to_a, axis=-1), np.linalg.norm(to_b, axis=-1)
     wavenumber = 2 * np.pi / wavelength
-    gradient = wavenumber * pixel_pitch * (to_a[..., :2] / da[..., None] - to_b[..., :2] / db[..., None])
+    gradient = to_a[..., :2] / da[..., None]
+    del to_a
+    gradient -= to_b[..., :2] / db[..., None]
+    del to_b
+    gradient *= wavenumber * pixel_pitch
     return wavenumber * (da - db), gradient[..., 0], gradient[..., 1]
 
 
@@ -132,11 +137,13 @@ def tip_jacobian(x, y, tip_a, tip_b, *, wavelength, pixel_pitch) -> np.ndarray:
     """
     r = np.stack([np.asarray(x, float) * pixel_pitch, np.asarray(y, float) * pixel_pitch,
                   np.zeros(np.size(x))], axis=-1)
-    to_a, to_b = r - np.asarray(tip_a, float), r - np.asarray(tip_b, float)
-    wavenumber = 2 * np.pi / wavelength
-    unit_a = to_a / np.linalg.norm(to_a, axis=-1, keepdims=True)
-    unit_b = to_b / np.linalg.norm(to_b, axis=-1, keepdims=True)
-    return wavenumber * np.column_stack([-unit_a, unit_b])
+    jacobian = np.empty((r.shape[0], 6))  # filled in place: this runs over every pixel
+    for columns, tip in ((slice(0, 3), tip_a), (slice(3, 6), tip_b)):
+        unit = np.subtract(r, np.asarray(tip, float), out=jacobian[:, columns])
+        unit /= np.linalg.norm(unit, axis=-1, keepdims=True)
+    np.negative(jacobian[:, :3], out=jacobian[:, :3])
+    jacobian *= 2 * np.pi / wavelength
+    return jacobian
 
 
 def wrapped_about_mean(phase):
@@ -172,11 +179,17 @@ def orthonormal_modes(fields, *, against=None):
     if fields.shape[0] == 0:
         return np.empty((0, n))
     scale = np.max(np.linalg.norm(fields, axis=1))
-    if against is not None and len(against):
-        basis = orthonormal_modes(against) / np.sqrt(n)
-        fields = fields - (fields @ basis.T) @ basis
+    if against is not None and len(against):  # (in place where the bits are the same: fields span every pixel)
+        basis = orthonormal_modes(against)
+        basis /= np.sqrt(n)
+        projection = (fields @ basis.T) @ basis
+        fields = np.subtract(fields, projection, out=projection)
+        del basis
     u, s, _ = np.linalg.svd(fields.T, full_matrices=False)
-    return u[:, s > 1e-9 * scale].T * np.sqrt(n)
+    del fields
+    modes = u[:, s > 1e-9 * scale].T
+    modes *= np.sqrt(n)
+    return modes
 
 
 def remove_modes(values, modes):
@@ -188,8 +201,10 @@ def remove_modes(values, modes):
     values = np.asarray(values, float)
     if len(modes) == 0:
         return values.copy()
-    basis = orthonormal_modes(modes) / np.sqrt(values.size)
-    return values - basis.T @ (basis @ values)
+    basis = orthonormal_modes(modes)
+    basis /= np.sqrt(values.size)
+    projection = basis.T @ (basis @ values)
+    return np.subtract(values, projection, out=projection)
 
 
 @dataclass
@@ -263,6 +278,21 @@ class TwoSourceFit:
         return remove_modes(offsets, self.modes)
 
 
+def _unwrapped_start(theta, phase0, grad0, k_plane, affine):
+    """The sign of the surface (``phase0``, gradient ``grad0``: the nominal tips') that runs the way of
+    ``k_plane``, and the constant and plane (rad, rad/pixel) that unwrap ``theta`` against it."""
+    sign = 1 if float(np.mean(grad0, axis=0) @ np.asarray(k_plane, float)) > 0 else -1
+    # Unwrap against the plane-wave solution: a tip 1 mm off changes the period by up to 15 %,
+    # tens of radians across the detector, which the plane absorbs.
+    plane = np.asarray(k_plane, float) - sign * grad0.mean(axis=0)
+    constant = 0.0
+    for _ in range(4):
+        psi = _wrap(theta - sign * phase0 - plane @ affine[1:] - constant)
+        coef, *_ = np.linalg.lstsq(affine.T, psi, rcond=None)
+        constant, plane = constant + coef[0], plane + coef[1:]
+    return sign, constant, plane
+
+
 def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch, k_plane,
                    tip_sigma: float = 1e-3, max_iterations: int = 30, fibers=("a", "b"),
                    label: str = "baseline") -> TwoSourceFit:
@@ -313,25 +343,20 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     q_affine = orthonormal_modes(affine) / np.sqrt(x.size)  # (3, pixel), orthonormal rows
 
     def without_affine(values):
-        return values - q_affine.T @ (q_affine @ values)
+        projection = q_affine.T @ (q_affine @ values)
+        return np.subtract(values, projection, out=projection)
 
     def surface(tips):
         phase, gx, gy = two_source_phase(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
         return phase, np.column_stack([gx, gy])
 
     def jacobian(tips):  # rad per mm of tip, for conditioning
-        return sign * tip_jacobian(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch) * 1e-3
+        jac = tip_jacobian(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
+        jac *= sign
+        jac *= 1e-3
+        return jac
 
-    phase0, grad0 = surface(nominal)
-    sign = 1 if float(np.mean(grad0, axis=0) @ np.asarray(k_plane, float)) > 0 else -1
-    # Unwrap against the plane-wave solution: a tip 1 mm off changes the period by up to 15 %,
-    # tens of radians across the detector, which the plane absorbs.
-    plane = np.asarray(k_plane, float) - sign * grad0.mean(axis=0)
-    constant = 0.0
-    for _ in range(4):
-        psi = _wrap(theta - sign * phase0 - plane @ affine[1:] - constant)
-        coef, *_ = np.linalg.lstsq(affine.T, psi, rcond=None)
-        constant, plane = constant + coef[0], plane + coef[1:]
+    sign, constant, plane = _unwrapped_start(theta, *surface(nominal), k_plane, affine)
 
     # The noise the tips are fitted against is mostly the pixel offsets themselves (about 1e-3 pixel,
     # white: docs/metrology.md), estimated from the residual phases; 1e-6 rad keeps noiseless phases
@@ -342,7 +367,7 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     tips = nominal.copy()
     prior = (1e-3 / tip_sigma) ** 2  # in mm^-2
     for iterations in range(1, max_iterations + 1):
-        phase, _ = surface(tips)
+        phase = surface(tips)[0]
         # continuous residual: the wrap is taken about the current surface, a fraction of a radian away
         psi = _wrap(theta - sign * phase - constant - plane @ affine[1:])
         jac = jacobian(tips)
@@ -354,6 +379,7 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
         tips = tips + step.reshape(2, 3) * 1e-3
         coef, *_ = np.linalg.lstsq(affine.T, psi - jac @ step, rcond=None)
         constant, plane = constant + coef[0], plane + coef[1:]
+        del phase, psi, jac, jac_free, psi_free
         # 10 nm: the largest non-affine response, 2.5e-3 pixel per mm of tip (docs), makes that 2.5e-8 pixel
         if np.max(np.abs(step)) * 1e-3 < 1e-8:
             break
@@ -379,15 +405,21 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
                             "wavelength and pixel pitch right?")
     k_local = sign * grad + plane
     k_norm = np.hypot(*k_local.T)
+    del phase, grad
 
     jac_free = without_affine(jacobian(tips))
     data = jac_free.T @ jac_free / noise_variance(psi_free)  # mm^-2
+    del psi_free, q_affine
     covariance = np.linalg.inv(data + prior * np.eye(6)) * 1e-6  # m^2
     values, vectors = np.linalg.eigh(data / prior)
     order = np.argsort(values)[::-1]
     values, vectors = values[order], vectors[:, order]
     absorbed = values > MODE_INFORMATION_THRESHOLD
-    modes = orthonormal_modes((jac_free @ vectors[:, absorbed]).T / k_norm, against=affine)
+    fields = (jac_free @ vectors[:, absorbed]).T
+    del jac_free
+    fields /= k_norm
+    modes = orthonormal_modes(fields, against=affine)
+    del fields
     offsets = remove_modes(remove_modes(psi / k_norm, affine), modes)
     log.info("%s: tips of fibers %s and %s refined in %d iteration(s), moved by %s mm; phases about the surface "
              "%.3e rad rms; %d offset mode(s) beyond the affine part absorbed (information ratios %s)", label,
