@@ -235,10 +235,11 @@ def simulation_groups(manifest, frames_of, *, pixels: int, samples: float) -> li
     return groups
 
 
-def group_files(manifest, step: str, first: int, last: int) -> list:
-    """The raw files of a group's job (:func:`dice_core.steps.group_rule`): the manifest's files ``first`` to
-    ``last`` (numbered from 1) of ``simulate_file``, or the files of the star positions of index ``first`` to
-    ``last`` of ``stack_position``."""
+def group_files(manifest, group: tuple[str, int, int]) -> list:
+    """The raw files of a group's job, ``group`` its (step, first, last) (:func:`dice_core.steps.rule_group`):
+    the manifest's files ``first`` to ``last`` (numbered from 1) of ``simulate_file``, or the files of the star
+    positions of index ``first`` to ``last`` of ``stack_position``."""
+    step, first, last = group
     if step == "simulate_file":
         return list(manifest.all_files()[first - 1:last])
     indices = [p.index for p in manifest.positions]

@@ -113,6 +113,6 @@ def test_a_simulation_job_holds_one_acquisition_s_files_or_the_positions(tmp_pat
     # a metrology file is 264,000 samples: one a job, while the four positions' 28,160 stay one job
     assert resources.simulation_groups(manifest, planned.get, pixels=pixels, samples=3e5) == [
         *[(n,) for n in range(1, 12)], (12, 13, 14, 15)]
-    assert resources.group_files(manifest, "simulate_file", 4, 5) == list(manifest.baselines["H1H4"].files)
-    assert resources.group_files(manifest, "stack_position", 2, 3) == [
+    assert resources.group_files(manifest, ("simulate_file", 4, 5)) == list(manifest.baselines["H1H4"].files)
+    assert resources.group_files(manifest, ("stack_position", 2, 3)) == [
         f for p in manifest.positions[1:3] for f in p.acquisition.files]

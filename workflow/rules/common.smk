@@ -226,7 +226,7 @@ SIM_GROUPS = (
 def group_inputs(step, group):
     """The raw files of a group of step ``step``'s inputs (dice_core.resources.group_files), as the workflow
     spells them."""
-    return [local_path(f) for f in dice_resources.group_files(MANIFEST, step, group[0], group[-1])]
+    return [local_path(f) for f in dice_resources.group_files(MANIFEST, (step, group[0], group[-1]))]
 
 
 def simulated_job(group):
