@@ -94,7 +94,9 @@ COSTS: dict[str, StepCost] = {
     "simulate_file": StepCost(base_mb=230.0, mb_per_mpixel=2200.0, start_s=3.0, s_per_gsample=60.0),
     "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
     "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
-    # 1961 MB and 180 s for 1024x1024 x 5000 frames: three passes and the cubes' checksums
+    # 1961 MB and 180 s for 1024x1024 x 5000 frames: three passes and the cubes' checksums. An upper bound
+    # since the gauge works in pixel blocks (907 MB for the whole fit at 1024x1024 x 400 frames, library, not
+    # yet measured through the workflow: "Memory of a split fit's reduction and product")
     "fit_fringes": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
                             s_per_gsample=35.0, s_per_mpixel=80.0),
     # A split fit's jobs (docs/metrology.md), measured on 256x256 to 1024x1024 detectors (BENCHMARKS.md, "A

@@ -445,15 +445,38 @@ def test_the_gauge_swept_over_pixel_blocks_is_the_whole_array_gauge(rng, use_fla
     M = {block: fringes.fix_gauge(F, G, flat=weight, x=x, y=y, block=block) for block in (500, 10**6)}
     np.testing.assert_allclose(M[500], M[10**6], rtol=0, atol=1e-10 * np.abs(M[10**6]).max())
     if not use_flat:  # the boost regression against a least-squares fit over every pixel
-        Gp = G @ np.linalg.inv(M[500]).T
+        # away from the converged gauge, where the boost is zero and any two answers agree
+        boosted = M[500] @ fringes._lorentz_boost(np.array([0.05, -0.03]))
+        Gp = G @ np.linalg.inv(boosted).T
         rho = Gp[:, 1:] / Gp[:, :1]
         rho2, v = np.sum(rho**2, axis=1), np.sqrt(np.median(np.sum(rho**2, axis=1)))
         angle = np.arctan2(rho[:, 0], rho[:, 1])
         design = np.column_stack([polynomial_design(x, y, degree=6), v * np.sin(angle), v * np.cos(angle)])
         coef = np.linalg.lstsq(design, rho2, rcond=None)[0]
-        np.testing.assert_allclose(fringes._boost_regression(G, M[500], x, y, 6, 500),
-                                   -coef[-2:] / (2 * (1 - v**2)), rtol=0, atol=1e-12)
+        found = fringes._boost_regression(G, boosted, x, y, 6, 500)
+        assert np.abs(found).max() > 1e-2  # the test's case: a boost to find
+        np.testing.assert_allclose(found, -coef[-2:] / (2 * (1 - v**2)), rtol=1e-10)
     Gp = G @ np.linalg.inv(M[500]).T
     found = np.arctan2(Gp[:, 1], Gp[:, 2])
     residual = fringes.wrapped_about_mean(found - theta)
     assert np.sqrt(np.mean((residual - residual.mean()) ** 2)) < 1e-6
+
+
+@pytest.mark.parametrize("phase_only", [False, True])
+def test_the_photon_floor_in_blocks_of_pixels_is_the_whole_array_s(phase_only):
+    """Blocks of 7 pixels (a last one partial) against one block of all 1,000, with read noise and |K| that
+    vary from pixel to pixel, so that a block taking another block's values would be seen."""
+    rng = np.random.default_rng(11)
+    n, frames = 1000, 400
+    phase = np.linspace(0, 40 * np.pi, frames)
+    F = np.column_stack([np.full(frames, 1e4), 6e3 * np.cos(phase), 6e3 * np.sin(phase)])
+    theta = rng.uniform(-np.pi, np.pi, n)
+    alpha = rng.uniform(0.5, 1.0, n)
+    G = np.column_stack([rng.uniform(0.9, 1.1, n), alpha * np.sin(theta), alpha * np.cos(theta)])
+    FtF, third = fringes.frame_moments(F)
+    options = dict(third=third, gain=10.0, read_noise=rng.uniform(3, 6, n), k_norm=rng.uniform(1.5, 3.0, n),
+                   phase_only=phase_only)
+    blocked = fringes.photon_floor(G, FtF, block=7, **options)
+    whole = fringes.photon_floor(G, FtF, block=10**9, **options)
+    assert np.all(blocked > 0)
+    np.testing.assert_allclose(blocked, whole, rtol=1e-14, atol=0)
