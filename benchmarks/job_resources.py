@@ -69,8 +69,6 @@ def jobs(results, *, parts=None, since=0.0):
         if group := steps.rule_group(name):  # a group's job (dice_core.steps.group_rule): its inputs' frames
             files = resources.group_files(manifest, group)
             step, n, k = group[0], sum(int(fits.getheader(f)["NAXIS3"]) for f in files), 0
-        elif rel.startswith("simulate/"):  # a group of one file, named by the file
-            step, n, k = "simulate_file", int(fits.getheader(results / "raw" / f"{rel[9:]}.fits")["NAXIS3"]), 0
         elif name == "measure_dark":
             step, n, k = name, frames(manifest.dark), 0
         elif name.startswith("measure_prnu_"):

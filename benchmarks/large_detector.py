@@ -114,10 +114,8 @@ def benchmark_rows(out: Path, parts: int, since: float) -> list[dict]:
         with open(tsv, newline="") as handle:
             row = next(csv.DictReader(handle, delimiter="\t"))
         job = {"job": name, "s": float(row["s"]), "max_rss_mb": float(row["max_rss"])}
-        if name.startswith("simulate/"):  # one file's job (named by it), or a group of files' (by its rule)
-            group = steps.rule_group(name[len("simulate/"):])
-            simulated = (resources.group_files(manifest, group) if group
-                         else [out / "raw" / f"{name[len('simulate/'):]}.fits"])
+        if name.startswith("simulate/"):  # a group of files' job, named by its rule
+            simulated = resources.group_files(manifest, steps.rule_group(name[len("simulate/"):]))
             metrology = any(Path(f).parent.name == "metrology" for f in simulated)
             job |= {"rule": "simulate_file" + (" (metrology)" if metrology else " (other)"),
                     "frames": sum(int(fits.getheader(f)["NAXIS3"]) for f in simulated)}

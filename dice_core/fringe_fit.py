@@ -188,7 +188,7 @@ def _combine(results, *, inputs: PassInputs, level, n_lanes):
         if halves[half] is None:
             halves[half] = lane_FtX[:, idx]
         else:
-            for k in range(3):  # a factor at a time: no copy of the lane's F'X at the pixels
+            for k in range(3):  # a factor at a time: a third of the copy of the lane's F'X at the pixels
                 halves[half][k] += lane_FtX[k, idx]
         half_frames[half] += lane_products.shape[0]
     if len(products) != n_lanes:

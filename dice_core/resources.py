@@ -225,10 +225,10 @@ def simulation_groups(manifest, frames_of, *, pixels: int, samples: float) -> li
     flat, a baseline) among themselves, the star positions' files among theirs. A group never holds two of the
     other acquisitions' files, so that making one file again (Snakemake re-makes a job's every output) rewrites
     no other acquisition's, whose reductions would then run again."""
-    segments, number = [], 1
-    for acquisition in [a for a in manifest.acquisitions() if a not in {p.acquisition for p in manifest.positions}]:
-        segments.append(list(acquisition.files))
-    segments.append([f for p in manifest.positions for f in p.acquisition.files])
+    positions = [p.acquisition for p in manifest.positions]
+    others = manifest.acquisitions()[:len(manifest.acquisitions()) - len(positions)]  # positions come last
+    segments = [list(a.files) for a in others] + [[f for a in positions for f in a.files]]
+    number = 1
     groups = []
     for files in segments:
         groups += [tuple(number - 1 + n for n in group)
@@ -248,12 +248,12 @@ def group_files(manifest, group: tuple[str, int, int]) -> list:
     return [f for p in manifest.positions[indices.index(first):indices.index(last) + 1] for f in p.acquisition.files]
 
 
-def job_data(step: str, wildcards: dict, *, manifest, frames_of, raw=None, parts: int = 1) -> dict:
+def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1) -> dict:
     """What one job of ``step`` reads (or writes, for the simulation), for :func:`job_resources`:
     ``frames`` over all its files and ``positions``.
 
     ``wildcards`` are the job's; ``frames_of(path)`` gives a raw file's frames (planned or from its header);
-    ``raw`` is the simulated dataset's folder; ``parts`` the split fit's number of parts.
+    ``parts`` the split fit's number of parts.
     """
     def acquisition(acq):
         return sum(frames_of(f) for f in acq.files)
@@ -276,8 +276,8 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, raw=None, parts
     if step == "fit_start":  # the first chunk only
         return {"frames": 0}
     if step == "stack_position":  # a group of positions (position_groups), its indices as the job's "positions"
-        group = {str(index) for index in wildcards["positions"]}
-        return {"frames": sum(acquisition(p.acquisition) for p in manifest.positions if str(p.index) in group)}
+        group = ("stack_position", wildcards["positions"][0], wildcards["positions"][-1])
+        return {"frames": sum(frames_of(f) for f in group_files(manifest, group))}
     return {"positions": positions}
 
 

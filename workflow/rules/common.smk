@@ -229,16 +229,6 @@ def group_inputs(step, group):
     return [local_path(f) for f in dice_resources.group_files(MANIFEST, (step, group[0], group[-1]))]
 
 
-def simulated_job(group):
-    """A group of simulated files' log and benchmark name under simulate/: its one file's path in the raw
-    folder, or its rule."""
-    if len(group) == 1:
-        return (
-            Path(os.path.relpath(MANIFEST.all_files()[group[0] - 1], MANIFEST.path.parent)).with_suffix("").as_posix()
-        )
-    return steps.group_rule("simulate_file", group)
-
-
 # What the run skips and why, said once every start-up check has passed (a run refused at start says its one
 # problem alone): by a run in its onstart, after the checks of the planned jobs (preflight.smk); by a dry run,
 # which has no onstart, now. Snakemake tells the workflow nothing of a dry run while it reads it: the command
@@ -271,7 +261,7 @@ def part_files(wildcards):
 def step_resources(step, **fixed):
     """A rule's resources block, ``resources: **step_resources("<rule>")``: mem_mb (MB) and runtime (minutes)
     of each job from its step's measured cost and the job's data, times the attempt on a retry. ``fixed``: what
-    the job's wildcards would say of a rule without them (a group of positions' ``positions``)."""
+    the job's wildcards would say of a rule without them (a group's ``positions`` or ``files``)."""
 
     def needs(wildcards, attempt):
         data = dice_resources.job_data(
@@ -279,7 +269,6 @@ def step_resources(step, **fixed):
             {**dict(wildcards.items()), **fixed},
             manifest=MANIFEST,
             frames_of=file_frames,
-            raw=RAW,
             parts=config["metrology"]["parts"],
         )
         return dice_resources.job_resources(step, pixels=PIXELS, **data, attempt=attempt)

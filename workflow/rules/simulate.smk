@@ -30,9 +30,9 @@ if SIMULATE:
             output:
                 cubes=group_inputs("simulate_file", _group),
             log:
-                f"{OUT}/logs/simulate/{simulated_job(_group)}.log",
+                f"{OUT}/logs/simulate/{steps.group_rule('simulate_file', _group)}.log",
             benchmark:
-                f"{OUT}/benchmarks/simulate/{simulated_job(_group)}.tsv"
+                f"{OUT}/benchmarks/simulate/{steps.group_rule('simulate_file', _group)}.tsv"
             conda:
                 "../envs/dice.yaml"
             resources:
