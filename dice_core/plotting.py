@@ -1222,10 +1222,13 @@ def stray_light_figure(ds, detector, *, title, prefix: str = ""):
             axes[0].plot(*(sign * f), "o", mfc="none", mec="cyan", ms=14, mew=1.2)
         axes[0].annotate(f"{i + 1}: {float(ds[f'{p}component_amplitude'][i]):.1e} px", f, xytext=(8, 8),
                          textcoords="offset points", color="cyan", fontsize=8)
-    for j, f in enumerate(ds[f"{p}excluded_frequency"].values if f"{p}excluded_frequency" in ds else []):
+    excluded = ds[f"{p}excluded_frequency"].values if f"{p}excluded_frequency" in ds else np.empty((0, 2))
+    # a frequency past Nyquist (0.5 cycles/pixel) is drawn where the pixels see it, folded back into the band
+    folded = ", folded into the band" if (np.abs(excluded) > 0.5).any() else ""
+    for j, f in enumerate(excluded):
         aliased = (np.outer([1, -1], f) + 0.5) % 1.0 - 0.5  # the fringes' own K and 2K, left out of the search
         axes[0].plot(*aliased.T, "x", color="w", ms=9, mew=1.5, ls="none",
-                     label="left out: the fringes' K, 2K" if j == 0 else None)
+                     label=f"left out: the fringes' K, 2K{folded}" if j == 0 else None)
     if f"{p}excluded_frequency" in ds and ds.sizes.get(f"{p}excluded", 0):
         axes[0].legend(fontsize=7, loc="lower left")
     axes[0].set_xlim(fx[0] - step[0] / 2, fx[-1] + step[0] / 2)

@@ -242,6 +242,23 @@ def test_the_components_found_are_the_true_sources_within_their_errors(stray, fo
         assert own["phase_error"].shape == product["projected_offset"].shape
 
 
+def test_the_figure_draws_the_left_out_harmonics_where_the_pixels_see_them(stray, found):
+    """The fringes' K and 2K, left out of the search, are marked inside the spectrum's band of +-0.5
+    cycles/pixel; a harmonic past it is drawn folded back, and the legend says so only then."""
+    from dice_core import plotting
+
+    manifest = stray[0]
+    for baseline, product in found.items():
+        fig = plotting.stray_light_figure(product, manifest.detector, title=baseline)
+        marks = [line for line in fig.axes[0].lines if line.get_marker() == "x"]
+        xy = np.concatenate([np.column_stack(line.get_data()) for line in marks])
+        excluded = product["excluded_frequency"].values
+        assert len(xy) == 2 * len(excluded) and np.abs(xy).max() <= 0.5, baseline
+        legend = " ".join(text.get_text() for text in fig.axes[0].get_legend().get_texts())
+        assert ("folded" in legend) == bool((np.abs(excluded) > 0.5).any()), (baseline, legend, excluded)
+        plotting.plt.close(fig)
+
+
 @pytest.mark.slow  # 21 s on 2 shared cores: 20 small benches simulated and fitted
 def test_stray_free_small_benches_flag_no_more_than_1_map_in_20(tmp_path):
     """20 seeds of a small spherical bench (40x44 pixels, 2 baselines of 300 frames), no stray light: at most
