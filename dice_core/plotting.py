@@ -1137,8 +1137,8 @@ def prf_widths_figure(ds, detector, *, title="PRF widths from the fringe contras
                   symmetric=True, title=f"width along {axis} minus its mean ({mean:.4f} pixel +- {mean_error:.4f} pixel); "
                                         f"rms {spread:.2e} pixel\n{_stripes_line(width, detector)}")
         _show_map(axes[1, j], fig, error, detector, scale=1e3, units="1-sigma error [1e-3 pixel]", symmetric=False,
-                  title=f"its error (photon noise, kernel shape), mean aside: median {err:.2e} pixel\n"
-                        f"{_stripes_line(error, detector)}")
+                  title=f"1-sigma error of the width along {axis} minus its mean\n(photon noise, kernel "
+                        f"shape): median {err:.2e} pixel\n{_stripes_line(error, detector)}")
     chi2 = float(ds["chi2"])
     fig.suptitle(f"{title} ({', '.join(map(str, ds['baseline'].values))}; chi2/dof between baselines "
                  f"{chi2:.2f})", fontsize=11)
