@@ -6,9 +6,9 @@ that use such a library throughout bind it with :func:`module` instead of ``impo
 in one or two functions are imported in those functions instead.
 
 On Python 3.11 the standard library's lazy loader is not thread-safe: two threads that first touch a deferred
-package at the same moment can see it half-imported (CPython issue gh-114763, fixed in 3.13 and a 3.12 bugfix release). The pipeline's steps
-run one thread of Python (their workers are processes); a program that calls :mod:`dice_core` from threads
-should import ``xarray`` (and ``jsonschema``) itself before it starts them.
+package at the same moment can see it half-imported (CPython issue gh-114763, fixed in 3.13 and a 3.12 bugfix
+release). The pipeline's steps run one thread of Python (their workers are processes); a program that calls
+:mod:`dice_core` from threads should import ``xarray`` (and ``jsonschema``) itself before it starts them.
 """
 
 from __future__ import annotations
