@@ -36,6 +36,11 @@ most about sqrt(r_k) s_delta / sqrt(N), a tenth of s_delta / sqrt(N) at the
 threshold. Offsets with a smooth component c along an undeclared mode lose
 r_k / (1 + r_k) of it, up to 1 % of c.
 
+The refinement fits wrapped phase residuals, which see the truth only while
+the surface is within about a radian of it everywhere: on a detector wider
+than about 1000 pixels at 600 mm it runs in stages, over discs from the
+centre out (:func:`fit_two_source`, ``STAGE_PHASE_LIMIT``).
+
 Units: m for positions, pixel for x, y and offsets, rad for phases,
 rad/pixel for wavevectors.
 """
@@ -70,6 +75,16 @@ MAX_TIP_SHIFT_SIGMA = 5.0
 #: Attributes of the ``mode`` coordinate of the products that hold unobservable offset modes (a baseline's
 #: ``unobservable_offset``, a pair's ``unobservable_dx``, ``unobservable_dy``).
 UNOBSERVABLE_MODE = {"units": "1", "long_name": "unobservable offset mode beyond the affine part, counted from 0"}
+
+#: Largest phase (rad) that the tips' uncertainty may put, at 3 sigma, on a pixel of a stage of the tips'
+#: refinement beyond the affine part. The refinement fits wrapped phase residuals: where they pass +-pi its
+#: Gauss-Newton steps wander (a 2048x2048 detector at 600 mm, tips 1 mm off: 4-8 rad), so a large detector is
+#: refined from its centre out, over discs it can trust (:func:`fit_two_source`).
+STAGE_PHASE_LIMIT = 1.0
+#: Fewest pixels of the first stage of a refinement in stages.
+STAGE_MIN_PIXELS = 200
+#: Pixels over which a stage's phase bound is evaluated (evenly picked; the bound is smooth).
+STAGE_BOUND_SAMPLES = 20000
 
 #: Information ratio (data over prior) above which a tip mode counts as refined from the data,
 #: and its offset pattern as unobservable (module docstring).
@@ -278,13 +293,16 @@ class TwoSourceFit:
         return remove_modes(offsets, self.modes)
 
 
-def _unwrapped_start(theta, phase0, grad0, k_plane, affine):
-    """The sign of the surface (``phase0``, gradient ``grad0``: the nominal tips') that runs the way of
-    ``k_plane``, and the constant and plane (rad, rad/pixel) that unwrap ``theta`` against it."""
-    sign = 1 if float(np.mean(grad0, axis=0) @ np.asarray(k_plane, float)) > 0 else -1
+def _unwrapped_start(theta, phase0, mean_gradient, k_plane, affine):
+    """The sign of the surface (``phase0``: the nominal tips'; ``mean_gradient`` its mean gradient over the
+    pixels ``k_plane`` was fitted on, rad/pixel) that runs the way of ``k_plane``, and the constant and plane
+    (rad, rad/pixel) that unwrap ``theta`` (over the pixels of ``phase0`` and ``affine``) against it."""
+    sign = 1 if float(mean_gradient @ np.asarray(k_plane, float)) > 0 else -1
     # Unwrap against the plane-wave solution: a tip 1 mm off changes the period by up to 15 %,
-    # tens of radians across the detector, which the plane absorbs.
-    plane = np.asarray(k_plane, float) - sign * grad0.mean(axis=0)
+    # tens of radians across the detector, which the plane absorbs. Both gradients are means over
+    # every pixel, even when theta is a stage's disc: over a disc off the detector's mean the true
+    # and nominal surfaces differ there by the same plane, but neither is k_plane there.
+    plane = np.asarray(k_plane, float) - sign * mean_gradient
     constant = 0.0
     for _ in range(4):
         psi = _wrap(theta - sign * phase0 - plane @ affine[1:] - constant)
@@ -293,10 +311,83 @@ def _unwrapped_start(theta, phase0, grad0, k_plane, affine):
     return sign, constant, plane
 
 
+def _noise_variance(psi_free):
+    """The variance (rad^2) the tips are fitted against, from the residual phases beyond the affine part.
+
+    It is mostly the pixel offsets themselves (about 1e-3 pixel, white: docs/metrology.md); 1e-6 rad keeps
+    noiseless phases (tests) from a singular system."""
+    return max(float(np.mean(psi_free**2)), 1e-12)
+
+
+def _stage_discs(x, y):
+    """Each pixel's distance from the pixels' centroid, and the radii (pixel) of the discs about it a refinement
+    may run over: every pixel first, then halving while a disc holds ``STAGE_MIN_PIXELS`` pixels."""
+    distance = np.hypot(x - x.mean(), y - y.mean())
+    radii = [float(distance.max())]
+    while np.count_nonzero(distance <= radii[-1] / 2) >= STAGE_MIN_PIXELS:
+        radii.append(radii[-1] / 2)
+    return distance, radii
+
+
+def _stage_bound(x, y, inside, tips, covariance, bench):
+    """3-sigma phase (rad), beyond the affine part over the pixels ``inside`` (bool), that tips known to
+    ``covariance`` (6, 6), mm^2, put on the worst of them; from up to ``STAGE_BOUND_SAMPLES`` of them."""
+    index = np.flatnonzero(inside)
+    if index.size > STAGE_BOUND_SAMPLES:
+        index = index[np.linspace(0, index.size - 1, STAGE_BOUND_SAMPLES).astype(int)]
+    jac = tip_jacobian(x[index], y[index], *tips, **bench) * 1e-3  # rad/mm
+    affine = affine_basis(x[index], y[index]).T
+    jac -= affine @ np.linalg.lstsq(affine, jac, rcond=None)[0]
+    return 3 * float(np.sqrt(np.max(np.einsum("pi,ij,pj->p", jac, covariance, jac))))
+
+
+def _refine_tips(theta, x, y, tips, *, nominal, sign, constant, plane, prior, bench, max_iterations, fibers,
+                 label):
+    """Gauss-Newton refinement of the tips over the pixels x, y (one stage of :func:`fit_two_source`).
+
+    From the start ``tips`` (2, 3), m, and the unwrapping ``constant`` (rad) and ``plane`` (rad/pixel), with the
+    prior (mm^-2) about the ``nominal`` tips. Returns the tips, constant and plane, the iterations run and the
+    last normal matrix (6, 6), mm^-2 (the inverse of the tips' covariance, mm^2).
+    """
+    affine = affine_basis(x, y)
+    q_affine = orthonormal_modes(affine) / np.sqrt(x.size)  # (3, pixel), orthonormal rows
+
+    def without_affine(values):
+        projection = q_affine.T @ (q_affine @ values)
+        return np.subtract(values, projection, out=projection)
+
+    for iterations in range(1, max_iterations + 1):
+        phase = two_source_phase(x, y, *tips, **bench)[0]
+        # continuous residual: the wrap is taken about the current surface, a fraction of a radian away
+        psi = _wrap(theta - sign * phase - constant - plane @ affine[1:])
+        jac = tip_jacobian(x, y, *tips, **bench)
+        jac *= sign
+        jac *= 1e-3  # rad per mm of tip, for conditioning
+        jac_free, psi_free = without_affine(jac), without_affine(psi)  # the plane takes the affine part
+        noise2 = _noise_variance(psi_free)
+        normal = jac_free.T @ jac_free / noise2 + prior * np.eye(6)
+        rhs = jac_free.T @ psi_free / noise2 - prior * (tips - nominal).ravel() * 1e3
+        step = np.linalg.solve(normal, rhs)  # mm
+        tips = tips + step.reshape(2, 3) * 1e-3
+        coef, *_ = np.linalg.lstsq(affine.T, psi - jac @ step, rcond=None)
+        constant, plane = constant + coef[0], plane + coef[1:]
+        del phase, psi, jac, jac_free, psi_free
+        # 10 nm: the largest non-affine response, 2.5e-3 pixel per mm of tip (docs), makes that 2.5e-8 pixel
+        if np.max(np.abs(step)) * 1e-3 < 1e-8:
+            return tips, constant, plane, iterations, normal
+    raise GeometryError(f"{label}: the refinement of the tips of fibers {fibers[0]} and {fibers[1]} did not "
+                        f"converge in {max_iterations} iterations (last step {np.max(np.abs(step)):.2e} mm)")
+
+
 def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch, k_plane,
                    tip_sigma: float = 1e-3, max_iterations: int = 30, fibers=("a", "b"),
                    label: str = "baseline") -> TwoSourceFit:
     """Refine a baseline's two fiber tips from its pixel phases and measure the offsets against their surface.
+
+    The tips are refined over every pixel at once where the prior leaves their surface within
+    ``STAGE_PHASE_LIMIT`` of the truth beyond the affine part (3 sigma); otherwise in stages over discs about
+    the pixels' centroid, each the largest the previous stage's posterior allows, until every pixel.
+    ``max_iterations`` bounds each stage; ``TwoSourceFit.iterations`` counts them all.
 
     Parameters
     ----------
@@ -356,36 +447,32 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
         jac *= 1e-3
         return jac
 
-    sign, constant, plane = _unwrapped_start(theta, *surface(nominal), k_plane, affine)
-
-    # The noise the tips are fitted against is mostly the pixel offsets themselves (about 1e-3 pixel,
-    # white: docs/metrology.md), estimated from the residual phases; 1e-6 rad keeps noiseless phases
-    # (tests) from a singular system.
-    def noise_variance(psi_free):
-        return max(float(np.mean(psi_free**2)), 1e-12)
-
-    tips = nominal.copy()
     prior = (1e-3 / tip_sigma) ** 2  # in mm^-2
-    for iterations in range(1, max_iterations + 1):
-        phase = surface(tips)[0]
-        # continuous residual: the wrap is taken about the current surface, a fraction of a radian away
-        psi = _wrap(theta - sign * phase - constant - plane @ affine[1:])
-        jac = jacobian(tips)
-        jac_free, psi_free = without_affine(jac), without_affine(psi)  # the plane takes the affine part
-        noise2 = noise_variance(psi_free)
-        normal = jac_free.T @ jac_free / noise2 + prior * np.eye(6)
-        rhs = jac_free.T @ psi_free / noise2 - prior * (tips - nominal).ravel() * 1e3
-        step = np.linalg.solve(normal, rhs)  # mm
-        tips = tips + step.reshape(2, 3) * 1e-3
-        coef, *_ = np.linalg.lstsq(affine.T, psi - jac @ step, rcond=None)
-        constant, plane = constant + coef[0], plane + coef[1:]
-        del phase, psi, jac, jac_free, psi_free
-        # 10 nm: the largest non-affine response, 2.5e-3 pixel per mm of tip (docs), makes that 2.5e-8 pixel
-        if np.max(np.abs(step)) * 1e-3 < 1e-8:
-            break
-    else:
-        raise GeometryError(f"{label}: the refinement of the tips of fibers {fibers[0]} and {fibers[1]} did not "
-                            f"converge in {max_iterations} iterations (last step {np.max(np.abs(step)):.2e} mm)")
+    phase0, grad0 = surface(nominal)
+    mean_gradient = np.mean(grad0, axis=0)
+    del grad0
+    bench = {"wavelength": wavelength, "pixel_pitch": pixel_pitch}
+    distance, radii = _stage_discs(x, y)
+    covariance = np.eye(6) / prior  # mm^2: the prior's, until a stage has seen the data
+    tips, outer, stages, iterations = nominal.copy(), len(radii), 0, 0
+    while outer > 0:
+        # the largest disc whose phases the tips' uncertainty leaves within +-STAGE_PHASE_LIMIT, or the next one
+        # out: every pixel at once wherever that holds, as on the presets' detectors
+        disc = next((j for j in range(outer) if _stage_bound(x, y, distance <= radii[j], tips, covariance, bench)
+                     <= STAGE_PHASE_LIMIT), outer - 1)
+        inside = slice(None) if disc == 0 else np.flatnonzero(distance <= radii[disc])
+        if stages == 0:
+            sign, constant, plane = _unwrapped_start(theta[inside], phase0[inside], mean_gradient, k_plane,
+                                                     affine[:, inside])
+            del phase0
+        tips, constant, plane, done, normal = _refine_tips(
+            theta[inside], x[inside], y[inside], tips, nominal=nominal, sign=sign, constant=constant, plane=plane,
+            prior=prior, bench=bench, max_iterations=max_iterations, fibers=fibers, label=label)
+        covariance = np.linalg.inv(normal)
+        stages, iterations, outer = stages + 1, iterations + done, disc
+        if outer > 0 or stages > 1:
+            log.info("%s: tips refined over the %.0f pixels within %.0f pixels of the centre (stage %d, %d "
+                     "iteration(s))", label, np.size(theta[inside]), radii[disc], stages, done)
 
     phase, grad = surface(tips)
     model = sign * phase + constant + plane @ affine[1:]
@@ -408,7 +495,7 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     del phase, grad
 
     jac_free = without_affine(jacobian(tips))
-    data = jac_free.T @ jac_free / noise_variance(psi_free)  # mm^-2
+    data = jac_free.T @ jac_free / _noise_variance(psi_free)  # mm^-2
     del psi_free, q_affine
     covariance = np.linalg.inv(data + prior * np.eye(6)) * 1e-6  # m^2
     values, vectors = np.linalg.eigh(data / prior)
