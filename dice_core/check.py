@@ -121,15 +121,12 @@ def _plan_lines(manifest, config, report: Report) -> None:
     """What the workflow would make of the manifest (products by stage) and skip, from its own plan."""
     from dice_core import planning, products
 
-    out = f"{config['results']}/{manifest.name}"
-    plan = planning.Plan(manifest, config, out, f"{config['results']}/{planning.SWEEPS_FOLDER}")
     try:
-        planning.check_dataset_name(manifest)
-        plan.check_names()
-        targets = plan.default_targets()
+        plan, targets = planning.plan_run(manifest, config)
     except planning.PlanningError as exc:
         report.problem(exc)
         return
+    out = plan.dataset_root
     stages: dict = {}
     for target in targets:
         found = products.match(target, root=out)

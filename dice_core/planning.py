@@ -22,7 +22,7 @@ from dice_core import products
 from dice_core.centroids import MODES, mode_needs
 from dice_core.manifest import same_wavelength
 
-__all__ = ["PlanningError", "Plan", "Sweep", "plan_sweep", "folder_value", "reduction_point_config",
+__all__ = ["PlanningError", "Plan", "plan_run", "Sweep", "plan_sweep", "folder_value", "reduction_point_config",
            "module_name", "SWEEPS_FOLDER", "load_dataset", "point_dataset_name"]
 
 #: The sweeps' folder beside the datasets' own, under the results folder: no dataset may be named after it.
@@ -551,6 +551,23 @@ def load_dataset(value: str, *, presets: Path, results: str, raw=None, overrides
         return parse_manifest(simulation.dataset_layout(sim), folder / "dataset.yaml"), sim
     except ValueError as exc:  # DatasetError included: a preset's name or keys
         raise PlanningError(str(exc)) from None
+
+
+def plan_run(manifest, config: dict) -> tuple[Plan, list[str]]:
+    """The plan of the workflow's run of ``config`` (defaults set) on ``manifest``, and its default targets, with
+    every check the workflow makes of them before a job runs: the dataset's name, the names its products'
+    paths are made of, and every default target planned (what is skipped recorded in ``Plan.skipped``). The
+    workflow and the dataset checker (``python -m dice_core check``) both plan through this.
+
+    Raises
+    ------
+    PlanningError
+        The first problem, in one line.
+    """
+    plan = Plan(manifest, config, f"{config['results']}/{manifest.name}", f"{config['results']}/{SWEEPS_FOLDER}")
+    check_dataset_name(manifest)
+    plan.check_names()
+    return plan, plan.default_targets()
 
 
 def check_dataset_name(manifest) -> None:

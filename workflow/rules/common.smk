@@ -65,11 +65,8 @@ for _root in (OUT, SWEEP_ROOT):
             f"cannot write in {preflight.nearest_existing(_root)} (a file, not a folder), where this run writes "
             f"{_root}; nothing was run"
         )
-PLAN = planning.Plan(MANIFEST, config, OUT, SWEEP_ROOT)
 try:
-    planning.check_dataset_name(MANIFEST)
-    PLAN.check_names()
-    DEFAULT_TARGETS = PLAN.default_targets()  # every check of the plan made now, while the workflow is read
+    PLAN, DEFAULT_TARGETS = planning.plan_run(MANIFEST, config)  # every check of the plan made now
     SWEEPS = PLAN.sweeps
     PAPER_SWEEPS = {study: PLAN.paper_sweep(study) for study in config["paper"]}
 except planning.PlanningError as exc:
