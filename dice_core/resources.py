@@ -193,6 +193,25 @@ def part_files(files, frames_of, *, parts: int, part: int) -> list:
     return list(files[slice(*groups[part])]) if part < len(groups) else []
 
 
+#: Samples of a baseline from which its fit and Allan jobs read it in worker processes, one per part of its
+#: files (:data:`dice_core.parallel.LANES`): below it a second worker's fork and pool cost more than the half
+#: of the reading it saves, and its core is held from every other job for the whole job, most of which (start,
+#: imports, the solve, the product) is serial. Measured (BENCHMARKS.md, "One worker or two"): one worker was
+#: faster on every repeat at 2.7e7 and 1e8 samples (1.1-1.6x); two read 1.7-1.9x faster than one on idle cores
+#: at 1.3e9 (issue 10's measurement).
+PARALLEL_READ_SAMPLES = 2e8
+
+
+def reading_workers(files, frames_of, *, pixels: int) -> int:
+    """Worker processes, a job's threads, for a job that streams a baseline of ``files`` (``frames_of(path)``
+    its frames, ``pixels`` a frame's): one per part it is read in (:data:`dice_core.parallel.LANES`, one file
+    a part at most) from ``PARALLEL_READ_SAMPLES`` samples, else one. The product does not depend on it."""
+    from dice_core.parallel import LANES
+
+    samples = pixels * sum(frames_of(f) for f in files)
+    return min(LANES, len(files)) if samples >= PARALLEL_READ_SAMPLES else 1
+
+
 def sample_groups(sizes, *, samples: float) -> list[tuple[int, ...]]:
     """Consecutive items in groups, one workflow job a group (config ``job_samples``): each group takes items
     in order while its samples stay within ``samples``; an item of more is a group of its own.

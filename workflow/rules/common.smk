@@ -177,8 +177,8 @@ def reduction_point_tables(wildcards):
 
 # --------------------------------------------------------------------------- cluster resources
 # Each rule's resources block (mem_mb, runtime) comes from step_resources: the measured cost of its step
-# (dice_core.resources) applied to the job's share of the dataset. threads stay each rule's threads:
-# directive (2 worker processes for the fits and the Allan deviations, 1 elsewhere).
+# (dice_core.resources) applied to the job's share of the dataset. threads are 1 but for the jobs that read a
+# baseline in parts (reading_threads).
 
 SIM_FRAMES = (
     {rel: stop - start for rel, (_, _, start, stop) in simulation.file_jobs(SIMULATION).items()}
@@ -247,6 +247,13 @@ def say_skipped():
 
 if DRY_RUN:
     say_skipped()
+
+
+def reading_threads(wildcards):
+    """Threads of a job that reads baseline ``wildcards.baseline`` in parts: its worker processes, one per part
+    for a large baseline, one for a small (dice_core.resources.reading_workers)."""
+    files = MANIFEST.baselines[wildcards.baseline].files
+    return dice_resources.reading_workers(files, file_frames, pixels=PIXELS)
 
 
 def part_files(wildcards):

@@ -127,7 +127,7 @@ else:
             f"{OUT}/benchmarks/fit_fringes_{{baseline}}.tsv"
         conda:
             "../envs/dice.yaml"
-        threads: 2
+        threads: reading_threads
         resources:
             **step_resources("fit_fringes"),
         params:
@@ -253,7 +253,7 @@ rule allan_deviation:
         f"{OUT}/benchmarks/allan_deviation_{{baseline}}.tsv"
     conda:
         "../envs/dice.yaml"
-    threads: 2
+    threads: reading_threads
     resources:
         **step_resources("allan_deviation"),
     params:
