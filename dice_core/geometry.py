@@ -78,7 +78,7 @@ UNOBSERVABLE_MODE = {"units": "1", "long_name": "unobservable offset mode beyond
 
 #: Largest phase (rad) that the tips' uncertainty may put, at 3 sigma, on a pixel of a stage of the tips'
 #: refinement beyond the affine part. The refinement fits wrapped phase residuals: where they pass +-pi its
-#: Gauss-Newton steps wander (a 2048x2048 detector at 600 mm, tips 1 mm off: 4-8 rad), so a large detector is
+#: Gauss-Newton steps wander (a 2048x2048 detector at 600 mm, tips 1 mm off: up to 12 rad), so a large detector is
 #: refined from its centre out, over discs it can trust (:func:`fit_two_source`).
 STAGE_PHASE_LIMIT = 1.0
 #: Fewest pixels of the first stage of a refinement in stages.
@@ -299,9 +299,10 @@ def _unwrapped_start(theta, phase0, mean_gradient, k_plane, affine):
     (rad, rad/pixel) that unwrap ``theta`` (over the pixels of ``phase0`` and ``affine``) against it."""
     sign = 1 if float(mean_gradient @ np.asarray(k_plane, float)) > 0 else -1
     # Unwrap against the plane-wave solution: a tip 1 mm off changes the period by up to 15 %,
-    # tens of radians across the detector, which the plane absorbs. Both gradients are means over
-    # every pixel, even when theta is a stage's disc: over a disc off the detector's mean the true
-    # and nominal surfaces differ there by the same plane, but neither is k_plane there.
+    # tens of radians across the detector, which the plane absorbs. k_plane is the plane-wave fit over
+    # every pixel, so the nominal surface's gradient is its mean over every pixel too, even when theta
+    # is a stage's disc: over a disc away from the centre both surfaces' mean gradients differ from
+    # k_plane, by nearly the same amount, and the plane is their difference.
     plane = np.asarray(k_plane, float) - sign * mean_gradient
     constant = 0.0
     for _ in range(4):
