@@ -47,6 +47,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dice_core.pixel_blocks import PIXEL_BLOCK, pixel_blocks, stacked_r
+
 __all__ = [
     "UNOBSERVABLE_MODE",
     "MODE_INFORMATION_THRESHOLD",
@@ -146,14 +148,24 @@ def tip_jacobian(x, y, tip_a, tip_b, *, wavelength, pixel_pitch) -> np.ndarray:
     return jacobian
 
 
-def wrapped_about_mean(phase):
+def wrapped_about_mean(phase, *, block: int = PIXEL_BLOCK):
     """Phases (rad) wrapped to (-pi, pi] about their circular mean.
 
     Wrapped about zero instead, phases spread around pi (a constant the gauge
     leaves free) would split between +pi and -pi, a whole period apart.
+    Formed ``block`` phases at a time: the complex exponentials never span
+    every phase (32 bytes a phase each); the mean is summed block by block.
     """
-    centre = np.angle(np.mean(np.exp(1j * phase)))
-    return np.angle(np.exp(1j * (phase - centre)))
+    phase = np.asarray(phase, float)
+    flat = phase.reshape(-1)
+    total = 0j
+    for s in pixel_blocks(flat.size, block):
+        total += np.exp(1j * flat[s]).sum()
+    centre = np.angle(total / flat.size)
+    out = np.empty_like(flat)
+    for s in pixel_blocks(flat.size, block):
+        out[s] = _wrap(flat[s] - centre)
+    return out.reshape(phase.shape)
 
 
 def _wrap(phase):
@@ -185,6 +197,13 @@ def orthonormal_modes(fields, *, against=None):
         projection = (fields @ basis.T) @ basis
         fields = np.subtract(fields, projection, out=projection)
         del basis
+    return _svd_modes(fields, scale)
+
+
+def _svd_modes(fields, scale):
+    """The left singular vectors of ``fields`` (mode, sample) whose singular value is above 1e-9 ``scale``,
+    times sqrt(sample): :func:`orthonormal_modes` of fields already orthogonal to what they are made against."""
+    n = fields.shape[1]
     u, s, _ = np.linalg.svd(fields.T, full_matrices=False)
     del fields
     modes = u[:, s > 1e-9 * scale].T
@@ -205,6 +224,38 @@ def remove_modes(values, modes):
     basis /= np.sqrt(values.size)
     projection = basis.T @ (basis @ values)
     return np.subtract(values, projection, out=projection)
+
+
+def _affine_rows(x, y, s, *columns):
+    """The rows [1, x, y, columns...] of the samples ``s`` (a slice), columns given for those samples."""
+    return np.column_stack([np.ones(s.stop - s.start), x[s], y[s], *columns])
+
+
+def _affine_coefficients(R):
+    """Least-squares coefficients (3, column) on 1, x, y of the columns after the first three, from the R of
+    [1 | x | y | columns] (:func:`dice_core.pixel_blocks.stacked_r`)."""
+    return np.linalg.lstsq(R[:3, :3], R[:3, 3:], rcond=None)[0]
+
+
+def _without_affine(values, x, y, *, block: int = PIXEL_BLOCK):
+    """``values`` (sample,) minus their least-squares fit by 1, x, y: ``remove_modes(values, affine_basis(x, y))``
+    to rounding, with the fit's sums taken ``block`` samples at a time (no (3, sample) basis formed)."""
+    values = np.asarray(values, float)
+    n = values.size
+    R = stacked_r(_affine_rows(x, y, s, values[s]) for s in pixel_blocks(n, block))
+    coef = _affine_coefficients(R)[:, 0]
+    out = values - coef[0]
+    for s in pixel_blocks(n, block):
+        out[s] -= coef[1] * x[s] + coef[2] * y[s]
+    return out
+
+
+def _without_orthonormal(values, modes):
+    """``values`` (sample,) minus their projection on ``modes`` (mode, sample), orthonormal with unit rms (as
+    :func:`orthonormal_modes` makes them), in place: :func:`remove_modes` to rounding, no basis made again."""
+    if len(modes):
+        values -= ((modes @ values) / values.size) @ modes
+    return values
 
 
 @dataclass
@@ -248,6 +299,8 @@ class TwoSourceFit:
         plane-wave reduction would have put into the offsets.
     surface : ndarray (pixel,)
         The fitted phase, sign Phi + c + a.r, rad.
+    x, y : ndarray (pixel,)
+        The pixels' coordinates, pixel (the caller's arrays, not copies).
     """
 
     tips: np.ndarray
@@ -264,7 +317,13 @@ class TwoSourceFit:
     iterations: int
     plane_wave_departure: np.ndarray
     surface: np.ndarray
-    affine: np.ndarray  # (3, pixel): 1, x, y
+    x: np.ndarray
+    y: np.ndarray
+
+    @property
+    def affine(self) -> np.ndarray:
+        """The affine fields 1, x, y of the pixels (3, pixel), formed when asked (:func:`affine_basis`)."""
+        return affine_basis(self.x, self.y)
 
     def offsets_of(self, theta) -> np.ndarray:
         """Offsets (pixel) of other pixel phases (rad, same pixels) against this fit's surface and modes.
@@ -272,30 +331,39 @@ class TwoSourceFit:
         The phases' constant is taken out (their difference from the surface
         wrapped about its circular mean: another gauge may rotate them), then
         the affine part and the modes, in offset space; the tips are this fit's.
+        Its temporaries: a few arrays of one number a pixel.
         """
         psi = wrapped_about_mean(np.asarray(theta, float) - self.surface)
-        offsets = remove_modes(psi / np.hypot(*self.k_local.T), self.affine)
-        return remove_modes(offsets, self.modes)
+        psi /= np.hypot(*self.k_local.T)
+        return _without_orthonormal(_without_affine(psi, self.x, self.y), self.modes)
 
 
-def _unwrapped_start(theta, phase0, grad0, k_plane, affine):
-    """The sign of the surface (``phase0``, gradient ``grad0``: the nominal tips') that runs the way of
-    ``k_plane``, and the constant and plane (rad, rad/pixel) that unwrap ``theta`` against it."""
-    sign = 1 if float(np.mean(grad0, axis=0) @ np.asarray(k_plane, float)) > 0 else -1
+def _unwrapped_start(theta, x, y, phase_of, k_plane, block):
+    """The sign of the surface of the nominal tips (``phase_of(s)``: its phase and gradient at the pixels
+    ``s``) that runs the way of ``k_plane``, and the constant and plane (rad, rad/pixel) that unwrap ``theta``
+    against it; sums over the pixels taken ``block`` pixels at a time."""
+    n = x.size
+    phase0, gradient = np.empty(n), np.zeros(2)
+    for s in pixel_blocks(n, block):
+        phase0[s], gx, gy = phase_of(s)
+        gradient += gx.sum(), gy.sum()
+    gradient /= n
+    sign = 1 if float(gradient @ np.asarray(k_plane, float)) > 0 else -1
     # Unwrap against the plane-wave solution: a tip 1 mm off changes the period by up to 15 %,
     # tens of radians across the detector, which the plane absorbs.
-    plane = np.asarray(k_plane, float) - sign * grad0.mean(axis=0)
+    plane = np.asarray(k_plane, float) - sign * gradient
     constant = 0.0
     for _ in range(4):
-        psi = _wrap(theta - sign * phase0 - plane @ affine[1:] - constant)
-        coef, *_ = np.linalg.lstsq(affine.T, psi, rcond=None)
+        R = stacked_r(_affine_rows(x, y, s, _wrap(theta[s] - sign * phase0[s] - plane[0] * x[s] - plane[1] * y[s]
+                                                  - constant)) for s in pixel_blocks(n, block))
+        coef = _affine_coefficients(R)[:, 0]
         constant, plane = constant + coef[0], plane + coef[1:]
     return sign, constant, plane
 
 
 def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch, k_plane,
                    tip_sigma: float = 1e-3, max_iterations: int = 30, fibers=("a", "b"),
-                   label: str = "baseline") -> TwoSourceFit:
+                   label: str = "baseline", block: int = PIXEL_BLOCK) -> TwoSourceFit:
     """Refine a baseline's two fiber tips from its pixel phases and measure the offsets against their surface.
 
     Parameters
@@ -319,6 +387,11 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
         The two fibers' names, for messages.
     label : str
         Names the baseline in logs and errors.
+    block : int
+        Pixels a block (:data:`dice_core.pixel_blocks.PIXEL_BLOCK`): every sum over the pixels (the
+        Gauss-Newton steps' J'J and J'psi, the affine fits, the modes' fields) is taken a block of
+        pixels at a time, so that the Jacobian (6 numbers a pixel) is never formed over every pixel;
+        the result is the same for any block, to rounding.
 
     Returns
     -------
@@ -339,47 +412,43 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
         raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
     theta, x, y = (np.asarray(v, float) for v in (theta, x, y))
     nominal = np.array([nominal_a, nominal_b], float)
-    affine = affine_basis(x, y)
-    q_affine = orthonormal_modes(affine) / np.sqrt(x.size)  # (3, pixel), orthonormal rows
+    n = x.size
 
-    def without_affine(values):
-        projection = q_affine.T @ (q_affine @ values)
-        return np.subtract(values, projection, out=projection)
+    def surface(tips, s):
+        return two_source_phase(x[s], y[s], *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
 
-    def surface(tips):
-        phase, gx, gy = two_source_phase(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
-        return phase, np.column_stack([gx, gy])
-
-    def jacobian(tips):  # rad per mm of tip, for conditioning
-        jac = tip_jacobian(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
+    def jacobian(tips, s):  # rad per mm of tip, for conditioning
+        jac = tip_jacobian(x[s], y[s], *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
         jac *= sign
         jac *= 1e-3
         return jac
 
-    sign, constant, plane = _unwrapped_start(theta, *surface(nominal), k_plane, affine)
+    sign, constant, plane = _unwrapped_start(theta, x, y, lambda s: surface(nominal, s), k_plane, block)
 
-    # The noise the tips are fitted against is mostly the pixel offsets themselves (about 1e-3 pixel,
-    # white: docs/metrology.md), estimated from the residual phases; 1e-6 rad keeps noiseless phases
-    # (tests) from a singular system.
-    def noise_variance(psi_free):
-        return max(float(np.mean(psi_free**2)), 1e-12)
+    def residual(tips, s):  # continuous: wrapped about the current surface, a fraction of a radian away
+        return _wrap(theta[s] - sign * surface(tips, s)[0] - constant - plane[0] * x[s] - plane[1] * y[s])
+
+    # The sums of a step: the R of [1 | x | y | J | psi] (10 x 10), a block of pixels at a time. The plane takes
+    # the affine part: J' J and J' psi of the affine-free parts are R22' R22 and R22' r2, the affine-free
+    # residual's squared norm |R[3:, 9]|^2, and the plane's update R11^-1 (r1 - R12 step).
+    def noise_variance(R):
+        # The noise the tips are fitted against is mostly the pixel offsets themselves (about 1e-3 pixel,
+        # white: docs/metrology.md), estimated from the residual phases; 1e-6 rad keeps noiseless phases
+        # (tests) from a singular system.
+        return max(float(np.sum(R[3:, 9] ** 2)) / n, 1e-12)
 
     tips = nominal.copy()
     prior = (1e-3 / tip_sigma) ** 2  # in mm^-2
     for iterations in range(1, max_iterations + 1):
-        phase = surface(tips)[0]
-        # continuous residual: the wrap is taken about the current surface, a fraction of a radian away
-        psi = _wrap(theta - sign * phase - constant - plane @ affine[1:])
-        jac = jacobian(tips)
-        jac_free, psi_free = without_affine(jac), without_affine(psi)  # the plane takes the affine part
-        noise2 = noise_variance(psi_free)
-        normal = jac_free.T @ jac_free / noise2 + prior * np.eye(6)
-        rhs = jac_free.T @ psi_free / noise2 - prior * (tips - nominal).ravel() * 1e3
+        R = stacked_r(_affine_rows(x, y, s, jacobian(tips, s), residual(tips, s)) for s in pixel_blocks(n, block))
+        noise2 = noise_variance(R)
+        normal = R[3:9, 3:9].T @ R[3:9, 3:9] / noise2 + prior * np.eye(6)
+        rhs = R[3:9, 3:9].T @ R[3:9, 9] / noise2 - prior * (tips - nominal).ravel() * 1e3
         step = np.linalg.solve(normal, rhs)  # mm
         tips = tips + step.reshape(2, 3) * 1e-3
-        coef, *_ = np.linalg.lstsq(affine.T, psi - jac @ step, rcond=None)
+        coef = _affine_coefficients(R)
+        coef = coef[:, 6] - coef[:, :6] @ step  # the plane of psi - J step
         constant, plane = constant + coef[0], plane + coef[1:]
-        del phase, psi, jac, jac_free, psi_free
         # 10 nm: the largest non-affine response, 2.5e-3 pixel per mm of tip (docs), makes that 2.5e-8 pixel
         if np.max(np.abs(step)) * 1e-3 < 1e-8:
             break
@@ -387,11 +456,17 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
         raise GeometryError(f"{label}: the refinement of the tips of fibers {fibers[0]} and {fibers[1]} did not "
                             f"converge in {max_iterations} iterations (last step {np.max(np.abs(step)):.2e} mm)")
 
-    phase, grad = surface(tips)
-    model = sign * phase + constant + plane @ affine[1:]
-    psi = _wrap(theta - model)
-    psi_free = without_affine(psi)
-    phase_rms = float(np.sqrt(np.mean(psi_free**2)))
+    model, psi, k_local = np.empty(n), np.empty(n), np.empty((n, 2))
+
+    def final_rows(s):  # the surface, residual and local wavevector at the refined tips, kept
+        phase, gx, gy = surface(tips, s)
+        model[s] = sign * phase + constant + plane[0] * x[s] + plane[1] * y[s]
+        psi[s] = _wrap(theta[s] - model[s])
+        k_local[s, 0], k_local[s, 1] = sign * gx + plane[0], sign * gy + plane[1]
+        return _affine_rows(x, y, s, jacobian(tips, s), psi[s])
+
+    R = stacked_r(final_rows(s) for s in pixel_blocks(n, block))
+    phase_rms = float(np.sqrt(np.sum(R[3:, 9] ** 2) / n))
     if phase_rms > 0.5:
         raise GeometryError(f"{label}: the pixel phases depart from the two-source surface of the refined tips "
                             f"of fibers {fibers[0]} and {fibers[1]} by {phase_rms:.2f} rad rms; are the fiber tips, "
@@ -403,24 +478,22 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
                             f"{shift[worst] * 1e3:+.3f} mm along {'xyz'[worst[1]]} from its nominal position, more "
                             f"than {MAX_TIP_SHIFT_SIGMA:g} x its {tip_sigma * 1e3:g} mm error; are the fiber tips, "
                             "wavelength and pixel pitch right?")
-    k_local = sign * grad + plane
     k_norm = np.hypot(*k_local.T)
-    del phase, grad
 
-    jac_free = without_affine(jacobian(tips))
-    data = jac_free.T @ jac_free / noise_variance(psi_free)  # mm^-2
-    del psi_free, q_affine
+    data = R[3:9, 3:9].T @ R[3:9, 3:9] / noise_variance(R)  # mm^-2
     covariance = np.linalg.inv(data + prior * np.eye(6)) * 1e-6  # m^2
     values, vectors = np.linalg.eigh(data / prior)
     order = np.argsort(values)[::-1]
     values, vectors = values[order], vectors[:, order]
     absorbed = values > MODE_INFORMATION_THRESHOLD
-    fields = (jac_free @ vectors[:, absorbed]).T
-    del jac_free
-    fields /= k_norm
-    modes = orthonormal_modes(fields, against=affine)
-    del fields
-    offsets = remove_modes(remove_modes(psi / k_norm, affine), modes)
+    modes = _absorbed_modes(lambda s: jacobian(tips, s), _affine_coefficients(R)[:, :6], vectors[:, absorbed],
+                            x, y, k_norm, block)
+    offsets = psi
+    offsets /= k_norm
+    offsets = _without_orthonormal(_without_affine(offsets, x, y, block=block), modes)
+    del psi
+    departure = _without_affine(model, x, y, block=block)
+    departure /= k_norm
     log.info("%s: tips of fibers %s and %s refined in %d iteration(s), moved by %s mm; phases about the surface "
              "%.3e rad rms; %d offset mode(s) beyond the affine part absorbed (information ratios %s)", label,
              *fibers, iterations, np.array2string(shift * 1e3, precision=3), phase_rms, len(modes),
@@ -428,4 +501,27 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     return TwoSourceFit(tips=tips, tip_errors=np.sqrt(np.diag(covariance)).reshape(2, 3), tip_covariance=covariance,
                         nominal=nominal, sign=sign, k_local=k_local, offsets=offsets, modes=modes,
                         information=values, tip_modes=vectors, phase_rms=phase_rms, iterations=iterations,
-                        plane_wave_departure=remove_modes(model, affine) / k_norm, surface=model, affine=affine)
+                        plane_wave_departure=departure, surface=model, x=x, y=y)
+
+
+def _absorbed_modes(jacobian_of, affine_coef, vectors, x, y, k_norm, block):
+    """The unobservable offset modes (:func:`fit_two_source`): the affine-free Jacobian (``jacobian_of(s)`` of
+    the pixels ``s`` minus its affine fit, of coefficients ``affine_coef`` (3, 6)) along the absorbed tip modes
+    ``vectors`` (6, mode), over |K| (``k_norm``), made orthonormal and orthogonal to the affine part
+    (:func:`orthonormal_modes`): formed a block of pixels at a time, one field a mode over the pixels."""
+    n = x.size
+    fields, norm2 = np.empty((vectors.shape[1], n)), np.zeros(vectors.shape[1])
+    if not vectors.shape[1]:
+        return fields
+    for s in pixel_blocks(n, block):
+        jac = jacobian_of(s)
+        jac -= _affine_rows(x, y, s) @ affine_coef
+        block_fields = (jac @ vectors).T
+        block_fields /= k_norm[s]
+        fields[:, s] = block_fields
+        norm2 += np.sum(block_fields**2, axis=1)
+    # over |K| the fields are no longer exactly affine-free: their affine fit taken out, as orthonormal_modes does
+    coef = _affine_coefficients(stacked_r(_affine_rows(x, y, s, fields[:, s].T) for s in pixel_blocks(n, block)))
+    for s in pixel_blocks(n, block):
+        fields[:, s] -= (_affine_rows(x, y, s) @ coef).T
+    return _svd_modes(fields, np.sqrt(norm2.max()))
