@@ -46,7 +46,7 @@ import numpy as np
 
 from dice_core import lazy
 from dice_core.geometry import UNOBSERVABLE_MODE, TwoSourceFit, wrapped_about_mean
-from dice_core.pixel_blocks import PIXEL_BLOCK, pixel_blocks, stacked_r
+from dice_core.pixel_blocks import pixel_blocks, stacked_r
 from dice_core.polynomials import polynomial_design, polynomial_scaling
 
 xr = lazy.module("xarray")
@@ -110,11 +110,6 @@ def initial_wavevector(frame: np.ndarray, mask: np.ndarray, *, pad: int = 8) -> 
     return 2 * np.pi * np.array([fx[ix] + dx / nx, fy[iy] + dy / ny])
 
 
-#: Pixels per block of the gauge's sweeps over the pixels (:func:`fix_gauge`): its smooth-polynomial basis
-#: is formed a block at a time, 8 MB at degree 6, never over every pixel (224 bytes a pixel at degree 6).
-GAUGE_BLOCK = PIXEL_BLOCK
-
-
 def _smooth_residual_gram(G, x, y, weight, degree, block):
     """rough' rough (3, 3), rough = G minus its least-squares fit by the smooth basis (the polynomials of
     ``degree`` times ``weight``, or unweighted for None): R22' R22 of the QR of [basis | G], swept over
@@ -158,7 +153,7 @@ def _boost_regression(G, M, x, y, degree, block):
     return -coef[-2:] / (2 * (1 - v**2))
 
 
-def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 6, block: int = GAUGE_BLOCK):
+def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 6, block: int | None = None):
     """Physical frame and pixel factors from any rank-3 factorisation of the fringe data.
 
     Parameters
@@ -173,7 +168,8 @@ def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 
     smooth_degree : int
         Degree of the polynomial that iota / flat is assumed to follow.
     block : int
-        Pixels per block of the sweeps over the pixels (:data:`GAUGE_BLOCK`): the smooth basis is
+        Pixels per block of the sweeps over the pixels (None: :data:`dice_core.pixel_blocks.PIXEL_BLOCK`, 8 MB
+        of smooth basis at degree 6, never over every pixel: 224 bytes a pixel): the smooth basis is
         formed a block at a time; the result is the same for any block, to rounding.
 
     Returns
@@ -248,7 +244,7 @@ def _lorentz_boost(b):
     return L
 
 
-def projected_offsets(theta, x, y, k_guess, *, block: int = PIXEL_BLOCK):
+def projected_offsets(theta, x, y, k_guess, *, block: int | None = None):
     """Wavevector and offsets from pixel phases theta = K.r + K.delta + constant.
 
     The plane K.r + constant is fitted (by least squares, after unwrapping
@@ -368,7 +364,7 @@ def frame_moments(F):
 
 
 def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bool = False,
-                 block: int = GAUGE_BLOCK):
+                 block: int | None = None):
     """Per-pixel 1-sigma offset error from photon and read noise for the unweighted temporal fit.
 
     Sample variance (adu^2) of pixel p at frame t: F_t.G_p / g + sigma_r^2; so

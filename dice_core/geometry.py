@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dice_core.pixel_blocks import PIXEL_BLOCK, pixel_blocks, stacked_r
+from dice_core.pixel_blocks import pixel_blocks, stacked_r
 
 __all__ = [
     "UNOBSERVABLE_MODE",
@@ -148,7 +148,7 @@ def tip_jacobian(x, y, tip_a, tip_b, *, wavelength, pixel_pitch) -> np.ndarray:
     return jacobian
 
 
-def wrapped_about_mean(phase, *, block: int = PIXEL_BLOCK):
+def wrapped_about_mean(phase, *, block: int | None = None):
     """Phases (rad) wrapped to (-pi, pi] about their circular mean.
 
     Wrapped about zero instead, phases spread around pi (a constant the gauge
@@ -237,7 +237,7 @@ def _affine_coefficients(R):
     return np.linalg.lstsq(R[:3, :3], R[:3, 3:], rcond=None)[0]
 
 
-def _without_affine(values, x, y, *, block: int = PIXEL_BLOCK):
+def _without_affine(values, x, y, *, block: int | None = None):
     """``values`` (sample,) minus their least-squares fit by 1, x, y: ``remove_modes(values, affine_basis(x, y))``
     to rounding, with the fit's sums taken ``block`` samples at a time (no (3, sample) basis formed)."""
     values = np.asarray(values, float)
@@ -361,9 +361,65 @@ def _unwrapped_start(theta, x, y, phase_of, k_plane, block):
     return sign, constant, plane
 
 
+@dataclass
+class _PhasePixels:
+    """The pixel phases ``theta`` at ``x``, ``y`` that :func:`fit_two_source` refines the tips from, and the
+    sums over them it needs, taken ``block`` pixels at a time (no array of more than one number a pixel)."""
+
+    theta: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    wavelength: float
+    pixel_pitch: float
+    block: int | None
+    sign: int = 1
+
+    def surface(self, tips, s):
+        """Phase and gradient of the tips' surface at the pixels ``s`` (:func:`two_source_phase`)."""
+        return two_source_phase(self.x[s], self.y[s], *tips, wavelength=self.wavelength, pixel_pitch=self.pixel_pitch)
+
+    def _centre_jacobian(self, tips):
+        centre = np.array([(self.x.max() + self.x.min()) / 2]), np.array([(self.y.max() + self.y.min()) / 2])
+        return tip_jacobian(*centre, *tips, wavelength=self.wavelength, pixel_pitch=self.pixel_pitch)[0]
+
+    def jacobian_centre(self, tips) -> np.ndarray:
+        """d (sign Phi) / d tips (6,) at the pixels' centre, rad per mm of tip."""
+        return self._centre_jacobian(tips) * (self.sign * 1e-3)
+
+    def jacobian(self, tips, s) -> np.ndarray:
+        """d (sign Phi) / d tips (pixel, 6) at the pixels ``s``, rad per mm of tip (for conditioning), minus
+        its value at the pixels' centre: the affine part, which the plane takes, is 1e6 times the rest, and
+        columns that large would cost the sums' QR 6 of their 16 digits; the constant leaves the affine-free
+        part as it is and moves the plane's constant by ``jacobian_centre`` . step."""
+        jac = tip_jacobian(self.x[s], self.y[s], *tips, wavelength=self.wavelength, pixel_pitch=self.pixel_pitch)
+        jac -= self._centre_jacobian(tips)
+        jac *= self.sign * 1e-3
+        return jac
+
+    def sums(self, tips, constant, plane, keep=None) -> np.ndarray:
+        """R (10, 10) of [1 | x | y | J | psi] at ``tips``, psi the residual phase, continuous: wrapped about
+        the surface sign Phi + ``constant`` + ``plane``.r, a fraction of a radian away. The plane takes the
+        affine part: J'J and J'psi of the affine-free parts are R22' R22 and R22' r2 (R22 = R[3:9, 3:9],
+        r2 = R[3:9, 9]), the affine-free residual's squared norm |R[3:, 9]|^2, the plane of psi - J step
+        R11^-1 (r1 - R12 step) (:func:`_affine_coefficients`). With ``keep`` = (model, psi, k_local), the
+        surface (pixel,), psi and the local wavevector (pixel, 2) are written into them."""
+        x, y, sign = self.x, self.y, self.sign
+
+        def rows(s):
+            phase, gx, gy = self.surface(tips, s)
+            model = sign * phase + constant + plane[0] * x[s] + plane[1] * y[s]
+            psi = _wrap(self.theta[s] - model)
+            if keep is not None:
+                keep[0][s], keep[1][s] = model, psi
+                keep[2][s, 0], keep[2][s, 1] = sign * gx + plane[0], sign * gy + plane[1]
+            return _affine_rows(x, y, s, self.jacobian(tips, s), psi)
+
+        return stacked_r(rows(s) for s in pixel_blocks(x.size, self.block))
+
+
 def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch, k_plane,
                    tip_sigma: float = 1e-3, max_iterations: int = 30, fibers=("a", "b"),
-                   label: str = "baseline", block: int = PIXEL_BLOCK) -> TwoSourceFit:
+                   label: str = "baseline", block: int | None = None) -> TwoSourceFit:
     """Refine a baseline's two fiber tips from its pixel phases and measure the offsets against their surface.
 
     Parameters
@@ -388,7 +444,7 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     label : str
         Names the baseline in logs and errors.
     block : int
-        Pixels a block (:data:`dice_core.pixel_blocks.PIXEL_BLOCK`): every sum over the pixels (the
+        Pixels a block (None: :data:`dice_core.pixel_blocks.PIXEL_BLOCK`): every sum over the pixels (the
         Gauss-Newton steps' J'J and J'psi, the affine fits, the modes' fields) is taken a block of
         pixels at a time, so that the Jacobian (6 numbers a pixel) is never formed over every pixel;
         the result is the same for any block, to rounding.
@@ -413,41 +469,27 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     theta, x, y = (np.asarray(v, float) for v in (theta, x, y))
     nominal = np.array([nominal_a, nominal_b], float)
     n = x.size
+    pixels = _PhasePixels(theta, x, y, wavelength, pixel_pitch, block)
+    pixels.sign, constant, plane = _unwrapped_start(theta, x, y, lambda s: pixels.surface(nominal, s), k_plane, block)
 
-    def surface(tips, s):
-        return two_source_phase(x[s], y[s], *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
-
-    def jacobian(tips, s):  # rad per mm of tip, for conditioning
-        jac = tip_jacobian(x[s], y[s], *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
-        jac *= sign
-        jac *= 1e-3
-        return jac
-
-    sign, constant, plane = _unwrapped_start(theta, x, y, lambda s: surface(nominal, s), k_plane, block)
-
-    def residual(tips, s):  # continuous: wrapped about the current surface, a fraction of a radian away
-        return _wrap(theta[s] - sign * surface(tips, s)[0] - constant - plane[0] * x[s] - plane[1] * y[s])
-
-    # The sums of a step: the R of [1 | x | y | J | psi] (10 x 10), a block of pixels at a time. The plane takes
-    # the affine part: J' J and J' psi of the affine-free parts are R22' R22 and R22' r2, the affine-free
-    # residual's squared norm |R[3:, 9]|^2, and the plane's update R11^-1 (r1 - R12 step).
     def noise_variance(R):
         # The noise the tips are fitted against is mostly the pixel offsets themselves (about 1e-3 pixel,
-        # white: docs/metrology.md), estimated from the residual phases; 1e-6 rad keeps noiseless phases
-        # (tests) from a singular system.
+        # white: docs/metrology.md), estimated from the residual phases (|R[3:, 9]|^2: the affine-free
+        # residual's); 1e-6 rad keeps noiseless phases (tests) from a singular system.
         return max(float(np.sum(R[3:, 9] ** 2)) / n, 1e-12)
 
     tips = nominal.copy()
     prior = (1e-3 / tip_sigma) ** 2  # in mm^-2
     for iterations in range(1, max_iterations + 1):
-        R = stacked_r(_affine_rows(x, y, s, jacobian(tips, s), residual(tips, s)) for s in pixel_blocks(n, block))
+        R = pixels.sums(tips, constant, plane)
         noise2 = noise_variance(R)
         normal = R[3:9, 3:9].T @ R[3:9, 3:9] / noise2 + prior * np.eye(6)
         rhs = R[3:9, 3:9].T @ R[3:9, 9] / noise2 - prior * (tips - nominal).ravel() * 1e3
         step = np.linalg.solve(normal, rhs)  # mm
-        tips = tips + step.reshape(2, 3) * 1e-3
         coef = _affine_coefficients(R)
         coef = coef[:, 6] - coef[:, :6] @ step  # the plane of psi - J step
+        coef[0] -= pixels.jacobian_centre(tips) @ step
+        tips = tips + step.reshape(2, 3) * 1e-3
         constant, plane = constant + coef[0], plane + coef[1:]
         # 10 nm: the largest non-affine response, 2.5e-3 pixel per mm of tip (docs), makes that 2.5e-8 pixel
         if np.max(np.abs(step)) * 1e-3 < 1e-8:
@@ -457,15 +499,7 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
                             f"converge in {max_iterations} iterations (last step {np.max(np.abs(step)):.2e} mm)")
 
     model, psi, k_local = np.empty(n), np.empty(n), np.empty((n, 2))
-
-    def final_rows(s):  # the surface, residual and local wavevector at the refined tips, kept
-        phase, gx, gy = surface(tips, s)
-        model[s] = sign * phase + constant + plane[0] * x[s] + plane[1] * y[s]
-        psi[s] = _wrap(theta[s] - model[s])
-        k_local[s, 0], k_local[s, 1] = sign * gx + plane[0], sign * gy + plane[1]
-        return _affine_rows(x, y, s, jacobian(tips, s), psi[s])
-
-    R = stacked_r(final_rows(s) for s in pixel_blocks(n, block))
+    R = pixels.sums(tips, constant, plane, keep=(model, psi, k_local))
     phase_rms = float(np.sqrt(np.sum(R[3:, 9] ** 2) / n))
     if phase_rms > 0.5:
         raise GeometryError(f"{label}: the pixel phases depart from the two-source surface of the refined tips "
@@ -486,8 +520,8 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     order = np.argsort(values)[::-1]
     values, vectors = values[order], vectors[:, order]
     absorbed = values > MODE_INFORMATION_THRESHOLD
-    modes = _absorbed_modes(lambda s: jacobian(tips, s), _affine_coefficients(R)[:, :6], vectors[:, absorbed],
-                            x, y, k_norm, block)
+    modes = _absorbed_modes(lambda s: pixels.jacobian(tips, s), _affine_coefficients(R)[:, :6],
+                            vectors[:, absorbed], x, y, k_norm, block)
     offsets = psi
     offsets /= k_norm
     offsets = _without_orthonormal(_without_affine(offsets, x, y, block=block), modes)
@@ -499,7 +533,7 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
              *fibers, iterations, np.array2string(shift * 1e3, precision=3), phase_rms, len(modes),
              np.array2string(values, precision=2))
     return TwoSourceFit(tips=tips, tip_errors=np.sqrt(np.diag(covariance)).reshape(2, 3), tip_covariance=covariance,
-                        nominal=nominal, sign=sign, k_local=k_local, offsets=offsets, modes=modes,
+                        nominal=nominal, sign=pixels.sign, k_local=k_local, offsets=offsets, modes=modes,
                         information=values, tip_modes=vectors, phase_rms=phase_rms, iterations=iterations,
                         plane_wave_departure=departure, surface=model, x=x, y=y)
 

@@ -16,12 +16,14 @@ import numpy as np
 
 __all__ = ["PIXEL_BLOCK", "pixel_blocks", "stacked_r"]
 
-#: Pixels per block: a degree-6 smooth basis of a block (28 columns) is 7 MB, whatever the detector.
+#: Pixels per block: a degree-6 smooth basis of a block (28 columns) is 7 MB, whatever the detector. Read
+#: when a sweep starts: the functions that sweep take ``block=None`` for it.
 PIXEL_BLOCK = 1 << 15
 
 
-def pixel_blocks(n, block=PIXEL_BLOCK):
-    """Consecutive slices of ``block`` of ``n`` pixels (the last one shorter)."""
+def pixel_blocks(n, block=None):
+    """Consecutive slices of ``block`` (None: :data:`PIXEL_BLOCK`) of ``n`` pixels (the last one shorter)."""
+    block = PIXEL_BLOCK if block is None else int(block)
     return (slice(start, min(start + block, n)) for start in range(0, n, block))
 
 
