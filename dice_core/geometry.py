@@ -300,7 +300,7 @@ class TwoSourceFit:
     surface : ndarray (pixel,)
         The fitted phase, sign Phi + c + a.r, rad.
     x, y : ndarray (pixel,)
-        The pixels' coordinates, pixel (the caller's arrays, not copies).
+        The pixels' coordinates, pixel (the arrays given to :func:`fit_two_source`, not copies of them).
     """
 
     tips: np.ndarray
