@@ -990,8 +990,8 @@ def _pixel_solution(passes: _Passes, x, y, *, geometry, read_noise, gain, label,
                                     fibers=geometry.fibers, label=label)
         k, k_norm = two_source.k_local.mean(axis=0), np.hypot(*two_source.k_local.T)
     floor /= k_norm
-    return _PixelSolution(theta=theta, iota=iota, alpha=alpha, floor=floor, k=k,
-                          level=F_phys[:, 0] * iota.mean(), amplitude=np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean(),
+    return _PixelSolution(theta=theta, iota=iota, alpha=alpha, floor=floor, k=k, level=F_phys[:, 0] * iota.mean(),
+                          amplitude=np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean(),
                           phase=np.arctan2(F_phys[:, 2], F_phys[:, 1]), two_source=two_source)
 
 
