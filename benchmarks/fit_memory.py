@@ -77,13 +77,13 @@ elif job.startswith("reduce"):
     parts = sorted(folder.glob(f"part_{n}_*.nc"))
     product = fringe_fit.reduce_dataset(state, parts)
     io.write_product(product, output, title="state")
-else:
+else:  # as workflow/scripts/fit_finish.py: the dark's noise only, the state dropped before the product
     manifest = load_manifest(folder / "raw" / "dataset.yaml")
-    dark = io.read_product(folder / "dark.nc")
+    read_noise = io.read_product(folder / "dark.nc")["noise"].values
     geometry = geometry_of(manifest)
     state = fringe_fit.state_from_dataset(io.read_product(last_state))
-    solution = fringe_fit.finish_fit(state, detector=manifest.detector, read_noise=dark["noise"].values,
-                                     geometry=geometry)
+    solution = fringe_fit.finish_fit(state, detector=manifest.detector, read_noise=read_noise, geometry=geometry)
+    del state, read_noise
     product = fringes.metrology_product(solution, manifest.detector, baseline="H1H4", geometry=geometry)
     io.write_product(product, output, title="metrology")
 print(json.dumps({"base_mb": base, "peak_mb": status("VmHWM"), "file": dice_core.__file__}))

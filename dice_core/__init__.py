@@ -20,6 +20,7 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.detector` -- the pixel-response model (truncated hyper-Gaussian PRFs);
 - :mod:`dice_core.simulation` -- the simulated DICE testbed;
 - :mod:`dice_core.polynomials` -- 2-D polynomial surfaces shared by the fits;
+- :mod:`dice_core.pixel_blocks` -- least-squares sums over the pixels taken a block of pixels at a time;
 - :mod:`dice_core.parallel` -- worker processes and BLAS threads of the streaming reductions;
 - :mod:`dice_core.plotting` -- the paper's figures;
 - :mod:`dice_core.paper_method` -- the paper's own fringe reduction as its text describes it, for comparison;

@@ -37,6 +37,7 @@ from dice_core.geometry import BaselineGeometry, TwoSourceFit, fit_two_source
 from dice_core.io import Chunk, FrameStream, first_chunk
 from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
                                 threads_report)
+from dice_core.pixel_blocks import pixel_blocks
 
 xr = lazy.module("xarray")  # products only: a fit job reaches its first line before xarray and pandas load
 
@@ -419,13 +420,11 @@ class FitState:
         """Row-major indices of the science pixels."""
         return self.rows * self.n_cols + self.cols
 
-    @property
-    def x(self) -> np.ndarray:
-        return self.cols.astype(float)
-
-    @property
-    def y(self) -> np.ndarray:
-        return self.rows.astype(float)
+    def coordinates(self, pixels=None) -> tuple[np.ndarray, np.ndarray]:
+        """x, y (pixel) of the science pixels ``pixels`` selects (a bool mask or indices; all without), as
+        floats formed for those pixels only."""
+        cols, rows = (self.cols, self.rows) if pixels is None else (self.cols[pixels], self.rows[pixels])
+        return cols.astype(float), rows.astype(float)
 
 
 def start_fit(stream, dark, *, detector, flat=None, tolerance=1e-7, max_passes=10, min_contrast=0.02,
@@ -454,7 +453,7 @@ def start_fit(stream, dark, *, detector, flat=None, tolerance=1e-7, max_passes=1
     state = FitState(rows, cols, detector.shape[1], centre, centre - dark0.ravel(), subtract_centre, k0,
                      None if flat is None else np.asarray(flat, np.float64).ravel()[rows * detector.shape[1] + cols],
                      options, flagged=bad.ravel()[rows * detector.shape[1] + cols])
-    x, y = state.x, state.y
+    x, y = state.coordinates()
     G, extra = perfect_pixel_design(k0, x - x.mean(), y - y.mean())
     G[state.flagged] = 0.0  # bad pixels out of the frame fits from the first pass on
     extra[state.flagged] = 0.0
@@ -517,7 +516,7 @@ def reduce_pass(state: FitState, results, *, n_lanes) -> FitState:
     active = state.active
     F = coef[:, :3]
     G_new = np.linalg.solve(FtF, FtI).T
-    fx, fy = state.cols[active].astype(float), state.rows[active].astype(float)  # (not every pixel's x, y)
+    fx, fy = state.coordinates(active)
     flat_px = None if state.flat is None else np.nan_to_num(state.flat[active], nan=1.0)
     M = fix_gauge(F, G_new, flat=flat_px, x=fx, y=fy, smooth_degree=options["smooth_degree"])
     F_phys, G_phys = F @ M, G_new @ np.linalg.inv(M).T
@@ -573,7 +572,7 @@ def _converged_passes(state: FitState) -> _Passes:
         if not active.any():
             raise FringeError(f"{label}: no pixel converged to {tolerance:.1e} pixel in {max_passes} passes")
         G_phys = G_phys[~moving]
-        fx, fy = state.x[state.active][~moving], state.y[state.active][~moving]
+        fx, fy = state.coordinates(active)
         k, fitted = projected_offsets(np.arctan2(G_phys[:, 1], G_phys[:, 2]), fx, fy, state.k_frame.mean(axis=0))
         offsets = _on_active(fitted, active)
     else:
@@ -588,26 +587,41 @@ def finish_fit(state: FitState, *, detector, read_noise=None,
 
     ``read_noise`` (row, col) and ``geometry`` as in :func:`fit_baseline`.
     Pixels still moving after the last pass of an unconverged fit are masked
-    here, the plane of K taken over the others.
+    here, the plane of K taken over the others. The state is spent: its pixel
+    factors, the halves' F'I and the flat are dropped from it once used,
+    before the two-source fit, so that a caller holding no other reference to
+    them (the split fit's ``fit_finish`` job, :func:`fit_baseline`) frees them
+    (64 bytes a pixel); a spent state cannot be finished again.
     """
     label, smooth_degree = state.options["label"], state.options["smooth_degree"]
+    if state.done and state.G is None:
+        raise ValueError(f"{label}: the state was finished already (finish_fit drops its pixel factors)")
     passes = _converged_passes(state)
     active = passes.active
     # the active pixels' coordinates only, formed once (every array here spans the pixels)
-    idx, x, y = state.idx[active], state.cols[active].astype(float), state.rows[active].astype(float)
-    factors = _pixel_solution(passes, x, y, geometry=geometry,
-                              read_noise=None if read_noise is None else read_noise.ravel()[idx],
-                              gain=detector.gain, label=label)
+    x, y = state.coordinates(active)
+    idx = state.idx[active]
+    noise = None if read_noise is None else read_noise.ravel()[idx]
+    phases = None
+    if state.flat is not None:  # the diagnostic's gauges while the pixel factors and halves are there
+        phases = _diagnostic_phases(passes, x, y, np.nan_to_num(state.flat[active], nan=1.0),
+                                    np.isin(passes.parts_idx, idx), smooth_degree=smooth_degree, label=label)
+    del idx
+
+    def spend():
+        state.G = state.flat = state.parts_idx = passes.G = None
+        state.parts, passes.parts = [], []
+
+    factors = _pixel_solution(passes, x, y, geometry=geometry, read_noise=noise, gain=detector.gain, label=label,
+                              spend=spend)
+    del noise
     offsets = passes.offsets if factors.two_source is None else _on_active(factors.two_source.offsets, active)
     if passes.faint.any():
         log.warning("%s: %d pixel(s) without fringe contrast masked", label, passes.faint.sum())
     offsets_prnu_free = gauge_floor = None
-    if state.flat is not None:
-        offsets_prnu_free, gauge_floor = _gauge_diagnostic(
-            passes, factors, x, y, np.nan_to_num(state.flat[active], nan=1.0),
-            np.isin(passes.parts_idx, idx), smooth_degree=smooth_degree, label=label)
-        if offsets_prnu_free is not None:
-            offsets_prnu_free = _on_active(offsets_prnu_free, active)
+    if phases is not None:
+        offsets_prnu_free, gauge_floor = _diagnostic_offsets(phases, factors, x, y, label=label)
+        offsets_prnu_free = _on_active(offsets_prnu_free, active)
     reasons = {"bad_pixel": int(passes.flagged.sum()), "saturated": int(passes.saturated.sum()),
                "no_contrast": int(passes.faint.sum()), "unconverged": int(passes.unconverged.sum())}
     iota, alpha = factors.iota, factors.alpha
@@ -954,31 +968,58 @@ class _PixelSolution:
     two_source: TwoSourceFit | None
 
 
-def _pixel_solution(passes: _Passes, x, y, *, geometry, read_noise, gain, label) -> _PixelSolution:
+def _pixel_solution(passes: _Passes, x, y, *, geometry, read_noise, gain, label, spend=None) -> _PixelSolution:
     """Pixel phases, iota, alpha and photon floors (at the active pixels ``x``, ``y``), B(t), A(t), phi(t)
     and the mean K of the converged factors; with a ``geometry``, the phases measured against the
-    two-source surface of the refined tips (K then the mean of the local wavevectors)."""
+    two-source surface of the refined tips (K then the mean of the local wavevectors). ``spend()`` is called
+    once the pixel factors are used, before the two-source fit."""
     F_phys, G_phys, k = passes.F, passes.G, passes.k
     theta = np.arctan2(G_phys[:, 1], G_phys[:, 2])
+    iota = G_phys[:, 0].copy()
+    alpha = np.hypot(G_phys[:, 1], G_phys[:, 2])
+    noise_px = np.zeros(x.size) if read_noise is None else np.nan_to_num(read_noise)
+    # at |K| = 1, divided by each pixel's |K| once known: the same bits (x / 1 is x)
+    floor = photon_floor(G_phys, passes.FtF, third=passes.third, gain=gain, read_noise=noise_px, k_norm=1.0)
+    del G_phys, noise_px
+    if spend is not None:
+        spend()
     two_source, k_norm = None, np.hypot(*k)
     if geometry is not None:
         two_source = fit_two_source(theta, x, y, *geometry.nominal, wavelength=geometry.wavelength,
                                     pixel_pitch=geometry.pixel_pitch, k_plane=k, tip_sigma=geometry.tip_sigma,
                                     fibers=geometry.fibers, label=label)
         k, k_norm = two_source.k_local.mean(axis=0), np.hypot(*two_source.k_local.T)
-    noise_px = np.zeros(x.size) if read_noise is None else np.nan_to_num(read_noise)
-    iota = G_phys[:, 0]
-    alpha = np.hypot(G_phys[:, 1], G_phys[:, 2])
-    return _PixelSolution(theta=theta, iota=iota, alpha=alpha,
-                          floor=photon_floor(G_phys, passes.FtF, third=passes.third, gain=gain,
-                                                     read_noise=noise_px, k_norm=k_norm), k=k,
-                          level=F_phys[:, 0] * iota.mean(), amplitude=np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean(),
+    floor /= k_norm
+    return _PixelSolution(theta=theta, iota=iota, alpha=alpha, floor=floor, k=k, level=F_phys[:, 0] * iota.mean(),
+                          amplitude=np.hypot(F_phys[:, 1], F_phys[:, 2]) * alpha.mean(),
                           phase=np.arctan2(F_phys[:, 2], F_phys[:, 1]), two_source=two_source)
 
 
-def _gauge_diagnostic(passes: _Passes, solution: _PixelSolution, x, y, flat, keep, *, smooth_degree, label):
-    """The offsets under the PRNU-free gauge (active pixels ``x``, ``y``) and the noise of their difference
-    from the flat gauge's (pixel); None for what cannot be formed.
+def _phases(G, inv_t):
+    """Pixel phases (rad) of pixel factors ``G`` (pixel, 3) under the gauge ``inv(M).T`` (3, 3), a block of
+    pixels at a time (the gauged factors never over every pixel)."""
+    theta = np.empty(G.shape[0])
+    for s in pixel_blocks(G.shape[0]):
+        Gp = G[s] @ inv_t
+        theta[s] = np.arctan2(Gp[:, 1], Gp[:, 2])
+    return theta
+
+
+def _part_factors(F_part, FtI_part, keep):
+    """The pixel factors (pixel, 3) of a part of the frames, at the pixels ``keep`` selects of its F'I
+    (3, part pixel): solved a block of pixels at a time (no copy of the part's F'I at the pixels)."""
+    FtF, pixels = F_part.T @ F_part, np.flatnonzero(keep)
+    G = np.empty((pixels.size, 3))
+    for s in pixel_blocks(pixels.size):
+        G[s] = np.linalg.solve(FtF, FtI_part[:, pixels[s]]).T
+    return G
+
+
+def _diagnostic_phases(passes: _Passes, x, y, flat, keep, *, smooth_degree, label):
+    """The pixel phases of the gauge diagnostic (:func:`_diagnostic_offsets`), at the active pixels ``x``,
+    ``y``: (the whole frames' under the PRNU-free gauge, [(a part's under the flat's gauge, under the
+    PRNU-free gauge, the part's frames) for each independent part of the frames] or None), or None; what
+    cannot be formed is logged.
 
     The diagnostic of a flat that is not the laser's response (chromatic PRNU,
     speckle): the same factorisation under the PRNU-free gauge (the pixel
@@ -986,41 +1027,57 @@ def _gauge_diagnostic(passes: _Passes, solution: _PixelSolution, x, y, flat, kee
     does not enter. The passes do not depend on the gauge, so this costs no
     pass. The noise comes from the gauge difference of each independent part
     of the frames (the lanes; ``keep`` selects the active pixels among
-    ``passes.parts_idx``): for two halves, the full data's difference has the
-    noise of half their difference.
+    ``passes.parts_idx``). Phases only, one number a pixel each, taken before
+    the two-source fit: the parts' F'I and pixel factors are not held beside it.
     """
+    def phases_under(F_any, G_any, use_flat):
+        M_any = fix_gauge(F_any, G_any, flat=flat if use_flat else None, x=x, y=y, smooth_degree=smooth_degree)
+        return _phases(G_any, np.linalg.inv(M_any).T)
+
+    try:
+        free = phases_under(passes.F, passes.G, False)
+    except FringeError as exc:  # a diagnostic must not fail a fit the flat's gauge made
+        log.warning("%s: no PRNU-free gauge for the diagnostic (%s)", label, exc)
+        return None
+    try:
+        halves = []
+        for F_part, FtI_part in passes.parts:
+            G_part = _part_factors(F_part, FtI_part, keep)
+            halves.append((phases_under(F_part, G_part, True), phases_under(F_part, G_part, False), F_part.shape[0]))
+            del G_part
+    except (FringeError, np.linalg.LinAlgError) as exc:
+        log.warning("%s: no noise floor for the gauge difference (%s)", label, exc)
+        halves = None
+    return free, halves
+
+
+def _diagnostic_offsets(phases, solution: _PixelSolution, x, y, *, label):
+    """The offsets under the PRNU-free gauge (active pixels ``x``, ``y``) and the noise of their difference
+    from the flat gauge's (pixel; None when it cannot be formed), from :func:`_diagnostic_phases`' phases:
+    each measured as the solution's offsets are (against the same two-source surface, or the plane), the
+    phases turned the way of the solution's K. For two halves, the full data's difference has the noise of
+    half their difference."""
     k, two_source = solution.k, solution.two_source
 
-    def offsets_under(F_any, G_any, use_flat):
-        """Offsets (active pixels) of a factorisation under one gauge, turned the way of ``k``."""
-        M_any = fix_gauge(F_any, G_any, flat=flat if use_flat else None, x=x, y=y, smooth_degree=smooth_degree)
-        G_gauged = G_any @ np.linalg.inv(M_any).T
-        theta_any = np.arctan2(G_gauged[:, 1], G_gauged[:, 2])
-        del G_gauged
+    def offsets_of(theta_any):
+        """Offsets (active pixels) of phases under one gauge, turned the way of ``k``."""
         k_any, plane = projected_offsets(theta_any, x, y, k)
         if two_source is not None:  # against the same surface, the phases turned the same way
             return two_source.offsets_of(theta_any if k_any @ k > 0 else -theta_any)
         return plane if k_any @ k > 0 else -plane
 
-    try:
-        free = offsets_under(passes.F, passes.G, False)
-    except FringeError as exc:  # a diagnostic must not fail a fit the flat's gauge made
-        log.warning("%s: no PRNU-free gauge for the diagnostic (%s)", label, exc)
-        return None, None
-    try:
-        halves = []
-        for F_part, FtI_part in passes.parts:
-            G_part = np.linalg.solve(F_part.T @ F_part, FtI_part[:, keep]).T
-            difference = offsets_under(F_part, G_part, True)
-            difference -= offsets_under(F_part, G_part, False)
-            halves.append(difference)
-            del G_part, difference
-    except (FringeError, np.linalg.LinAlgError) as exc:
-        log.warning("%s: no noise floor for the gauge difference (%s)", label, exc)
+    free_phases, halves = phases
+    free = offsets_of(free_phases)
+    if halves is None:
         return free, None
     if len(halves) != 2:
         log.info("%s: the frames are one part (one file): no noise floor for the gauge difference", label)
         return free, None
+    differences = []
+    for flat_phases, free_part_phases, _ in halves:
+        difference = offsets_of(flat_phases)
+        difference -= offsets_of(free_part_phases)
+        differences.append(difference)
     # the whole is (n1 d1 + n2 d2) / (n1 + n2): of noise rms(d1 - d2) sqrt(n1 n2) / (n1 + n2)
-    n1, n2 = (F_part.shape[0] for F_part, _ in passes.parts)
-    return free, float(np.sqrt(np.mean((halves[0] - halves[1]) ** 2) * n1 * n2) / (n1 + n2))
+    (_, _, n1), (_, _, n2) = halves
+    return free, float(np.sqrt(np.mean((differences[0] - differences[1]) ** 2) * n1 * n2) / (n1 + n2))

@@ -46,6 +46,7 @@ import numpy as np
 
 from dice_core import lazy
 from dice_core.geometry import UNOBSERVABLE_MODE, TwoSourceFit, wrapped_about_mean
+from dice_core.pixel_blocks import pixel_blocks, stacked_r
 from dice_core.polynomials import polynomial_design, polynomial_scaling
 
 xr = lazy.module("xarray")
@@ -109,26 +110,6 @@ def initial_wavevector(frame: np.ndarray, mask: np.ndarray, *, pad: int = 8) -> 
     return 2 * np.pi * np.array([fx[ix] + dx / nx, fy[iy] + dy / ny])
 
 
-#: Pixels per block of the gauge's sweeps over the pixels (:func:`fix_gauge`): its smooth-polynomial basis
-#: is formed a block at a time, 8 MB at degree 6, never over every pixel (224 bytes a pixel at degree 6).
-GAUGE_BLOCK = 1 << 15
-
-
-def _pixel_blocks(n, block):
-    """Consecutive slices of ``block`` of ``n`` pixels (the last one shorter)."""
-    return (slice(start, min(start + block, n)) for start in range(0, n, block))
-
-
-def _stacked_r(blocks) -> np.ndarray:
-    """R (column, column), square, of the QR factorisation of the rows of ``blocks`` stacked, taken a block
-    at a time (a sequential tall-skinny QR: the R of [R; next block] each time), so that the stacked matrix
-    is never formed; rows of zeros complete it when there are fewer rows than columns."""
-    R = None
-    for rows in blocks:
-        R = np.linalg.qr(rows if R is None else np.vstack([R, rows]), mode="r")
-    return np.vstack([R, np.zeros((R.shape[1] - R.shape[0], R.shape[1]))]) if R.shape[0] < R.shape[1] else R
-
-
 def _smooth_residual_gram(G, x, y, weight, degree, block):
     """rough' rough (3, 3), rough = G minus its least-squares fit by the smooth basis (the polynomials of
     ``degree`` times ``weight``, or unweighted for None): R22' R22 of the QR of [basis | G], swept over
@@ -141,7 +122,7 @@ def _smooth_residual_gram(G, x, y, weight, degree, block):
             basis *= weight[s, None]
         return np.hstack([basis, G[s]])
 
-    R = _stacked_r(rows(s) for s in _pixel_blocks(G.shape[0], block))
+    R = stacked_r(rows(s) for s in pixel_blocks(G.shape[0], block))
     rough = R[-3:, -3:]
     return rough.T @ rough
 
@@ -154,7 +135,7 @@ def _boost_regression(G, M, x, y, degree, block):
 
     inv_t = np.linalg.inv(M).T
     rho2 = np.empty(G.shape[0])
-    for s in _pixel_blocks(G.shape[0], block):
+    for s in pixel_blocks(G.shape[0], block):
         Gp = G[s] @ inv_t
         rho2[s] = np.sum((Gp[:, 1:] / Gp[:, :1]) ** 2, axis=1)
     v = np.sqrt(np.median(rho2))
@@ -167,12 +148,12 @@ def _boost_regression(G, M, x, y, degree, block):
         return np.column_stack([polynomial_design(x[s], y[s], degree=degree, scaling=scaling),
                                 v * np.sin(theta), v * np.cos(theta), rho2[s]])
 
-    R = _stacked_r(rows(s) for s in _pixel_blocks(G.shape[0], block))
+    R = stacked_r(rows(s) for s in pixel_blocks(G.shape[0], block))
     coef = scipy.linalg.solve_triangular(R[:-1, :-1], R[:-1, -1])
     return -coef[-2:] / (2 * (1 - v**2))
 
 
-def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 6, block: int = GAUGE_BLOCK):
+def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 6, block: int | None = None):
     """Physical frame and pixel factors from any rank-3 factorisation of the fringe data.
 
     Parameters
@@ -187,7 +168,8 @@ def fix_gauge(frame_factors, pixel_factors, *, flat, x, y, smooth_degree: int = 
     smooth_degree : int
         Degree of the polynomial that iota / flat is assumed to follow.
     block : int
-        Pixels per block of the sweeps over the pixels (:data:`GAUGE_BLOCK`): the smooth basis is
+        Pixels per block of the sweeps over the pixels (None: :data:`dice_core.pixel_blocks.PIXEL_BLOCK`, 8 MB
+        of smooth basis at degree 6, never over every pixel: 224 bytes a pixel): the smooth basis is
         formed a block at a time; the result is the same for any block, to rounding.
 
     Returns
@@ -262,13 +244,15 @@ def _lorentz_boost(b):
     return L
 
 
-def projected_offsets(theta, x, y, k_guess):
+def projected_offsets(theta, x, y, k_guess, *, block: int | None = None):
     """Wavevector and offsets from pixel phases theta = K.r + K.delta + constant.
 
     The plane K.r + constant is fitted (by least squares, after unwrapping
     against ``k_guess``) and removed; the residual divided by |K| is the offset
     projected on K, with zero mean and zero gradient over the pixels given, as
-    the dataset format defines it.
+    the dataset format defines it. The fits' sums are taken ``block`` pixels at
+    a time (:mod:`dice_core.pixel_blocks`): its temporaries are a few arrays of
+    one number a pixel, never the (pixel, 3) design.
 
     Returns
     -------
@@ -277,21 +261,34 @@ def projected_offsets(theta, x, y, k_guess):
     offsets : ndarray (pixel,)
         Projected offsets, pixel.
     """
-    design = np.column_stack([np.ones_like(x), x, y])
+    theta, x, y = (np.asarray(v, float) for v in (theta, x, y))
+
+    def wrapped(k):
+        psi = theta - k[0] * x
+        psi -= k[1] * y
+        return wrapped_about_mean(psi, block=block)
+
+    def plane(psi):  # least-squares coefficients of 1, x, y
+        R = stacked_r(np.column_stack([np.ones(s.stop - s.start), x[s], y[s], psi[s]])
+                      for s in pixel_blocks(psi.size, block))
+        return np.linalg.lstsq(R[:3, :3], R[:3, 3], rcond=None)[0]
+
     best = None
     for sign in (1.0, -1.0):  # theta may run along -K_guess
         k = sign * np.asarray(k_guess, float)
         for _ in range(3):
-            psi = wrapped_about_mean(theta - k[0] * x - k[1] * y)
-            coef, *_ = np.linalg.lstsq(design, psi, rcond=None)
-            k = k + coef[1:]
-        psi = wrapped_about_mean(theta - k[0] * x - k[1] * y)
-        coef, *_ = np.linalg.lstsq(design, psi, rcond=None)
-        residual = psi - design @ coef
+            k = k + plane(wrapped(k))[1:]
+        residual = wrapped(k)
+        coef = plane(residual)
+        residual -= coef[0]
+        residual -= coef[1] * x
+        residual -= coef[2] * y
         if best is None or np.std(residual) < np.std(best[1]):
             best = (k + coef[1:], residual)
+        del residual
     k, residual = best
-    return k, residual / np.hypot(*k)
+    residual /= np.hypot(*k)
+    return k, residual
 
 
 @dataclass
@@ -367,7 +364,7 @@ def frame_moments(F):
 
 
 def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bool = False,
-                 block: int = GAUGE_BLOCK):
+                 block: int | None = None):
     """Per-pixel 1-sigma offset error from photon and read noise for the unweighted temporal fit.
 
     Sample variance (adu^2) of pixel p at frame t: F_t.G_p / g + sigma_r^2; so
@@ -392,7 +389,7 @@ def photon_floor(G_phys, FtF, *, third, gain, read_noise, k_norm, phase_only: bo
     read_noise = np.broadcast_to(np.asarray(read_noise, float), (n,))
     k_norm = np.broadcast_to(np.asarray(k_norm, float), (n,))
     floor = np.empty(n)
-    for s in _pixel_blocks(n, block):
+    for s in pixel_blocks(n, block):
         floor[s] = _photon_floor_block(G_phys[s], FtF, third, gain, read_noise[s], k_norm[s], phase_only)
     return floor
 

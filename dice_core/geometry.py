@@ -52,6 +52,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from dice_core.pixel_blocks import pixel_blocks, stacked_r
+
 __all__ = [
     "UNOBSERVABLE_MODE",
     "MODE_INFORMATION_THRESHOLD",
@@ -78,8 +80,8 @@ UNOBSERVABLE_MODE = {"units": "1", "long_name": "unobservable offset mode beyond
 
 #: Largest phase (rad) that the tips' uncertainty may put, at 3 sigma, on a pixel of a stage of the tips'
 #: refinement beyond the affine part. The refinement fits wrapped phase residuals: where they pass +-pi its
-#: Gauss-Newton steps wander (a 2048x2048 detector at 600 mm, tips 1 mm off: up to 12 rad), so a large detector is
-#: refined from its centre out, over discs it can trust (:func:`fit_two_source`).
+#: Gauss-Newton steps wander (a 2048x2048 detector at 600 mm, tips 1 mm off: up to 12 rad), so a large detector
+#: is refined from its centre out, over discs it can trust (:func:`fit_two_source`).
 STAGE_PHASE_LIMIT = 1.0
 #: Fewest pixels of the first stage of a refinement in stages.
 STAGE_MIN_PIXELS = 200
@@ -161,14 +163,24 @@ def tip_jacobian(x, y, tip_a, tip_b, *, wavelength, pixel_pitch) -> np.ndarray:
     return jacobian
 
 
-def wrapped_about_mean(phase):
+def wrapped_about_mean(phase, *, block: int | None = None):
     """Phases (rad) wrapped to (-pi, pi] about their circular mean.
 
     Wrapped about zero instead, phases spread around pi (a constant the gauge
     leaves free) would split between +pi and -pi, a whole period apart.
+    Formed ``block`` phases at a time: the complex exponentials never span
+    every phase (32 bytes a phase each); the mean is summed block by block.
     """
-    centre = np.angle(np.mean(np.exp(1j * phase)))
-    return np.angle(np.exp(1j * (phase - centre)))
+    phase = np.asarray(phase, float)
+    flat = phase.reshape(-1)
+    total = 0j
+    for s in pixel_blocks(flat.size, block):
+        total += np.exp(1j * flat[s]).sum()
+    centre = np.angle(total / flat.size)
+    out = np.empty_like(flat)
+    for s in pixel_blocks(flat.size, block):
+        out[s] = _wrap(flat[s] - centre)
+    return out.reshape(phase.shape)
 
 
 def _wrap(phase):
@@ -200,6 +212,13 @@ def orthonormal_modes(fields, *, against=None):
         projection = (fields @ basis.T) @ basis
         fields = np.subtract(fields, projection, out=projection)
         del basis
+    return _svd_modes(fields, scale)
+
+
+def _svd_modes(fields, scale):
+    """The left singular vectors of ``fields`` (mode, sample) whose singular value is above 1e-9 ``scale``,
+    times sqrt(sample): :func:`orthonormal_modes` of fields already orthogonal to what they are made against."""
+    n = fields.shape[1]
     u, s, _ = np.linalg.svd(fields.T, full_matrices=False)
     del fields
     modes = u[:, s > 1e-9 * scale].T
@@ -220,6 +239,38 @@ def remove_modes(values, modes):
     basis /= np.sqrt(values.size)
     projection = basis.T @ (basis @ values)
     return np.subtract(values, projection, out=projection)
+
+
+def _affine_rows(x, y, s, *columns):
+    """The rows [1, x, y, columns...] of the samples ``s`` (a slice), columns given for those samples."""
+    return np.column_stack([np.ones(s.stop - s.start), x[s], y[s], *columns])
+
+
+def _affine_coefficients(R):
+    """Least-squares coefficients (3, column) on 1, x, y of the columns after the first three, from the R of
+    [1 | x | y | columns] (:func:`dice_core.pixel_blocks.stacked_r`)."""
+    return np.linalg.lstsq(R[:3, :3], R[:3, 3:], rcond=None)[0]
+
+
+def _without_affine(values, x, y, *, block: int | None = None):
+    """``values`` (sample,) minus their least-squares fit by 1, x, y: ``remove_modes(values, affine_basis(x, y))``
+    to rounding, with the fit's sums taken ``block`` samples at a time (no (3, sample) basis formed)."""
+    values = np.asarray(values, float)
+    n = values.size
+    R = stacked_r(_affine_rows(x, y, s, values[s]) for s in pixel_blocks(n, block))
+    coef = _affine_coefficients(R)[:, 0]
+    out = values - coef[0]
+    for s in pixel_blocks(n, block):
+        out[s] -= coef[1] * x[s] + coef[2] * y[s]
+    return out
+
+
+def _without_orthonormal(values, modes):
+    """``values`` (sample,) minus their projection on ``modes`` (mode, sample), orthonormal with unit rms (as
+    :func:`orthonormal_modes` makes them), in place: :func:`remove_modes` to rounding, no basis made again."""
+    if len(modes):
+        values -= ((modes @ values) / values.size) @ modes
+    return values
 
 
 @dataclass
@@ -263,6 +314,8 @@ class TwoSourceFit:
         plane-wave reduction would have put into the offsets.
     surface : ndarray (pixel,)
         The fitted phase, sign Phi + c + a.r, rad.
+    x, y : ndarray (pixel,)
+        The pixels' coordinates, pixel (the arrays given to :func:`fit_two_source`, not copies of them).
     """
 
     tips: np.ndarray
@@ -279,7 +332,13 @@ class TwoSourceFit:
     iterations: int
     plane_wave_departure: np.ndarray
     surface: np.ndarray
-    affine: np.ndarray  # (3, pixel): 1, x, y
+    x: np.ndarray
+    y: np.ndarray
+
+    @property
+    def affine(self) -> np.ndarray:
+        """The affine fields 1, x, y of the pixels (3, pixel), formed when asked (:func:`affine_basis`)."""
+        return affine_basis(self.x, self.y)
 
     def offsets_of(self, theta) -> np.ndarray:
         """Offsets (pixel) of other pixel phases (rad, same pixels) against this fit's surface and modes.
@@ -287,37 +346,128 @@ class TwoSourceFit:
         The phases' constant is taken out (their difference from the surface
         wrapped about its circular mean: another gauge may rotate them), then
         the affine part and the modes, in offset space; the tips are this fit's.
+        Its temporaries: a few arrays of one number a pixel.
         """
         psi = wrapped_about_mean(np.asarray(theta, float) - self.surface)
-        offsets = remove_modes(psi / np.hypot(*self.k_local.T), self.affine)
-        return remove_modes(offsets, self.modes)
+        psi /= np.hypot(*self.k_local.T)
+        return _without_orthonormal(_without_affine(psi, self.x, self.y), self.modes)
 
 
-def _unwrapped_start(theta, phase0, mean_gradient, k_plane, affine):
-    """The sign of the surface (``phase0``: the nominal tips'; ``mean_gradient`` its mean gradient over the
-    pixels ``k_plane`` was fitted on, rad/pixel) that runs the way of ``k_plane``, and the constant and plane
-    (rad, rad/pixel) that unwrap ``theta`` (over the pixels of ``phase0`` and ``affine``) against it."""
-    sign = 1 if float(mean_gradient @ np.asarray(k_plane, float)) > 0 else -1
+def _unwrapped_start(theta, x, y, phase_of, k_plane, block, *, gradient=None):
+    """The sign of the surface of the nominal tips (``phase_of(s)``: its phase and gradient at the pixels
+    ``s``) that runs the way of ``k_plane``, and the constant and plane (rad, rad/pixel) that unwrap ``theta``
+    against it; sums over the pixels taken ``block`` pixels at a time. ``gradient``: the surface's mean
+    gradient over the pixels ``k_plane`` was fitted on, where those are not only these (a stage's disc)."""
+    n = x.size
+    phase0, mean = np.empty(n), np.zeros(2)
+    for s in pixel_blocks(n, block):
+        phase0[s], gx, gy = phase_of(s)
+        mean += gx.sum(), gy.sum()
+    mean /= n
+    gradient = mean if gradient is None else gradient
+    sign = 1 if float(gradient @ np.asarray(k_plane, float)) > 0 else -1
     # Unwrap against the plane-wave solution: a tip 1 mm off changes the period by up to 15 %,
     # tens of radians across the detector, which the plane absorbs. k_plane is the plane-wave fit over
-    # every pixel, so the nominal surface's gradient is its mean over every pixel too, even when theta
-    # is a stage's disc: over a disc away from the centre both surfaces' mean gradients differ from
-    # k_plane, by nearly the same amount, and the plane is their difference.
-    plane = np.asarray(k_plane, float) - sign * mean_gradient
+    # every pixel, so the nominal surface's gradient is its mean over every pixel too, even over a
+    # stage's disc: away from the centre both surfaces' mean gradients differ from k_plane, by nearly
+    # the same amount, and the plane is their difference.
+    plane = np.asarray(k_plane, float) - sign * gradient
     constant = 0.0
     for _ in range(4):
-        psi = _wrap(theta - sign * phase0 - plane @ affine[1:] - constant)
-        coef, *_ = np.linalg.lstsq(affine.T, psi, rcond=None)
+        R = stacked_r(_affine_rows(x, y, s, _wrap(theta[s] - sign * phase0[s] - plane[0] * x[s] - plane[1] * y[s]
+                                                  - constant)) for s in pixel_blocks(n, block))
+        coef = _affine_coefficients(R)[:, 0]
         constant, plane = constant + coef[0], plane + coef[1:]
     return sign, constant, plane
 
 
-def _noise_variance(psi_free):
-    """The variance (rad^2) the tips are fitted against, from the residual phases beyond the affine part.
+@dataclass
+class _PhasePixels:
+    """The pixel phases ``theta`` at ``x``, ``y`` that :func:`fit_two_source` refines the tips from, and the
+    sums over them it needs, taken ``block`` pixels at a time (no array of more than one number a pixel)."""
+
+    theta: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    wavelength: float
+    pixel_pitch: float
+    block: int | None
+    sign: int = 1
+
+    def surface(self, tips, s):
+        """Phase and gradient of the tips' surface at the pixels ``s`` (:func:`two_source_phase`)."""
+        return two_source_phase(self.x[s], self.y[s], *tips, wavelength=self.wavelength, pixel_pitch=self.pixel_pitch)
+
+    def _centre_jacobian(self, tips):
+        centre = np.array([(self.x.max() + self.x.min()) / 2]), np.array([(self.y.max() + self.y.min()) / 2])
+        return tip_jacobian(*centre, *tips, wavelength=self.wavelength, pixel_pitch=self.pixel_pitch)[0]
+
+    def jacobian_centre(self, tips) -> np.ndarray:
+        """d (sign Phi) / d tips (6,) at the pixels' centre, rad per mm of tip."""
+        return self._centre_jacobian(tips) * (self.sign * 1e-3)
+
+    def jacobian(self, tips, s) -> np.ndarray:
+        """d (sign Phi) / d tips (pixel, 6) at the pixels ``s``, rad per mm of tip (for conditioning), minus
+        its value at the pixels' centre: the affine part, which the plane takes, is 1e6 times the rest, and
+        columns that large would cost the sums' QR 6 of their 16 digits; the constant leaves the affine-free
+        part as it is and moves the plane's constant by ``jacobian_centre`` . step."""
+        jac = tip_jacobian(self.x[s], self.y[s], *tips, wavelength=self.wavelength, pixel_pitch=self.pixel_pitch)
+        jac -= self._centre_jacobian(tips)
+        jac *= self.sign * 1e-3
+        return jac
+
+    def sums(self, tips, constant, plane, keep=None) -> np.ndarray:
+        """R (10, 10) of [1 | x | y | J | psi] at ``tips``, psi the residual phase, continuous: wrapped about
+        the surface sign Phi + ``constant`` + ``plane``.r, a fraction of a radian away. The plane takes the
+        affine part: J'J and J'psi of the affine-free parts are R22' R22 and R22' r2 (R22 = R[3:9, 3:9],
+        r2 = R[3:9, 9]), the affine-free residual's squared norm |R[3:, 9]|^2, the plane of psi - J step
+        R11^-1 (r1 - R12 step) (:func:`_affine_coefficients`). With ``keep`` = (model, psi, k_local), the
+        surface (pixel,), psi and the local wavevector (pixel, 2) are written into them."""
+        x, y, sign = self.x, self.y, self.sign
+
+        def rows(s):
+            phase, gx, gy = self.surface(tips, s)
+            model = sign * phase + constant + plane[0] * x[s] + plane[1] * y[s]
+            psi = _wrap(self.theta[s] - model)
+            if keep is not None:
+                keep[0][s], keep[1][s] = model, psi
+                keep[2][s, 0], keep[2][s, 1] = sign * gx + plane[0], sign * gy + plane[1]
+            return _affine_rows(x, y, s, self.jacobian(tips, s), psi)
+
+        return stacked_r(rows(s) for s in pixel_blocks(x.size, self.block))
+
+
+def _noise_variance(R, n):
+    """The variance (rad^2) the tips are fitted against: the residual phases' beyond the affine part
+    (|R[3:, 9]|^2 over the ``n`` pixels, R as :meth:`_PhasePixels.sums` makes it).
 
     It is mostly the pixel offsets themselves (about 1e-3 pixel, white: docs/metrology.md); 1e-6 rad keeps
     noiseless phases (tests) from a singular system."""
-    return max(float(np.mean(psi_free**2)), 1e-12)
+    return max(float(np.sum(R[3:, 9] ** 2)) / n, 1e-12)
+
+
+def _refine_tips(pixels, tips, constant, plane, *, nominal, prior, max_iterations, fibers, label):
+    """Gauss-Newton refinement of the tips over ``pixels`` (a :class:`_PhasePixels`: every pixel, or a stage's
+    disc), from ``tips`` (2, 3), m, and the unwrapping ``constant`` (rad) and ``plane`` (rad/pixel), with the
+    prior (mm^-2) about the ``nominal`` tips. Returns the tips, constant and plane, the iterations run and the
+    last normal matrix (6, 6), mm^-2 (the inverse of the tips' covariance, mm^2)."""
+    n = pixels.x.size
+    for iterations in range(1, max_iterations + 1):
+        R = pixels.sums(tips, constant, plane)
+        noise2 = _noise_variance(R, n)
+        normal = R[3:9, 3:9].T @ R[3:9, 3:9] / noise2 + prior * np.eye(6)
+        rhs = R[3:9, 3:9].T @ R[3:9, 9] / noise2 - prior * (tips - nominal).ravel() * 1e3
+        step = np.linalg.solve(normal, rhs)  # mm
+        coef = _affine_coefficients(R)
+        coef = coef[:, 6] - coef[:, :6] @ step  # the plane of psi - J step
+        coef[0] -= pixels.jacobian_centre(tips) @ step
+        tips = tips + step.reshape(2, 3) * 1e-3
+        constant, plane = constant + coef[0], plane + coef[1:]
+        # 10 nm: the largest non-affine response, 2.5e-3 pixel per mm of tip (docs), makes that 2.5e-8 pixel
+        if np.max(np.abs(step)) * 1e-3 < 1e-8:
+            return tips, constant, plane, iterations, normal
+    raise GeometryError(f"{label}: the refinement of the tips of fibers {fibers[0]} and {fibers[1]} did not "
+                        f"converge in {max_iterations} iterations (last step {np.max(np.abs(step)):.2e} mm)")
 
 
 def _stage_discs(x, y):
@@ -330,59 +480,62 @@ def _stage_discs(x, y):
     return distance, radii
 
 
-def _stage_bound(x, y, inside, tips, covariance, bench):
-    """3-sigma phase (rad), beyond the affine part over the pixels ``inside`` (bool), that tips known to
-    ``covariance`` (6, 6), mm^2, put on the worst of them; from up to ``STAGE_BOUND_SAMPLES`` of them."""
-    index = np.flatnonzero(inside)
-    if index.size > STAGE_BOUND_SAMPLES:
-        index = index[np.linspace(0, index.size - 1, STAGE_BOUND_SAMPLES).astype(int)]
-    jac = tip_jacobian(x[index], y[index], *tips, **bench) * 1e-3  # rad/mm
+def _stage_bound(x, y, tips, covariance, pixels, index=None):
+    """3-sigma phase (rad), beyond the affine part over the pixels ``index`` (None: every pixel), that tips known
+    to ``covariance`` (6, 6), mm^2, put on the worst of them; from up to ``STAGE_BOUND_SAMPLES`` of them,
+    evenly picked (the surface is smooth). ``pixels`` gives the bench (wavelength, pitch)."""
+    n = x.size if index is None else index.size
+    picked = np.linspace(0, n - 1, min(n, STAGE_BOUND_SAMPLES)).astype(int)
+    index = picked if index is None else index[picked]
+    jac = tip_jacobian(x[index], y[index], *tips, wavelength=pixels.wavelength, pixel_pitch=pixels.pixel_pitch)
+    jac *= 1e-3  # rad/mm
     affine = affine_basis(x[index], y[index]).T
     jac -= affine @ np.linalg.lstsq(affine, jac, rcond=None)[0]
     return 3 * float(np.sqrt(np.max(np.einsum("pi,ij,pj->p", jac, covariance, jac))))
 
 
-def _refine_tips(theta, x, y, tips, *, nominal, sign, constant, plane, prior, bench, max_iterations, fibers,
-                 label):
-    """Gauss-Newton refinement of the tips over the pixels x, y (one stage of :func:`fit_two_source`).
-
-    From the start ``tips`` (2, 3), m, and the unwrapping ``constant`` (rad) and ``plane`` (rad/pixel), with the
-    prior (mm^-2) about the ``nominal`` tips. Returns the tips, constant and plane, the iterations run and the
-    last normal matrix (6, 6), mm^-2 (the inverse of the tips' covariance, mm^2).
-    """
-    affine = affine_basis(x, y)
-    q_affine = orthonormal_modes(affine) / np.sqrt(x.size)  # (3, pixel), orthonormal rows
-
-    def without_affine(values):
-        projection = q_affine.T @ (q_affine @ values)
-        return np.subtract(values, projection, out=projection)
-
-    for iterations in range(1, max_iterations + 1):
-        phase = two_source_phase(x, y, *tips, **bench)[0]
-        # continuous residual: the wrap is taken about the current surface, a fraction of a radian away
-        psi = _wrap(theta - sign * phase - constant - plane @ affine[1:])
-        jac = tip_jacobian(x, y, *tips, **bench)
-        jac *= sign
-        jac *= 1e-3  # rad per mm of tip, for conditioning
-        jac_free, psi_free = without_affine(jac), without_affine(psi)  # the plane takes the affine part
-        noise2 = _noise_variance(psi_free)
-        normal = jac_free.T @ jac_free / noise2 + prior * np.eye(6)
-        rhs = jac_free.T @ psi_free / noise2 - prior * (tips - nominal).ravel() * 1e3
-        step = np.linalg.solve(normal, rhs)  # mm
-        tips = tips + step.reshape(2, 3) * 1e-3
-        coef, *_ = np.linalg.lstsq(affine.T, psi - jac @ step, rcond=None)
-        constant, plane = constant + coef[0], plane + coef[1:]
-        del phase, psi, jac, jac_free, psi_free
-        # 10 nm: the largest non-affine response, 2.5e-3 pixel per mm of tip (docs), makes that 2.5e-8 pixel
-        if np.max(np.abs(step)) * 1e-3 < 1e-8:
-            return tips, constant, plane, iterations, normal
-    raise GeometryError(f"{label}: the refinement of the tips of fibers {fibers[0]} and {fibers[1]} did not "
-                        f"converge in {max_iterations} iterations (last step {np.max(np.abs(step)):.2e} mm)")
+def _refine_in_stages(pixels, k_plane, *, nominal, prior, max_iterations, fibers, label):
+    """The tips refined over discs of ``pixels`` about their centroid, from the centre out (:func:`fit_two_source`):
+    each stage the largest disc on which the tips' uncertainty (the prior's, then the last stage's posterior)
+    puts at most ``STAGE_PHASE_LIMIT`` at 3 sigma, or the next disc out; each from the last stage's tips,
+    constant and plane, continuous across the disc's edge. Sets ``pixels.sign``; returns the tips, constant,
+    plane and the iterations of every stage."""
+    x, y, n = pixels.x, pixels.y, pixels.x.size
+    gradient = np.zeros(2)  # the nominal surface's mean gradient over every pixel, the pixels of k_plane
+    for s in pixel_blocks(n, pixels.block):
+        gradient += [g.sum() for g in pixels.surface(nominal, s)[1:]]
+    gradient /= n
+    distance, radii = _stage_discs(x, y)
+    covariance = np.eye(6) / prior  # mm^2
+    tips, outer, stages, iterations = nominal.copy(), len(radii), 0, 0
+    refine = {"nominal": nominal, "prior": prior, "max_iterations": max_iterations, "fibers": fibers, "label": label}
+    while outer > 0:
+        disc = next((j for j in range(1 if stages == 0 else 0, outer)
+                     if _stage_bound(x, y, tips, covariance, pixels, np.flatnonzero(distance <= radii[j]))
+                     <= STAGE_PHASE_LIMIT), outer - 1)
+        if disc == 0:
+            stage = pixels
+        else:
+            index = np.flatnonzero(distance <= radii[disc])
+            stage = _PhasePixels(pixels.theta[index], x[index], y[index], pixels.wavelength, pixels.pixel_pitch,
+                                 pixels.block, sign=pixels.sign)
+            del index
+        if stages == 0:
+            pixels.sign, constant, plane = _unwrapped_start(
+                stage.theta, stage.x, stage.y, lambda s: stage.surface(nominal, s), k_plane, pixels.block,
+                gradient=gradient)
+            stage.sign = pixels.sign
+        tips, constant, plane, done, normal = _refine_tips(stage, tips, constant, plane, **refine)
+        covariance = np.linalg.inv(normal)
+        stages, iterations, outer = stages + 1, iterations + done, disc
+        log.info("%s: tips refined over the %d pixels within %.0f pixels of the centre (stage %d, %d "
+                 "iteration(s))", label, stage.x.size, radii[disc], stages, done)
+    return tips, constant, plane, iterations
 
 
 def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch, k_plane,
                    tip_sigma: float = 1e-3, max_iterations: int = 30, fibers=("a", "b"),
-                   label: str = "baseline") -> TwoSourceFit:
+                   label: str = "baseline", block: int | None = None) -> TwoSourceFit:
     """Refine a baseline's two fiber tips from its pixel phases and measure the offsets against their surface.
 
     The tips are refined over every pixel at once where the prior leaves their surface within
@@ -411,6 +564,11 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
         The two fibers' names, for messages.
     label : str
         Names the baseline in logs and errors.
+    block : int
+        Pixels a block (None: :data:`dice_core.pixel_blocks.PIXEL_BLOCK`): every sum over the pixels (the
+        Gauss-Newton steps' J'J and J'psi, the affine fits, the modes' fields) is taken a block of
+        pixels at a time, so that the Jacobian (6 numbers a pixel) is never formed over every pixel;
+        the result is the same for any block, to rounding.
 
     Returns
     -------
@@ -431,55 +589,21 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
         raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
     theta, x, y = (np.asarray(v, float) for v in (theta, x, y))
     nominal = np.array([nominal_a, nominal_b], float)
-    affine = affine_basis(x, y)
-    q_affine = orthonormal_modes(affine) / np.sqrt(x.size)  # (3, pixel), orthonormal rows
-
-    def without_affine(values):
-        projection = q_affine.T @ (q_affine @ values)
-        return np.subtract(values, projection, out=projection)
-
-    def surface(tips):
-        phase, gx, gy = two_source_phase(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
-        return phase, np.column_stack([gx, gy])
-
-    def jacobian(tips):  # rad per mm of tip, for conditioning
-        jac = tip_jacobian(x, y, *tips, wavelength=wavelength, pixel_pitch=pixel_pitch)
-        jac *= sign
-        jac *= 1e-3
-        return jac
-
+    n = x.size
+    pixels = _PhasePixels(theta, x, y, wavelength, pixel_pitch, block)
     prior = (1e-3 / tip_sigma) ** 2  # in mm^-2
-    phase0, grad0 = surface(nominal)
-    mean_gradient = np.mean(grad0, axis=0)
-    del grad0
-    bench = {"wavelength": wavelength, "pixel_pitch": pixel_pitch}
-    distance, radii = _stage_discs(x, y)
-    covariance = np.eye(6) / prior  # mm^2: the prior's, until a stage has seen the data
-    tips, outer, stages, iterations = nominal.copy(), len(radii), 0, 0
-    while outer > 0:
-        # the largest disc whose phases the tips' uncertainty leaves within +-STAGE_PHASE_LIMIT, or the next one
-        # out: every pixel at once wherever that holds, as on the presets' detectors
-        disc = next((j for j in range(outer) if _stage_bound(x, y, distance <= radii[j], tips, covariance, bench)
-                     <= STAGE_PHASE_LIMIT), outer - 1)
-        inside = slice(None) if disc == 0 else np.flatnonzero(distance <= radii[disc])
-        if stages == 0:
-            sign, constant, plane = _unwrapped_start(theta[inside], phase0[inside], mean_gradient, k_plane,
-                                                     affine[:, inside])
-            del phase0
-        tips, constant, plane, done, normal = _refine_tips(
-            theta[inside], x[inside], y[inside], tips, nominal=nominal, sign=sign, constant=constant, plane=plane,
-            prior=prior, bench=bench, max_iterations=max_iterations, fibers=fibers, label=label)
-        covariance = np.linalg.inv(normal)
-        stages, iterations, outer = stages + 1, iterations + done, disc
-        if outer > 0 or stages > 1:
-            log.info("%s: tips refined over the %.0f pixels within %.0f pixels of the centre (stage %d, %d "
-                     "iteration(s))", label, np.size(theta[inside]), radii[disc], stages, done)
-
-    phase, grad = surface(tips)
-    model = sign * phase + constant + plane @ affine[1:]
-    psi = _wrap(theta - model)
-    psi_free = without_affine(psi)
-    phase_rms = float(np.sqrt(np.mean(psi_free**2)))
+    refine = {"nominal": nominal, "prior": prior, "max_iterations": max_iterations, "fibers": fibers, "label": label}
+    # every pixel at once where the prior leaves the surface within +-STAGE_PHASE_LIMIT of the truth, as on
+    # every 80x84 detector; else stages over discs from the centre out
+    if _stage_bound(x, y, nominal, np.eye(6) / prior, pixels) <= STAGE_PHASE_LIMIT:
+        pixels.sign, constant, plane = _unwrapped_start(theta, x, y, lambda s: pixels.surface(nominal, s), k_plane,
+                                                        block)
+        tips, constant, plane, iterations, _ = _refine_tips(pixels, nominal.copy(), constant, plane, **refine)
+    else:
+        tips, constant, plane, iterations = _refine_in_stages(pixels, k_plane, **refine)
+    model, psi, k_local = np.empty(n), np.empty(n), np.empty((n, 2))
+    R = pixels.sums(tips, constant, plane, keep=(model, psi, k_local))
+    phase_rms = float(np.sqrt(np.sum(R[3:, 9] ** 2) / n))
     if phase_rms > 0.5:
         raise GeometryError(f"{label}: the pixel phases depart from the two-source surface of the refined tips "
                             f"of fibers {fibers[0]} and {fibers[1]} by {phase_rms:.2f} rad rms; are the fiber tips, "
@@ -491,29 +615,50 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
                             f"{shift[worst] * 1e3:+.3f} mm along {'xyz'[worst[1]]} from its nominal position, more "
                             f"than {MAX_TIP_SHIFT_SIGMA:g} x its {tip_sigma * 1e3:g} mm error; are the fiber tips, "
                             "wavelength and pixel pitch right?")
-    k_local = sign * grad + plane
     k_norm = np.hypot(*k_local.T)
-    del phase, grad
 
-    jac_free = without_affine(jacobian(tips))
-    data = jac_free.T @ jac_free / _noise_variance(psi_free)  # mm^-2
-    del psi_free, q_affine
+    data = R[3:9, 3:9].T @ R[3:9, 3:9] / _noise_variance(R, n)  # mm^-2
     covariance = np.linalg.inv(data + prior * np.eye(6)) * 1e-6  # m^2
     values, vectors = np.linalg.eigh(data / prior)
     order = np.argsort(values)[::-1]
     values, vectors = values[order], vectors[:, order]
     absorbed = values > MODE_INFORMATION_THRESHOLD
-    fields = (jac_free @ vectors[:, absorbed]).T
-    del jac_free
-    fields /= k_norm
-    modes = orthonormal_modes(fields, against=affine)
-    del fields
-    offsets = remove_modes(remove_modes(psi / k_norm, affine), modes)
+    modes = _absorbed_modes(lambda s: pixels.jacobian(tips, s), _affine_coefficients(R)[:, :6],
+                            vectors[:, absorbed], x, y, k_norm, block)
+    offsets = psi
+    offsets /= k_norm
+    offsets = _without_orthonormal(_without_affine(offsets, x, y, block=block), modes)
+    del psi
+    departure = _without_affine(model, x, y, block=block)
+    departure /= k_norm
     log.info("%s: tips of fibers %s and %s refined in %d iteration(s), moved by %s mm; phases about the surface "
              "%.3e rad rms; %d offset mode(s) beyond the affine part absorbed (information ratios %s)", label,
              *fibers, iterations, np.array2string(shift * 1e3, precision=3), phase_rms, len(modes),
              np.array2string(values, precision=2))
     return TwoSourceFit(tips=tips, tip_errors=np.sqrt(np.diag(covariance)).reshape(2, 3), tip_covariance=covariance,
-                        nominal=nominal, sign=sign, k_local=k_local, offsets=offsets, modes=modes,
+                        nominal=nominal, sign=pixels.sign, k_local=k_local, offsets=offsets, modes=modes,
                         information=values, tip_modes=vectors, phase_rms=phase_rms, iterations=iterations,
-                        plane_wave_departure=remove_modes(model, affine) / k_norm, surface=model, affine=affine)
+                        plane_wave_departure=departure, surface=model, x=x, y=y)
+
+
+def _absorbed_modes(jacobian_of, affine_coef, vectors, x, y, k_norm, block):
+    """The unobservable offset modes (:func:`fit_two_source`): the affine-free Jacobian (``jacobian_of(s)`` of
+    the pixels ``s`` minus its affine fit, of coefficients ``affine_coef`` (3, 6)) along the absorbed tip modes
+    ``vectors`` (6, mode), over |K| (``k_norm``), made orthonormal and orthogonal to the affine part
+    (:func:`orthonormal_modes`): formed a block of pixels at a time, one field a mode over the pixels."""
+    n = x.size
+    fields, norm2 = np.empty((vectors.shape[1], n)), np.zeros(vectors.shape[1])
+    if not vectors.shape[1]:
+        return fields
+    for s in pixel_blocks(n, block):
+        jac = jacobian_of(s)
+        jac -= _affine_rows(x, y, s) @ affine_coef
+        block_fields = (jac @ vectors).T
+        block_fields /= k_norm[s]
+        fields[:, s] = block_fields
+        norm2 += np.sum(block_fields**2, axis=1)
+    # over |K| the fields are no longer exactly affine-free: their affine fit taken out, as orthonormal_modes does
+    coef = _affine_coefficients(stacked_r(_affine_rows(x, y, s, fields[:, s].T) for s in pixel_blocks(n, block)))
+    for s in pixel_blocks(n, block):
+        fields[:, s] -= (_affine_rows(x, y, s) @ coef).T
+    return _svd_modes(fields, np.sqrt(norm2.max()))

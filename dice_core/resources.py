@@ -108,14 +108,15 @@ COSTS: dict[str, StepCost] = {
     # a pass (11 s) and the product (74-78 s: the pixel solution and the tips' refinement) hold all frames'
     # factors (frames: the baseline's) and per-pixel arrays: 315-333 and 579 bytes a pixel above the
     # interpreter (about 115 MB) at 1024x1024, 312-328 for the sum at 2048x2048, the gauge's basis swept
-    # over blocks of pixels
+    # over blocks of pixels; the product 397-420 bytes a pixel (447 at 512x512) with the tips' refinement, the
+    # plane and the affine fits swept over blocks of pixels too, and the state spent as used
     # (BENCHMARKS.md, "Memory of a split fit's reduction and product"; 1.5-1.6 and 1.85 GB before).
     "fit_start": StepCost(base_mb=400.0, mb_per_mpixel=2500.0, start_s=3.0, s_per_mpixel=60.0),
     "fit_part": StepCost(base_mb=400.0, mb_per_mpixel=600.0, mb_per_mframe=170.0, start_s=3.0,
                          s_per_gsample=15.0),
     "fit_reduce": StepCost(base_mb=400.0, mb_per_mpixel=400.0, mb_per_mframe=170.0, start_s=3.0,
                            s_per_mpixel=30.0),
-    "fit_finish": StepCost(base_mb=400.0, mb_per_mpixel=700.0, mb_per_mframe=170.0, start_s=3.0,
+    "fit_finish": StepCost(base_mb=400.0, mb_per_mpixel=500.0, mb_per_mframe=170.0, start_s=3.0,
                            s_per_mpixel=80.0),  # reads the state and the parts' digests, no cube
     # each batch's offset map in memory: batches (one a fringe period) x pixels; 7.2 GB and 353 s for
     # 1024x1024 x 20,000 frames (160 batches of 125 frames). About 49 bytes a pixel and batch, measured at

@@ -116,3 +116,70 @@ def test_a_fit_split_across_jobs_is_the_single_fit_bit_for_bit(tmp_path, caplog)
     fringe_fit.check_state_options(state_0, **made)
     with pytest.raises(fringes.FringeError, match=r"state_0.nc: made with metrology.max_passes = \d+, the run has 99"):
         fringe_fit.check_state_options(state_0, **{**made, "max_passes": 99})
+
+
+def test_the_finish_in_blocks_of_97_pixels_is_the_finish_in_one_block(tmp_path, monkeypatch):
+    """A spherical-wave fit in two files (two halves for the gauge floor) with two pixels of a bad-pixel mask
+    and a tolerance the last pass does not meet (the pixels still moving masked at the finish, so that the
+    halves' pixels are not the active ones): finished with every sweep over the pixels in blocks of 97 of
+    5,600-odd pixels (the gauges, the phases and pixel factors of the diagnostic, the photon floor, the
+    tips' refinement, the planes and affine fits; a partial last block) and in one block, the same solution
+    to rounding (the tips' refinement, whose weakest mode the prior sets, moves the offsets by up to 1e-9
+    pixel). The state is spent by its finish."""
+    from dice_core import pixel_blocks, simulation
+    from dice_core.geometry import BaselineGeometry
+    from dice_core.manifest import load_manifest
+
+    cfg = simulation.SimulationConfig.from_dict({
+        "name": "blocks-test", "frames_per_file": 500,
+        "detector": {"shape": [80, 84], "science_rows": [2, 79], "science_cols": [10, 83], "prf_width_spread": 0.0},
+        "dark": {"frames": 2}, "flats": {"frames": 2}, "stars": {"positions": 1, "frames": 1},
+        "metrology": {"frames": 1000, "spherical": True, "tip_error": [1.0e-3, 1.0e-3], "pairs": {},
+                      "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0, "midpoint": [0.012, 0.006]}}},
+    })
+    manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
+    truth = read_product(tmp_path / "truth.nc")
+    mask = np.zeros(manifest.detector.shape, bool)
+    mask[40, 50] = mask[41, 20] = True
+    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector)
+
+    def done_state(**options):
+        state = fringe_fit.start_fit(stream, truth["bias"].values, detector=manifest.detector,
+                                     flat=truth["sensitivity"].values, bad_pixels=mask, label="H1H4", **options)
+        lanes = fringe_fit.fit_stream(stream, state.next_pass).split(2)
+        while not state.done:
+            results = [fringe_fit.accumulate_part(lane, state.next_pass) for lane in lanes]
+            state = fringe_fit.reduce_pass(state, results, n_lanes=len(lanes))
+        return state
+
+    tolerance = 0.3 * done_state(max_passes=2).history[-1]["max_change"]
+    state = done_state(max_passes=2, tolerance=tolerance)
+    saved = fringe_fit.state_dataset(state)
+    geometry = BaselineGeometry.of_baseline(manifest.geometry, "H1H4",
+                                            wavelength=manifest.baseline_wavelength("H1H4"))
+
+    def finish():
+        return fringe_fit.finish_fit(fringe_fit.state_from_dataset(saved), detector=manifest.detector,
+                                     read_noise=truth["read_noise"].values, geometry=geometry)
+
+    one = finish()
+    assert one.masked_by_reason["bad_pixel"] == 2 and one.masked_by_reason["unconverged"] >= 1
+    assert len(state.parts) == 2 and state.parts_idx.size > (~one.masked).sum()
+    assert one.rows.size > 50 * 97 and (~one.masked).sum() % 97
+    monkeypatch.setattr(pixel_blocks, "PIXEL_BLOCK", 97)
+    blocked = finish()
+    assert one.gauge_difference_floor is not None and len(one.two_source.modes) >= 1
+    for name in ("offsets", "offsets_prnu_free"):
+        np.testing.assert_allclose(getattr(blocked, name), getattr(one, name), rtol=0, atol=1e-9, err_msg=name)
+    for name in ("iota", "alpha", "pixel_phase", "level", "amplitude", "phase"):  # before the tips
+        np.testing.assert_allclose(getattr(blocked, name), getattr(one, name), rtol=1e-13, atol=0, err_msg=name)
+    for name in ("photon_floor", "k"):  # over the local |K| of the refined tips
+        np.testing.assert_allclose(getattr(blocked, name), getattr(one, name), rtol=1e-10, atol=0, err_msg=name)
+    np.testing.assert_array_equal(blocked.masked, one.masked)
+    np.testing.assert_allclose(blocked.two_source.tips, one.two_source.tips, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(blocked.two_source.modes, one.two_source.modes, rtol=0, atol=1e-7)
+    assert blocked.gauge_difference_floor == pytest.approx(one.gauge_difference_floor, rel=1e-9)
+    fringe_fit.finish_fit(state, detector=manifest.detector, read_noise=truth["read_noise"].values)
+    assert state.G is None and state.parts == []  # spent
+    with pytest.raises(ValueError, match="finished already"):
+        fringe_fit.finish_fit(state, detector=manifest.detector)

@@ -280,3 +280,128 @@ def test_the_pair_difference_maps_are_at_their_floor(spherical):
         floor = np.hypot(pairs[0][f"{name}_photon_noise_floor"].values[good],
                          pairs[1][f"{name}_photon_noise_floor"].values[good])
         assert rms(part) < 1.2 * rms(floor), name
+
+
+def two_source_case(rng, shape=(77, 73), origin=(10, 2), dead=0.05, noise=1e-3):
+    """Pixel phases of a bench (tips 600 mm away, a period of 2.4 pixel, nominal tips 1 mm off) over a
+    ``shape`` (rows, cols) of pixels from ``origin`` (col, row), a fraction ``dead`` of them left out at
+    random (dead pixels: the pixels are no grid), offsets of ``noise`` pixel rms: theta, x, y, the true
+    tips, the nominal ones and the plane wavevector."""
+    rows, cols = np.indices(shape)
+    keep = rng.uniform(size=rows.size) >= dead
+    x, y = cols.ravel()[keep] + float(origin[0]), rows.ravel()[keep] + float(origin[1])
+    a, b = bench_tips(2.4, (0.012, 0.005), 0.03)
+    shift = (np.array([origin[0] + shape[1] / 2, origin[1] + shape[0] / 2]) - [41.5, 39.5]) * PITCH
+    a, b = (np.array([*(t[:2] + shift), t[2]]) for t in (a, b))
+    dx, dy = noise * rng.standard_normal((2, x.size))
+    phase, gx, gy = two_source_phase(x + dx, y + dy, a, b, wavelength=WAVELENGTH, pixel_pitch=PITCH)
+    theta = np.angle(np.exp(1j * (1.3 + phase)))
+    return theta, x, y, (a, b), (off_by(a, 1e-3, rng), off_by(b, 1e-3, rng)), (gx.mean(), gy.mean())
+
+
+def test_the_tips_refinement_in_blocks_of_pixels_is_the_whole_array_s(rng):
+    """The refinement's sums over the pixels come from the R of [1 | x | y | J | psi] taken 333 pixels at a
+    time (16 whole blocks and a partial one of 5,300-odd pixels with dead ones among them): J'J and J'psi of
+    the affine-free parts, |psi|^2 and the plane's coefficients against the whole-array formulas (the
+    Jacobian over every pixel, its affine part taken out by a least-squares fit of every pixel, in extended
+    precision: the affine part is 2e6 times the rest, which float64 keeps to 1e-10 of it) to 1e-10 of their
+    scale (measured 5e-12; 3e-11 for the float64 projection on an orthonormal basis of before); the fit is
+    the same in blocks of 333 and in one block, and its offsets, plane-wave departure and offsets_of are
+    those of the whole-array projections."""
+    theta, x, y, _, nominal, k_plane = two_source_case(rng)
+    assert x.size % 333 and x.size // 333 > 10
+    tips, constant, plane = np.array(nominal), 0.7, np.array([0.01, -0.02])
+    pixels = geometry._PhasePixels(theta, x, y, WAVELENGTH, PITCH, 333)
+    R = pixels.sums(tips, constant, plane)
+    # the whole-array formulas, in extended precision (an affine fit by normal equations of centred coordinates)
+    jac = geometry.tip_jacobian(x, y, *tips, wavelength=WAVELENGTH, pixel_pitch=PITCH) * 1e-3
+    phase, _, _ = two_source_phase(x, y, *tips, wavelength=WAVELENGTH, pixel_pitch=PITCH)
+    psi = np.angle(np.exp(1j * (theta - phase - constant - plane[0] * x - plane[1] * y)))
+    wide = np.longdouble
+    A = np.column_stack([np.ones_like(x), x - x.mean(), y - y.mean()]).astype(wide)
+    B = np.column_stack([jac, psi]).astype(wide)
+    coef = np.array([[wide(v) for v in row] for row in np.linalg.solve((A.T @ A).astype(float), np.eye(3))])
+    coef = coef @ (A.T @ B)
+    for _ in range(2):  # refined: the float64 inverse of A'A alone leaves 1e-16 of the affine part
+        coef += np.array(np.linalg.solve((A.T @ A).astype(float), (A.T @ (B - A @ coef)).astype(float)), wide)
+    free = (B - A @ coef).astype(float)
+    JtJ, Jtpsi = free[:, :6].T @ free[:, :6], free[:, :6].T @ free[:, 6]
+    np.testing.assert_allclose(R[3:9, 3:9].T @ R[3:9, 3:9], JtJ, rtol=0, atol=1e-10 * np.abs(JtJ).max())
+    np.testing.assert_allclose(R[3:9, 3:9].T @ R[3:9, 9], Jtpsi, rtol=0, atol=1e-10 * np.abs(Jtpsi).max())
+    assert np.sum(R[3:, 9] ** 2) == pytest.approx(np.sum(free[:, 6] ** 2), rel=1e-10)
+    # the plane of psi - J step: R's coefficients (J less its centre value) with the centre's J step
+    step = rng.standard_normal(6)
+    whole = np.linalg.lstsq(np.column_stack([np.ones_like(x), x, y]), psi - jac @ step, rcond=None)[0]
+    found = geometry._affine_coefficients(R)
+    found = found[:, 6] - found[:, :6] @ step
+    found[0] -= pixels.jacobian_centre(tips) @ step
+    np.testing.assert_allclose(found, whole, rtol=0, atol=1e-10 * np.abs(whole).max())
+
+    options = dict(wavelength=WAVELENGTH, pixel_pitch=PITCH, k_plane=k_plane)
+    blocked, one = (fit_two_source(theta, x, y, *nominal, block=block, **options) for block in (333, 10**9))
+    assert blocked.iterations == one.iterations and len(blocked.modes) == len(one.modes) >= 1
+    np.testing.assert_allclose(blocked.tips, one.tips, rtol=0, atol=1e-10)
+    for name in ("offsets", "plane_wave_departure", "modes", "k_local"):
+        np.testing.assert_allclose(getattr(blocked, name), getattr(one, name), rtol=0, atol=1e-9, err_msg=name)
+    np.testing.assert_allclose(blocked.surface, one.surface, rtol=1e-11, atol=0)  # 600-800 rad
+    # the offsets and departure against the whole-array projections (remove_modes: a basis by SVD each)
+    affine, k_norm = geometry.affine_basis(x, y), np.hypot(*blocked.k_local.T)
+    psi = np.angle(np.exp(1j * (theta - blocked.surface)))
+    expected = remove_modes(remove_modes(psi / k_norm, affine), blocked.modes)
+    np.testing.assert_allclose(blocked.offsets, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(blocked.plane_wave_departure, remove_modes(blocked.surface, affine) / k_norm,
+                               rtol=0, atol=1e-10 * np.abs(blocked.surface).max())
+    other = theta + 0.02 * np.sin(x / 7.0)  # another gauge's phases
+    psi = fringes.wrapped_about_mean(other - blocked.surface, block=10**9)
+    expected = remove_modes(remove_modes(psi / k_norm, affine), blocked.modes)
+    np.testing.assert_allclose(blocked.offsets_of(other), expected, rtol=0, atol=1e-12)
+    assert np.allclose(blocked.modes @ np.vstack([affine, blocked.modes]).T / x.size,
+                       np.hstack([np.zeros((len(blocked.modes), 3)), np.eye(len(blocked.modes))]), atol=1e-10)
+
+
+def test_the_plane_and_the_wrap_in_blocks_of_pixels_are_the_whole_array_s(rng):
+    """projected_offsets, wrapped_about_mean and the affine removal in blocks of 7 of 5,300-odd pixels (dead
+    ones among them, a partial last block) against the whole-array formulas: the complex mean of every
+    phase, a least-squares plane of every pixel, a basis of the affine fields by SVD."""
+    theta, x, y, _, _, k_plane = two_source_case(rng)
+    phase = theta + 3.0  # spread about pi: a wrap about zero would split them
+    centre = np.angle(np.mean(np.exp(1j * phase)))
+    np.testing.assert_allclose(geometry.wrapped_about_mean(phase, block=7),
+                               np.angle(np.exp(1j * (phase - centre))), rtol=0, atol=1e-12)
+    values = np.sin(x / 9.0) + 1e-3 * x - 2e-3 * y + 5.0
+    np.testing.assert_allclose(geometry._without_affine(values, x, y, block=7),
+                               remove_modes(values, geometry.affine_basis(x, y)), rtol=0, atol=1e-12)
+    k, offsets = fringes.projected_offsets(theta, x, y, k_plane, block=7)
+    design = np.column_stack([np.ones_like(x), x, y])  # the plane of every pixel, after the same unwrapping
+    psi = np.angle(np.exp(1j * (theta - k[0] * x - k[1] * y)))
+    psi = np.angle(np.exp(1j * (psi - np.angle(np.mean(np.exp(1j * psi))))))
+    coef = np.linalg.lstsq(design, psi, rcond=None)[0]
+    assert np.hypot(*coef[1:]) < 1e-12  # k is the plane's own wavevector
+    np.testing.assert_allclose(offsets, (psi - design @ coef) / np.hypot(*k), rtol=0, atol=1e-12)
+
+
+def test_the_tips_refinement_never_holds_the_jacobian_over_every_pixel(rng):
+    """fit_two_source's peak of traced memory on 200,000 pixels: its outputs (80 bytes a pixel) and the SVD of
+    its modes' fields (80 with 5 modes), under 180 bytes a pixel (measured 162); 224 when the Jacobian and its
+    affine-free copy (96 bytes a pixel) were formed over every pixel. offsets_of and projected_offsets hold
+    under 48 bytes a pixel above what is held (measured 24 and 32; 96 and 80 with whole-array bases, designs
+    and complex temporaries)."""
+    import tracemalloc
+
+    theta, x, y, _, nominal, k_plane = two_source_case(rng, shape=(400, 500), origin=(0, 0), dead=0.0)
+    tracemalloc.start()
+    try:
+        fit = fit_two_source(theta, x, y, *nominal, wavelength=WAVELENGTH, pixel_pitch=PITCH, k_plane=k_plane)
+        held, peak = tracemalloc.get_traced_memory()
+        tracemalloc.reset_peak()
+        fit.offsets_of(theta)
+        after, offsets_peak = tracemalloc.get_traced_memory()
+        tracemalloc.reset_peak()
+        fringes.projected_offsets(theta, x, y, k_plane)
+        plane_peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(fit.modes) == 5
+    assert peak < 180 * x.size, peak / x.size
+    assert offsets_peak - held < 48 * x.size, (offsets_peak - held) / x.size
+    assert plane_peak - after < 48 * x.size, (plane_peak - after) / x.size
