@@ -446,11 +446,12 @@ def _noise_variance(R, n):
     return max(float(np.sum(R[3:, 9] ** 2)) / n, 1e-12)
 
 
-def _refine_tips(pixels, tips, constant, plane, *, nominal, prior, max_iterations, fibers, label):
+def _refine_tips(pixels, tips, constant, plane, *, nominal, prior, max_iterations, fibers, label, where=""):
     """Gauss-Newton refinement of the tips over ``pixels`` (a :class:`_PhasePixels`: every pixel, or a stage's
     disc), from ``tips`` (2, 3), m, and the unwrapping ``constant`` (rad) and ``plane`` (rad/pixel), with the
     prior (mm^-2) about the ``nominal`` tips. Returns the tips, constant and plane, the iterations run and the
-    last normal matrix (6, 6), mm^-2 (the inverse of the tips' covariance, mm^2)."""
+    last normal matrix (6, 6), mm^-2 (the inverse of the tips' covariance, mm^2). ``where`` names a stage's
+    pixels in the error of a refinement that does not converge."""
     n = pixels.x.size
     for iterations in range(1, max_iterations + 1):
         R = pixels.sums(tips, constant, plane)
@@ -467,7 +468,7 @@ def _refine_tips(pixels, tips, constant, plane, *, nominal, prior, max_iteration
         if np.max(np.abs(step)) * 1e-3 < 1e-8:
             return tips, constant, plane, iterations, normal
     raise GeometryError(f"{label}: the refinement of the tips of fibers {fibers[0]} and {fibers[1]} did not "
-                        f"converge in {max_iterations} iterations (last step {np.max(np.abs(step)):.2e} mm)")
+                        f"converge in {max_iterations} iterations{where} (last step {np.max(np.abs(step)):.2e} mm)")
 
 
 def _stage_discs(x, y):
@@ -475,8 +476,8 @@ def _stage_discs(x, y):
     may run over: every pixel first, then halving while a disc holds ``STAGE_MIN_PIXELS`` pixels."""
     distance = np.hypot(x - x.mean(), y - y.mean())
     radii = [float(distance.max())]
-    while np.count_nonzero(distance <= radii[-1] / 2) >= STAGE_MIN_PIXELS:
-        radii.append(radii[-1] / 2)
+    while radii[-1] >= 2 and np.count_nonzero(distance <= radii[-1] / 2) >= STAGE_MIN_PIXELS:
+        radii.append(radii[-1] / 2)  # (down to a pixel: pixels heaped on the centroid would halve forever)
     return distance, radii
 
 
@@ -510,9 +511,19 @@ def _refine_in_stages(pixels, k_plane, *, nominal, prior, max_iterations, fibers
     tips, outer, stages, iterations = nominal.copy(), len(radii), 0, 0
     refine = {"nominal": nominal, "prior": prior, "max_iterations": max_iterations, "fibers": fibers, "label": label}
     while outer > 0:
-        disc = next((j for j in range(1 if stages == 0 else 0, outer)
-                     if _stage_bound(x, y, tips, covariance, pixels, np.flatnonzero(distance <= radii[j]))
-                     <= STAGE_PHASE_LIMIT), outer - 1)
+        bounds = []
+        for j in range(1 if stages == 0 else 0, outer):
+            bounds.append(_stage_bound(x, y, tips, covariance, pixels, np.flatnonzero(distance <= radii[j])))
+            if bounds[-1] <= STAGE_PHASE_LIMIT:
+                disc = j
+                break
+        else:  # no disc the bound allows: the next one out anyway, said (it may not converge)
+            disc = outer - 1
+            if not bounds:  # (too few pixels for a smaller disc than every pixel)
+                bounds.append(_stage_bound(x, y, tips, covariance, pixels))
+            log.warning("%s: no disc of %d pixels or more keeps the tips' uncertainty within %g rad at 3 sigma "
+                        "(%.2f rad on the disc of %.0f pixels refined next); the refinement may not converge",
+                        label, STAGE_MIN_PIXELS, STAGE_PHASE_LIMIT, bounds[-1], radii[disc])
         if disc == 0:
             stage = pixels
         else:
@@ -525,7 +536,8 @@ def _refine_in_stages(pixels, k_plane, *, nominal, prior, max_iterations, fibers
                 stage.theta, stage.x, stage.y, lambda s: stage.surface(nominal, s), k_plane, pixels.block,
                 gradient=gradient)
             stage.sign = pixels.sign
-        tips, constant, plane, done, normal = _refine_tips(stage, tips, constant, plane, **refine)
+        where = f" over the {stage.x.size} pixels within {radii[disc]:.0f} pixels of the centre (stage {stages + 1})"
+        tips, constant, plane, done, normal = _refine_tips(stage, tips, constant, plane, where=where, **refine)
         covariance = np.linalg.inv(normal)
         stages, iterations, outer = stages + 1, iterations + done, disc
         log.info("%s: tips refined over the %d pixels within %.0f pixels of the centre (stage %d, %d "

@@ -1224,7 +1224,7 @@ def stray_light_figure(ds, detector, *, title, prefix: str = ""):
                          textcoords="offset points", color="cyan", fontsize=8)
     excluded = ds[f"{p}excluded_frequency"].values if f"{p}excluded_frequency" in ds else np.empty((0, 2))
     # a frequency past Nyquist (0.5 cycles/pixel) is drawn where the pixels see it, folded back into the band
-    folded = ", folded into the band" if (np.abs(excluded) > 0.5).any() else ""
+    folded = " (those past 0.5 folded back)" if (np.abs(excluded) > 0.5).any() else ""
     for j, f in enumerate(excluded):
         aliased = (np.outer([1, -1], f) + 0.5) % 1.0 - 0.5  # the fringes' own K and 2K, left out of the search
         axes[0].plot(*aliased.T, "x", color="w", ms=9, mew=1.5, ls="none",

@@ -195,22 +195,22 @@ def part_files(files, frames_of, *, parts: int, part: int) -> list:
 
 
 #: Samples of a baseline from which its fit and Allan jobs read it in worker processes, one per part of its
-#: files (:data:`dice_core.parallel.LANES`): below it a second worker's fork and pool cost more than the half
-#: of the reading it saves, and its core is held from every other job for the whole job, most of which (start,
-#: imports, the solve, the product) is serial. Measured (BENCHMARKS.md, "One worker or two"): one worker was
-#: faster on every repeat at 2.7e7 and 1e8 samples (1.1-1.6x); two read 1.7-1.9x faster than one on idle cores
-#: at 1.3e9 (issue 10's measurement).
+#: files: below it a second worker's fork and pool cost more than the half of the reading it saves, and its
+#: core is held from every other job for the whole job, most of which (start, imports, the solve, the product)
+#: is serial. A judgement between two measurements (BENCHMARKS.md, "One worker or two"): on shared cores one
+#: worker was faster in the median at 2.7e7, 1e8 and 1e9 samples (a second worker had no idle core); on idle
+#: cores two workers read 1.3e9 samples 1.7-1.9x faster than one (issue 10's measurement). Not measured on
+#: idle cores between them.
 PARALLEL_READ_SAMPLES = 2e8
 
 
-def reading_workers(files, frames_of, *, pixels: int) -> int:
+def reading_workers(files, frames_of, *, pixels: int, parts: int) -> int:
     """Worker processes, a job's threads, for a job that streams a baseline of ``files`` (``frames_of(path)``
-    its frames, ``pixels`` a frame's): one per part it is read in (:data:`dice_core.parallel.LANES`, one file
-    a part at most) from ``PARALLEL_READ_SAMPLES`` samples, else one. The product does not depend on it."""
-    from dice_core.parallel import LANES
-
+    its frames, ``pixels`` a frame's) in ``parts`` parts of whole files (the fit's ``metrology.parts``, the
+    Allan step's :data:`dice_core.parallel.LANES`): one per part, a part one file at least, from
+    ``PARALLEL_READ_SAMPLES`` samples; else one. The product does not depend on it."""
     samples = pixels * sum(frames_of(f) for f in files)
-    return min(LANES, len(files)) if samples >= PARALLEL_READ_SAMPLES else 1
+    return max(1, min(parts, len(files))) if samples >= PARALLEL_READ_SAMPLES else 1
 
 
 def sample_groups(sizes, *, samples: float) -> list[tuple[int, ...]]:

@@ -115,7 +115,8 @@ def test_tips_that_do_not_fit_the_phases_are_refused(rng):
 
 @pytest.mark.parametrize("side, period, midpoint, angle", [(2048, 2.4, (0.012, 0.006), 0.035),
                                                         (4096, 4.0, (-0.011, -0.010), 1.545)])
-def test_a_large_detector_s_tips_are_refined_from_its_centre_out(caplog, side, period, midpoint, angle):
+def test_a_large_detector_s_tips_are_refined_from_its_centre_out(caplog, monkeypatch, side, period, midpoint,
+                                                                 angle):
     """A detector 2048 or 4096 pixels wide (49 or 98 mm at 24 um), nominal tips 1 mm off: beyond the affine part
     their surface departs from the true one by radians at the edges, past the +-pi a wrapped residual shows,
     and a refinement over every pixel at once wandered for 30 iterations. Refined in stages, over discs from
@@ -145,6 +146,11 @@ def test_a_large_detector_s_tips_are_refined_from_its_centre_out(caplog, side, p
     truth = (gx * dx + gy * dy) / k_norm
     affine = np.array([np.ones(x.size), x, y])
     assert rms(fit.offsets - remove_modes(remove_modes(truth, affine), fit.modes)) < 1.1 * noise
+    with monkeypatch.context() as patch:  # the control: every pixel at once, as before stages, does not converge
+        patch.setattr(geometry, "STAGE_PHASE_LIMIT", np.inf)
+        with pytest.raises(geometry.GeometryError, match="did not converge"):
+            fit_two_source(theta, x, y, *nominal, wavelength=WAVELENGTH, pixel_pitch=PITCH,
+                           k_plane=(gx.mean(), gy.mean()))
     caplog.clear()
     a, b = bench_tips(period, midpoint, angle)
     phase, gx, gy = two_source_phase(X, Y, a, b, wavelength=WAVELENGTH, pixel_pitch=PITCH)

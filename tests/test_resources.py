@@ -119,15 +119,15 @@ def test_a_simulation_job_holds_one_acquisition_s_files_or_the_positions(tmp_pat
 
 
 def test_a_baseline_is_read_by_one_worker_unless_it_is_large_and_in_several_files():
-    """Two worker processes (a job's threads) only where the baseline holds PARALLEL_READ_SAMPLES samples and at
-    least two files: a second worker cannot split one file, and on a small baseline costs more than it saves."""
-    from dice_core.parallel import LANES
-
+    """Two worker processes (a job's threads) only where the baseline holds PARALLEL_READ_SAMPLES samples and is
+    read in two parts or more, each one file at least: a second worker cannot split one file, and on a small
+    baseline costs more than it saves."""
     pixels = 80 * 84
     frames_of = {"a": 2000, "b": 2000, "big1": 200000, "big2": 200000, "big3": 200000}.get
-    assert resources.reading_workers(["a", "b"], frames_of, pixels=pixels) == 1
-    assert resources.reading_workers(["big1"], frames_of, pixels=pixels) == 1
-    assert resources.reading_workers(["big1", "big2"], frames_of, pixels=pixels) == LANES == 2
-    assert resources.reading_workers(["big1", "big2", "big3"], frames_of, pixels=pixels) == LANES
+    assert resources.reading_workers(["a", "b"], frames_of, pixels=pixels, parts=2) == 1
+    assert resources.reading_workers(["big1"], frames_of, pixels=pixels, parts=2) == 1
+    assert resources.reading_workers(["big1", "big2"], frames_of, pixels=pixels, parts=2) == 2
+    assert resources.reading_workers(["big1", "big2", "big3"], frames_of, pixels=pixels, parts=3) == 3
+    assert resources.reading_workers(["big1", "big2", "big3"], frames_of, pixels=pixels, parts=1) == 1
     # the threshold is in samples: the same frames of a detector 100 times smaller stay in one worker
-    assert resources.reading_workers(["big1", "big2"], frames_of, pixels=pixels // 100) == 1
+    assert resources.reading_workers(["big1", "big2"], frames_of, pixels=pixels // 100, parts=2) == 1

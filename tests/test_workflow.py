@@ -783,6 +783,17 @@ def test_every_job_asks_for_memory_and_time_that_cover_what_its_benchmark_measur
     assert checked >= 20  # the simulation's files, dark, flats, fits, Allan, stacks, centroids
 
 
+def test_only_a_large_baseline_s_fit_and_allan_jobs_ask_for_two_threads(workdir):
+    """The rules' threads (dice_core.resources.reading_workers): the paper preset's baselines (1.3e9 samples in
+    10 files) ask for two, one per part; the ci preset's (2e6 samples) for one, in each of the 8 jobs."""
+    for dataset, threads in (("paper", "2"), ("ci", None)):
+        plan = snakemake(workdir, "-n", "--forceall", "--config", f"dataset={dataset}").stdout
+        jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?=^\S|\Z)", plan, re.M | re.S)
+        asked = [re.search(r"^\s+threads: (\d+)", block, re.M) for rule, block in jobs
+                 if rule in ("fit_fringes", "allan_deviation")]
+        assert [found.group(1) if found else None for found in asked] == [threads] * 8, dataset
+
+
 def test_missing_manifest_is_a_clear_error(workdir, tmp_path):
     missing = tmp_path / "nowhere" / "dataset.yaml"
     result = snakemake(workdir, "-n", "--config", f"dataset={missing}", check=False)

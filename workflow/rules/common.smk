@@ -9,6 +9,7 @@ from pathlib import Path
 
 from dice_core import DatasetError, planning, preflight, products, simulation, steps
 from dice_core import resources as dice_resources
+from dice_core.parallel import LANES
 from dice_core import settings as dice_settings
 
 BASE = Path(workflow.basedir)
@@ -249,11 +250,15 @@ if DRY_RUN:
     say_skipped()
 
 
-def reading_threads(wildcards):
-    """Threads of a job that reads baseline ``wildcards.baseline`` in parts: its worker processes, one per part
-    for a large baseline, one for a small (dice_core.resources.reading_workers)."""
-    files = MANIFEST.baselines[wildcards.baseline].files
-    return dice_resources.reading_workers(files, file_frames, pixels=PIXELS)
+def reading_threads(parts):
+    """A rule's threads: for a job that reads baseline ``wildcards.baseline`` in ``parts`` parts, its worker
+    processes, one per part for a large baseline, one for a small (dice_core.resources.reading_workers)."""
+
+    def threads(wildcards):
+        files = MANIFEST.baselines[wildcards.baseline].files
+        return dice_resources.reading_workers(files, file_frames, pixels=PIXELS, parts=parts)
+
+    return threads
 
 
 def part_files(wildcards):

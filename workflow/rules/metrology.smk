@@ -111,7 +111,8 @@ if config["metrology"]["split"]:
 
 else:
 
-    # threads: worker processes reading parts of the frames, one BLAS thread each (dice_core.parallel).
+    # threads: worker processes reading the metrology.parts parts of the frames, one BLAS thread each
+    # (dice_core.parallel), for a large baseline only (dice_core.resources.reading_workers).
     rule fit_fringes:
         input:
             manifest=MANIFEST_FILE,
@@ -127,7 +128,7 @@ else:
             f"{OUT}/benchmarks/fit_fringes_{{baseline}}.tsv"
         conda:
             "../envs/dice.yaml"
-        threads: reading_threads
+        threads: reading_threads(config["metrology"]["parts"])
         resources:
             **step_resources("fit_fringes"),
         params:
@@ -253,7 +254,7 @@ rule allan_deviation:
         f"{OUT}/benchmarks/allan_deviation_{{baseline}}.tsv"
     conda:
         "../envs/dice.yaml"
-    threads: reading_threads
+    threads: reading_threads(LANES)  # the Allan step reads a baseline in LANES parts
     resources:
         **step_resources("allan_deviation"),
     params:
