@@ -72,9 +72,13 @@ def dataset_name(overrides: dict) -> str:
     return simulation.load_preset(PRESET, overrides=overrides).name
 
 
+#: Extra Snakemake options of every run (``--keep-raw``: ``--rerun-triggers mtime``).
+SNAKEMAKE_OPTIONS: list = []
+
+
 def snakemake(configfile: Path, *targets: str, forcerun: str | None = None) -> float:
     """Run the README's command for ``targets``; wall time, s. Exits with Snakemake's output on a failure."""
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--configfile", str(configfile),
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--configfile", str(configfile), *SNAKEMAKE_OPTIONS,
            *(["--forcerun", forcerun] if forcerun else []), "--", *targets]
     print(f"$ {' '.join(cmd)}", flush=True)
     start = time.perf_counter()
@@ -281,10 +285,16 @@ def main(argv=None):
                         help="fit: the metrology product; metrology: and the Allan deviations; all: the preset's "
                              "default target")
     parser.add_argument("--drop-raw", action="store_true", help="remove each size's raw files after it")
+    parser.add_argument("--keep-raw", action="store_true",
+                        help="raw files simulated by other code are not made again, nor what their code's change "
+                             "would rerun: Snakemake's --rerun-triggers mtime (for a reduction measured on raw "
+                             "files simulated before)")
     parser.add_argument("--single", action="store_true",
                         help="also run the single fit_fringes job on the same files and compare the products")
     parser.add_argument("--report", action="store_true", help="print the tables of sizes already run")
     args = parser.parse_args(argv)
+    if args.keep_raw:
+        SNAKEMAKE_OPTIONS.extend(["--rerun-triggers", "mtime"])
     args.workdir = args.workdir.resolve()
     args.workdir.mkdir(parents=True, exist_ok=True)
     if args.report:
