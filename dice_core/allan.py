@@ -451,7 +451,7 @@ def _held(pixel_factors):
 
 
 def batch_floors(frame_factors, batches, *, pixel_factors, gain, read_noise, k_norm,
-                 phase_only: bool = True, out=None) -> np.ndarray:
+                 phase_only: bool = True) -> np.ndarray:
     """1-sigma photon-noise error of each batch's offset of each pixel, pixel (batch, pixel).
 
     The exact error of the unweighted fit on the batch's own frames
@@ -459,10 +459,9 @@ def batch_floors(frame_factors, batches, *, pixel_factors, gain, read_noise, k_n
     batch's frame factors), of the phase alone (``phase_only``, as
     :func:`batch_offsets` with pixel factors) or of the three linear terms:
     unlike :func:`photon_limit`, it knows how unevenly a batch of an
-    irregular sweep samples the phase. Written a batch at a time into
-    ``out`` (batch, pixel) if given (a :class:`~dice_core.scratch.ScratchArray`), and returned.
+    irregular sweep samples the phase.
     """
-    out = np.empty((len(batches), pixel_factors.shape[0])) if out is None else out
+    out = np.empty((len(batches), pixel_factors.shape[0]))
     for b, (start, stop) in enumerate(batches):
         FtF, third = frame_moments(frame_factors[start:stop])
         out[b] = photon_floor(pixel_factors, FtF, third=third, gain=gain, read_noise=read_noise, k_norm=k_norm,
@@ -470,9 +469,26 @@ def batch_floors(frame_factors, batches, *, pixel_factors, gain, read_noise, k_n
     return out
 
 
+class _BatchFloors:
+    """:func:`batch_floors` (batch, pixel) made when read, for the pixels asked (``floors[:, pixels]``, pixels a
+    slice): nothing of pixels times batches kept (each pixel's floors are its own, the same to rounding)."""
+
+    def __init__(self, frame_factors, batches, *, pixel_factors, read_noise, **floor):
+        self.frame_factors, self.batches, self.pixel_factors, self.floor = frame_factors, batches, pixel_factors, floor
+        self.read_noise = np.broadcast_to(np.asarray(read_noise, float), (pixel_factors.shape[0],))
+        self.shape = (len(batches), pixel_factors.shape[0])
+
+    def __getitem__(self, key):
+        batches, pixels = key
+        if batches != slice(None) or not isinstance(pixels, slice):
+            raise IndexError("_BatchFloors gives every batch of a slice of pixels")
+        return batch_floors(self.frame_factors, self.batches, pixel_factors=self.pixel_factors[pixels],
+                            read_noise=self.read_noise[pixels], **self.floor)
+
+
 #: Batch-pixel numbers of one band of pixels the statistics hold at once (each several times over, float64):
 #: :func:`allan_of_baseline`'s bands have about this over the number of batches pixels.
-BAND_NUMBERS = 2**22
+BAND_NUMBERS = 2**21
 
 
 def _pixel_bands(weights, pixels_per_block):
@@ -899,7 +915,8 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
 
     Parameters are those of :func:`allan_dataset`, with the detector's
     ``gain`` (e-/adu) for the detector; the pixels are ``rows``, ``cols``.
-    ``offsets`` and ``floors`` may be ScratchArrays: they are read
+    ``offsets`` and ``floors`` may be ScratchArrays (or anything giving
+    ``[:, pixels]`` for a slice of pixels): they are read
     ``pixels_per_block`` pixels at a time (in bands of whole blocks where
     blocks are formed; None: all at once), the white-noise cube goes to
     ``scratch`` if given, and so do the per-pixel deviations (size, pixel)
@@ -1268,9 +1285,8 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
                             weights=block_weights(rows, cols, good=good, block=block), pixels_per_block=band,
                             scratch=folder)
         del sums  # its file's space freed: the groups are reduced
-        floors = batch_floors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
-                              read_noise=read_noise, k_norm=np.hypot(*k),
-                              out=ScratchArray(folder, (len(batches), rows.size), np.float64, name="floors"))
+        floors = _BatchFloors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
+                              read_noise=read_noise, k_norm=np.hypot(*k))  # made a band at a time
         log.info("%s: %d group sizes fitted as a whole, from %d to %d batches", label, len(sizes), sizes[0],
                  sizes[-1])
         return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),

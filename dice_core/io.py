@@ -898,7 +898,7 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
 
 #: Bytes of a lazily held variable :func:`write_product` reads and writes at a time (at least one slice
 #: along its first dimension).
-WRITE_SLICE_BYTES = 2**26
+WRITE_SLICE_BYTES = 2**24
 
 
 def _streamable(variable) -> bool:
