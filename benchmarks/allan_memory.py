@@ -156,21 +156,24 @@ def main(argv=None):
     parser.add_argument("--frames", type=int, default=8000)
     parser.add_argument("--sweep-frames", type=int, default=60)
     parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--pixels-per-block", default="default",
+                        help="the Allan step's bands of pixels (a tree that has them; default: its own choice)")
     args = parser.parse_args(argv)
     folder = (args.workdir / f"s{args.size}_f{args.frames}_w{args.sweep_frames}").resolve()
     folder.mkdir(parents=True, exist_ok=True)
     prepare(args.size, args.frames, args.sweep_frames, folder)
     results = {"machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-               "load": os.getloadavg(), "size": args.size, "frames": args.frames, "workers": args.workers}
+               "load": os.getloadavg(), "size": args.size, "frames": args.frames, "workers": args.workers,
+               "pixels_per_block": args.pixels_per_block}
     plain = subprocess.run([sys.executable, "-c", PLAIN, str(REPO), str(folder / "raw" / "dataset.yaml")],
                            check=True, capture_output=True, text=True)
     results["plain_pass_s"] = float(plain.stdout)
     products = {}
     for spec in args.tree:
         name, tree = spec.split("=", 1)
-        output = folder / f"allan-{name}.nc"
+        output = folder / f"allan-{name}-{args.pixels_per_block}.nc"
         run = run_job(tree, folder / "raw" / "dataset.yaml", folder / "metrology.nc", folder / "dark.nc", BASELINE,
-                      output, workers=args.workers)
+                      output, workers=args.workers, pixels_per_block=args.pixels_per_block)
         own = run["peak_mb"] - run["base_mb"]
         run.update(own_mb=own, bytes_per_pixel=own * 2**20 / args.size**2,
                    bytes_per_pixel_batch=own * 2**20 / args.size**2 / run["batches"],
@@ -181,7 +184,8 @@ def main(argv=None):
         results[name] = run
         print(name, json.dumps(run, indent=1))
     print(f"plain pass {results['plain_pass_s']:.1f} s; load {results['load']}; {results['machine']}")
-    (args.workdir / "allan_memory.json").write_text(json.dumps(results, indent=1))
+    with open(args.workdir / "allan_memory.json", "a") as f:  # one line a run
+        f.write(json.dumps(results) + "\n")
 
 
 if __name__ == "__main__":
