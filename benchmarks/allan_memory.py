@@ -16,8 +16,8 @@ For a detector size and frame count given, in one run:
 
 Printed: per tree, batches, time (and over the plain pass), peak RSS, the step's own memory and that per pixel
 and per pixel and batch; for each tree after the first, the largest difference of its product from the
-first tree's (every variable, coordinate and attribute compared). Every number goes to
-``<workdir>/allan_memory.json``.
+first tree's (every variable, coordinate and attribute compared). Every run's numbers are appended to
+``<workdir>/allan_memory.json``, one line a run.
 
     git archive <base> dice_core | tar -x -C /tmp/dice-base
     python benchmarks/allan_memory.py --workdir /tmp/dice-allanmem --tree base=/tmp/dice-base --tree new=$PWD \\
