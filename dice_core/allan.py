@@ -787,8 +787,8 @@ class AllanStatistics:
     group_size, n_groups, n_frames : ndarray (size,)
         Batches per group, groups the deviations are taken over, mean frames per group.
     frames_per_batch : float
-    deviation, allan_deviation : ndarray (size, pixel)
-        Per pixel (the groups fitted as a whole when given, else means of batch fits).
+    deviation, allan_deviation : ndarray or ScratchArray (size, pixel)
+        Per pixel (the groups fitted as a whole when given, else means of batch fits); on disk when made there.
     deviation_mean, allan_deviation_mean, deviation_block_mean, allan_deviation_block_mean : ndarray (size,)
         Root of the mean variance over pixels, and over blocks of pixel-averaged offsets.
     white_deviation_mean, white_deviation_block_mean : ndarray (size,)
@@ -803,8 +803,8 @@ class AllanStatistics:
         Pixels (indices into ``rows``, ``cols``) whose curves ``sample_deviation`` (size, sample) holds.
     batch_start, batch_frames : ndarray (batch,)
         First frame and frames of each batch.
-    batch_offset : ndarray (batch, pixel)
-        The batch offsets.
+    batch_offset : ndarray or ScratchArray (batch, pixel)
+        The batch offsets (the statistics' input, on disk or not).
     deviation_mean_batch_means, photon_limit_pixel_batch_means, slope_batch_means : optional
         With the groups fitted as a whole: the groups as means of batch fits (the paper's) beside them.
     photon_limit_pixel_first_frame : ndarray (size,), optional
