@@ -22,6 +22,7 @@ One module per concern; none of them knows about Snakemake:
 - :mod:`dice_core.polynomials` -- 2-D polynomial surfaces shared by the fits;
 - :mod:`dice_core.pixel_blocks` -- least-squares sums over the pixels taken a block of pixels at a time;
 - :mod:`dice_core.parallel` -- worker processes and BLAS threads of the streaming reductions;
+- :mod:`dice_core.scratch` -- arrays on disk for what grows with pixels times batches, in a folder removed after;
 - :mod:`dice_core.plotting` -- the paper's figures;
 - :mod:`dice_core.paper_method` -- the paper's own fringe reduction as its text describes it, for comparison;
 - :mod:`dice_core.error_budget` -- error-propagation coefficients of the centroids, Monte Carlo and analytic;

@@ -37,6 +37,8 @@ Units: pixel for offsets and deviations, frames for integration lengths.
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import logging
 from dataclasses import dataclass
 
@@ -48,6 +50,7 @@ from dice_core.io import first_chunk
 from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
                                 threads_report)
 from dice_core.polynomials import polynomial_design
+from dice_core.scratch import ScratchArray, scratch_directory
 
 xr = lazy.module("xarray")  # scipy too is imported where used: a job reaches its first line sooner
 
@@ -225,15 +228,31 @@ class _BatchFit:
         size = np.abs(turned)
         return np.where(size > 0, turned / np.where(size > 0, size, 1.0), 0.0)
 
+    def turned(self, FtF, FtI):
+        """exp(i (theta - reference_phase)) (pixel,) of the fit with normal equations F'F (3, 3), F'I (3, pixel)."""
+        return self.phases_of_sums(FtF, FtI) * self.rotation
+
     def offsets_of_sums(self, FtF, FtI):
         """Projected offsets (pixel,) of the least-squares fit with normal equations F'F (3, 3), F'I (3, pixel)."""
         # theta - reference as unit complex numbers, wrapped about their circular mean: the difference is
         # the constant phase the gauge leaves free plus the batch's small offset changes, and that
         # constant may be near pi (wrapped_about_mean, cheaper)
-        turned = self.phases_of_sums(FtF, FtI) * self.rotation
-        centre = np.mean(turned)
-        delta = np.angle(turned * np.conj(centre / np.abs(centre)))
+        turned = self.turned(FtF, FtI)
+        delta = _wrapped_about(turned, np.mean(turned))
         return (delta - self.basis @ (self.basis.T @ delta)) / self.k_norm
+
+    def band(self, pixels: slice) -> _BatchFit:
+        """The fit of the pixels ``pixels`` (a slice of this fit's): the affine basis is this fit's, over every
+        pixel, cut to them (not one of their own)."""
+        held = {} if self.iota is None else {"iota": self.iota[pixels], "alpha": self.alpha[pixels]}
+        return _BatchFit(idx=None, level=None, reference_phase=self.reference_phase[pixels],
+                         design=self.design[pixels], k_norm=self.k_norm, basis=self.basis[pixels],
+                         rotation=self.rotation[pixels], **held)
+
+
+def _wrapped_about(turned, centre):
+    """The angles (rad) of unit complex numbers ``turned`` about the direction of ``centre``, in [-pi, pi]."""
+    return np.angle(turned * np.conj(centre / np.abs(centre)))
 
 
 def _phase_only(FtF, FtI, iota, alpha, *, steps: int = 2):
@@ -263,18 +282,19 @@ def _phase_only(FtF, FtI, iota, alpha, *, steps: int = 2):
     return theta
 
 
-def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
+def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, kept, label):
     """One lane's part of :func:`batch_offsets`: the batches its chunks hold whole, and the others' partial sums.
 
-    Returns ``(done, partial, blas_threads)``: ``done`` maps a batch index to its normal
-    sums F'I (3, pixel of ``fit.idx``), ``partial`` maps a batch the chunks hold only part of to its
-    sums F'X over those frames (3, pixel of ``fit.idx``) and the number of
-    those frames; ``blas_threads`` those of the process that ran it (for the
-    log). Module-level, so that a worker process can run it.
+    Each batch the lane's chunks hold whole has its normal sums F'I (3, pixel of ``fit.idx``) written
+    to ``kept[b]`` (float32) as soon as its last frame is summed: no lane holds more than the batches it is
+    summing. Returns ``(done, partial, blas_threads)``: ``done`` the batches written, ``partial`` maps a
+    batch the chunks hold only part of to its sums F'X over those frames (3, pixel of ``fit.idx``) and the
+    number of those frames; ``blas_threads`` those of the process that ran it (for the log). Module-level,
+    so that a worker process can run it.
     """
     n_total = len(batches)
     lengths = batches[:, 1] - batches[:, 0]
-    done, sums, covered = {}, {}, {}
+    done, sums, covered = [], {}, {}
     for chunk in chunks:
         n = chunk.frames.shape[0]
         X = chunk.frames.reshape(n, -1)
@@ -292,8 +312,9 @@ def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
             # F'X on whole frames (a chunk is never copied), summed in float64
             np.add(sums[b], F.T @ X[lo - lo_frame:hi - lo_frame], out=sums[b])
             covered[b] = covered.get(b, 0) + hi - lo
-            if covered[b] == lengths[b]:  # float32: a phase to 1e-7 rad, half the memory and the pipe
-                done[b] = fit.normal_sums(frame_factors[start:stop], sums.pop(b)[:, fit.idx]).astype(np.float32)
+            if covered[b] == lengths[b]:  # float32: a phase to 1e-7 rad, half the memory, disk and pipe
+                kept[b] = fit.normal_sums(frame_factors[start:stop], sums.pop(b)[:, fit.idx]).astype(np.float32)
+                done.append(b)
                 del covered[b]
                 if len(done) % 100 == 0:
                     log.info("%s: %d batches fitted in one part of the frames", label, len(done))
@@ -303,7 +324,7 @@ def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, label):
 @one_blas_thread
 def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows, cols, *,
                   pixel_factors=None, reference=None, workers: int = 1, return_sums: bool = False,
-                  label="baseline"):
+                  scratch=None, label="baseline"):
     """Projected offsets of every pixel in every batch, in one pass over the frames.
 
     For each batch b, with the frame factors F_t = (B, A cos phi, A sin phi)(t)
@@ -354,6 +375,11 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     return_sums : bool
         Also return each batch's normal sums F'I, for fits of groups of
         batches as a whole (:func:`group_fits`).
+    scratch : path, optional
+        A folder (:func:`dice_core.scratch.scratch_directory`): the offsets
+        and sums are returned as :class:`~dice_core.scratch.ScratchArray`
+        files there, and the job holds one batch's at a time (besides each
+        lane's batches being summed). None: arrays in memory.
 
     Returns
     -------
@@ -372,39 +398,48 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
                     design=polynomial_design(cols.astype(float), rows.astype(float), degree=1),
                     k_norm=float(np.hypot(*k)), **_held(pixel_factors))
     batches = np.asarray(batches)
+    with contextlib.ExitStack() as stack:
+        folder = scratch if scratch is not None else stack.enter_context(scratch_directory())
+        kept = ScratchArray(folder, (len(batches), 3, idx.size), np.float32, name="sums")
+        out = (ScratchArray(folder, (len(batches), idx.size), np.float64, name="offsets") if scratch is not None
+               else np.full((len(batches), idx.size), np.nan))
+        _fit_batches(chunks, batches, frame_factors, fit, kept, out, workers, label)
+        if scratch is None:  # in memory, the files go with their folder
+            kept = kept[...] if return_sums else None
+    return (out, kept) if return_sums else out
+
+
+def _fit_batches(chunks, batches, frame_factors, fit, kept, out, workers, label):
+    """:func:`batch_offsets`' pass: each batch's F'I written to ``kept`` (batch, 3, pixel), its offsets to
+    ``out`` (batch, pixel), one batch in memory at a time besides the lanes' own."""
     lanes = chunks.split(LANES) if hasattr(chunks, "split") else [chunks]
     with lane_executor(workers, len(lanes)) as executor:
         log.info("%s: %d batch fits over %d part(s) of the frames, in %d process(es)", label, len(batches),
                  len(lanes), lane_workers(workers, len(lanes)))
-        results = map_lanes(executor, _lane_batch_offsets, lanes, batches, frame_factors, fit, label)
+        results = map_lanes(executor, _lane_batch_offsets, lanes, batches, frame_factors, fit, kept, label)
     log.info("%s: %s", label, threads_report(executor, [threads for _, _, threads in results]))
-    out = np.full((len(batches), idx.size), np.nan)
-    kept = np.zeros((len(batches), 3, idx.size), np.float32) if return_sums else None
     fitted = np.zeros(len(batches), bool)
     partial, covered = {}, {}
 
     def finish(b, FtI):
         start, stop = batches[b]
         F = frame_factors[start:stop]
-        FtI = np.asarray(FtI, np.float32)  # every batch's sums rounded alike, wherever the lanes cut
         out[b], fitted[b] = fit.offsets_of_sums(F.T @ F, FtI.astype(np.float64)), True
-        if kept is not None:
-            kept[b] = FtI
 
     for done, sums, _ in results:  # in lane order, so that a batch cut between parts sums the same way always
-        while done:  # each lane's sums released as they are kept: one copy of them in memory, not two
-            b, FtI = done.popitem()
-            finish(b, FtI)
+        for b in done:
+            finish(b, kept[b])
         for b, (part, n_frames) in sums.items():
             partial[b] = part if b not in partial else partial[b] + part
             covered[b] = covered.get(b, 0) + n_frames
     for b, part in partial.items():
         start, stop = batches[b]
         if covered[b] == stop - start:
-            finish(b, fit.normal_sums(frame_factors[start:stop], part))
+            # every batch's sums rounded alike, wherever the lanes cut
+            kept[b] = FtI = np.asarray(fit.normal_sums(frame_factors[start:stop], part), np.float32)
+            finish(b, FtI)
     if not fitted.all():
         raise AllanError(f"{label}: the frames ended in batch {np.flatnonzero(~fitted)[0]} of {len(batches)}")
-    return (out, kept) if return_sums else out
 
 
 def _held(pixel_factors):
@@ -434,8 +469,83 @@ def batch_floors(frame_factors, batches, *, pixel_factors, gain, read_noise, k_n
     return out
 
 
+class _BatchFloors:
+    """:func:`batch_floors` (batch, pixel) made when read, for the pixels asked (``floors[:, pixels]``, pixels a
+    slice): nothing of pixels times batches kept (each pixel's floors are its own, the same to rounding)."""
+
+    def __init__(self, frame_factors, batches, *, pixel_factors, read_noise, **floor):
+        self.frame_factors, self.batches, self.pixel_factors, self.floor = frame_factors, batches, pixel_factors, floor
+        self.read_noise = np.broadcast_to(np.asarray(read_noise, float), (pixel_factors.shape[0],))
+        self.shape = (len(batches), pixel_factors.shape[0])
+
+    def __getitem__(self, key):
+        batches, pixels = key
+        if batches != slice(None) or not isinstance(pixels, slice):
+            raise IndexError("_BatchFloors gives every batch of a slice of pixels")
+        return batch_floors(self.frame_factors, self.batches, pixel_factors=self.pixel_factors[pixels],
+                            read_noise=self.read_noise[pixels], **self.floor)
+
+
+#: Batch-pixel numbers of one band of pixels the statistics hold at once (each several times over, float64):
+#: :func:`allan_of_baseline`'s bands have about this over the number of batches pixels.
+BAND_NUMBERS = 2**21
+
+
+def _pixel_bands(weights, pixels_per_block):
+    """Consecutive slices of the pixels, each at most ``pixels_per_block`` long where a block allows, none
+    cutting a block of ``weights`` (:func:`block_weights`, pixel, block); one of every pixel if
+    ``pixels_per_block`` is None."""
+    n = weights.shape[0]
+    if pixels_per_block is None or n <= pixels_per_block:
+        return [slice(0, n)]
+    column = np.full(n, -1)
+    column[np.diff(weights.indptr) > 0] = weights.indices  # the block of each pixel (one weight a pixel at most)
+    seen = np.maximum.accumulate(column)  # the last block at or before each pixel
+    ahead = np.minimum.accumulate(np.where(column >= 0, column, n)[::-1])[::-1]  # the first at or after
+    cuts = (np.flatnonzero(seen[:-1] < ahead[1:]) + 1).tolist()  # a cut before these pixels splits no block
+    bands, start, last = [], 0, 0
+    for cut in [*cuts, n]:
+        if cut - start > pixels_per_block and last > start:
+            bands.append(slice(start, last))
+            start = last
+        last = cut
+    return [*bands, slice(start, n)]
+
+
+def _band_weights(weights, band):
+    """The rows ``band`` of ``weights`` cut to the columns (blocks) they weigh, and those columns' slice."""
+    rows = weights[band.start:band.stop]
+    if rows.nnz == 0:
+        return rows[:, :0], slice(0, 0)
+    columns = slice(int(rows.indices.min()), int(rows.indices.max()) + 1)
+    return rows[:, columns], columns
+
+
+class _RootMeanSquare:
+    """sqrt(nanmean(deviations**2)) over pixels (size, pixel), summed a band of pixels at a time."""
+
+    def __init__(self, n):
+        self.total, self.count = np.zeros(n), np.zeros(n)
+
+    def add(self, deviations):
+        square = np.square(deviations)
+        finite = np.isfinite(square)
+        self.total += np.where(finite, square, 0.0).sum(axis=1)
+        self.count += finite.sum(axis=1)
+        return self
+
+    def root(self):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.sqrt(self.total / self.count)
+
+
+def _pixel_array(shape, scratch, name):
+    """A (..., pixel) float64 array filled band by band: in memory, or a ScratchArray in ``scratch``."""
+    return np.full(shape, np.nan) if scratch is None else ScratchArray(scratch, shape, np.float64, name=name)
+
+
 def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes, *, pixel_factors, gain,
-               read_noise, good, weights, phase_only: bool = True):
+               read_noise, good, weights, phase_only: bool = True, pixels_per_block=None, scratch=None):
     """Deviations and photon-noise limits of consecutive groups of batches, each group fitted as a whole.
 
     A group's normal equations are the sums of its batches' (F'F and F'I from
@@ -446,7 +556,7 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
 
     Parameters
     ----------
-    sums : ndarray (batch, 3, pixel)
+    sums : ndarray or ScratchArray (batch, 3, pixel)
         Each batch's F'I, adu^2.
     batches : ndarray (batch, 2)
         Consecutive batches (:func:`fringe_batches`).
@@ -470,6 +580,17 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
     phase_only : bool
         Fit each group's phases alone (as :func:`batch_offsets` with pixel
         factors); False: the three linear terms.
+    pixels_per_block : int, optional
+        Pixels of a band the groups are fitted over at a time (never cutting
+        a block of ``weights``; None: every pixel at once). A group's offsets
+        are wrapped about one circular mean and have one affine part removed
+        over every pixel: the mean is the first band's (any centre near the
+        phases gives the same offsets, up to a constant the affine part takes
+        out), the affine part's projections are summed over the bands in a
+        first sweep and removed in a second. The same values whatever the
+        bands, to rounding.
+    scratch : path, optional
+        A folder for ``deviation`` and ``allan`` as ScratchArrays (None: in memory).
 
     Returns
     -------
@@ -480,38 +601,59 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
         part removed) of each pixel and block; ``limit_pixel`` and
         ``limit_block`` (size,): their photon-noise limits, the groups'
         variances from their own fits averaged over groups, then over pixels or
-        blocks. All in pixel. Each size's groups are reduced as they are
-        fitted: at most n_batches / 2 maps in memory.
+        blocks. All in pixel. A band's groups of every size in memory at a time.
     """
     fit = _BatchFit(idx=None, level=None, reference_phase=np.asarray(reference_phase, float),
                     design=polynomial_design(np.asarray(cols, float), np.asarray(rows, float), degree=1),
                     k_norm=float(np.hypot(*k)), **(_held(pixel_factors) if phase_only else {}))
     moments = [frame_moments(frame_factors[start:stop]) for start, stop in batches]
     # running sums of the small moments: a group's are two differences. The F'I are summed group by
-    # group instead (a running sum would hold another float64 copy of them all).
+    # group instead (a running sum would hold another float64 copy of a band of them).
     cum_FtF = np.concatenate([np.zeros((1, 3, 3)), np.cumsum([m[0] for m in moments], axis=0)])
     cum_third = np.concatenate([np.zeros((1, 3, 3, 3)), np.cumsum([m[1] for m in moments], axis=0)])
-    out = {name: [] for name in ("deviation", "allan", "block_deviation", "block_allan", "limit_pixel",
-                                 "limit_block")}
-    for m in sizes:
-        n_groups = len(batches) // m
-        group_offsets = np.zeros((n_groups, sums.shape[2]))
-        variance = np.zeros_like(group_offsets)
-        for g in range(n_groups):
-            lo, hi = g * m, (g + 1) * m
-            FtF = cum_FtF[hi] - cum_FtF[lo]
-            group_offsets[g, good] = fit.offsets_of_sums(FtF, sums[lo:hi].sum(axis=0, dtype=np.float64))[good]
-            variance[g, good] = photon_floor(pixel_factors, FtF, third=cum_third[hi] - cum_third[lo], gain=gain,
-                                             read_noise=read_noise, k_norm=fit.k_norm,
-                                             phase_only=phase_only)[good] ** 2
-        blocks = group_offsets @ weights
-        out["deviation"].append(np.where(good, _deviation_of_means(group_offsets), np.nan))
-        out["allan"].append(np.where(good, _allan_of_means(group_offsets), np.nan))
-        out["block_deviation"].append(_deviation_of_means(blocks))
-        out["block_allan"].append(_allan_of_means(blocks))
-        out["limit_pixel"].append(np.sqrt(variance.mean() * good.size / good.sum()))
-        out["limit_block"].append(np.sqrt((variance @ weights**2).mean()))
-    return {name: np.array(values) for name, values in out.items()}
+    groups = [[(g * m, (g + 1) * m) for g in range(len(batches) // m)] for m in sizes]
+    bands = _pixel_bands(weights, pixels_per_block)
+    n_pixels, n_blocks = len(fit.reference_phase), weights.shape[1]
+    read_noise = np.broadcast_to(np.asarray(read_noise, float), (n_pixels,))
+    out = {"deviation": _pixel_array((len(sizes), n_pixels), scratch, "deviation"),
+           "allan": _pixel_array((len(sizes), n_pixels), scratch, "allan"),
+           "block_deviation": np.full((len(sizes), n_blocks), np.nan),
+           "block_allan": np.full((len(sizes), n_blocks), np.nan)}
+    centres, projections = {}, {}
+    variance_pixel, variance_block = np.zeros(len(sizes)), np.zeros(len(sizes))
+    for band in bands:  # the first sweep: the wrapping centres, the affine parts and the limits
+        band_fit, band_sums = fit.band(band), sums[:, :, band]
+        weights_band = _band_weights(weights, band)[0]
+        for i, size_groups in enumerate(groups):
+            for lo, hi in size_groups:
+                FtF = cum_FtF[hi] - cum_FtF[lo]
+                turned = band_fit.turned(FtF, band_sums[lo:hi].sum(axis=0, dtype=np.float64))
+                delta = _wrapped_about(turned, centres.setdefault((lo, hi), np.mean(turned)))
+                projections[lo, hi] = projections.get((lo, hi), 0.0) + band_fit.basis.T @ delta
+                variance = np.where(good[band], photon_floor(
+                    pixel_factors[band], FtF, third=cum_third[hi] - cum_third[lo], gain=gain,
+                    read_noise=read_noise[band], k_norm=fit.k_norm, phase_only=phase_only), 0.0) ** 2
+                variance_pixel[i] += variance.sum()
+                variance_block[i] += (variance @ weights_band**2).sum()
+    for band in bands:  # the second: each band's group offsets, their deviations
+        band_fit, band_sums, band_good = fit.band(band), sums[:, :, band], good[band]
+        weights_band, columns = _band_weights(weights, band)
+        for i, size_groups in enumerate(groups):
+            group_offsets = np.zeros((len(size_groups), band.stop - band.start))
+            for g, (lo, hi) in enumerate(size_groups):
+                FtF = cum_FtF[hi] - cum_FtF[lo]
+                delta = _wrapped_about(band_fit.turned(FtF, band_sums[lo:hi].sum(axis=0, dtype=np.float64)),
+                                       centres[lo, hi])
+                group_offsets[g, band_good] = ((delta - band_fit.basis @ projections[lo, hi]) / fit.k_norm)[band_good]
+            blocks = group_offsets @ weights_band
+            out["deviation"][i, band] = np.where(band_good, _deviation_of_means(group_offsets), np.nan)
+            out["allan"][i, band] = np.where(band_good, _allan_of_means(group_offsets), np.nan)
+            out["block_deviation"][i, columns] = _deviation_of_means(blocks)
+            out["block_allan"][i, columns] = _allan_of_means(blocks)
+    n_groups = np.array([len(size_groups) for size_groups in groups])
+    out["limit_pixel"] = np.sqrt(variance_pixel / (n_groups * good.sum()))
+    out["limit_block"] = np.sqrt(variance_block / (n_groups * n_blocks))
+    return out
 
 
 def group_sizes(n_batches: int, *, per_decade: int = 10) -> np.ndarray:
@@ -645,8 +787,8 @@ class AllanStatistics:
     group_size, n_groups, n_frames : ndarray (size,)
         Batches per group, groups the deviations are taken over, mean frames per group.
     frames_per_batch : float
-    deviation, allan_deviation : ndarray (size, pixel)
-        Per pixel (the groups fitted as a whole when given, else means of batch fits).
+    deviation, allan_deviation : ndarray or ScratchArray (size, pixel)
+        Per pixel (the groups fitted as a whole when given, else means of batch fits); on disk when made there.
     deviation_mean, allan_deviation_mean, deviation_block_mean, allan_deviation_block_mean : ndarray (size,)
         Root of the mean variance over pixels, and over blocks of pixel-averaged offsets.
     white_deviation_mean, white_deviation_block_mean : ndarray (size,)
@@ -661,8 +803,8 @@ class AllanStatistics:
         Pixels (indices into ``rows``, ``cols``) whose curves ``sample_deviation`` (size, sample) holds.
     batch_start, batch_frames : ndarray (batch,)
         First frame and frames of each batch.
-    batch_offset : ndarray (batch, pixel)
-        The batch offsets.
+    batch_offset : ndarray or ScratchArray (batch, pixel)
+        The batch offsets (the statistics' input, on disk or not).
     deviation_mean_batch_means, photon_limit_pixel_batch_means, slope_batch_means : optional
         With the groups fitted as a whole: the groups as means of batch fits (the paper's) beside them.
     photon_limit_pixel_first_frame : ndarray (size,), optional
@@ -702,62 +844,134 @@ class AllanStatistics:
     photon_limit_pixel_global: np.ndarray | None = None
 
 
+def _plain_bands(n, pixels_per_block):
+    """Consecutive slices of ``n`` pixels, ``pixels_per_block`` long (one of all if None)."""
+    step = n if pixels_per_block is None else max(1, int(pixels_per_block))
+    return [slice(lo, min(lo + step, n)) for lo in range(0, n, step)] or [slice(0, 0)]
+
+
+def _rms_of(deviations, pixels_per_block):
+    """:func:`_mean_variance_root` over the pixels of (size, pixel) ``deviations``, a band at a time."""
+    total = _RootMeanSquare(deviations.shape[0])
+    for band in _plain_bands(deviations.shape[1], pixels_per_block):
+        total.add(deviations[:, band])
+    return total.root()
+
+
+def _batch_mean_sweep(offsets, sizes, pixels_per_block, keep, scratch):
+    """The pixels' own statistics, a band at a time: which have an offset in every batch, their single-batch
+    scatter (ddof 1), and the rms over pixels of the deviations of groups as means of batch fits (the
+    deviations themselves, (size, pixel), if ``keep``)."""
+    n_pixels = offsets.shape[1]
+    good, scatter = np.zeros(n_pixels, bool), np.zeros(n_pixels)
+    rms = [_RootMeanSquare(len(sizes)), _RootMeanSquare(len(sizes))]
+    kept = [_pixel_array((len(sizes), n_pixels), scratch, name) for name in ("means", "means_allan")] if keep else None
+    for band in _plain_bands(n_pixels, pixels_per_block):
+        values = offsets[:, band]
+        good[band], scatter[band] = np.isfinite(values).all(axis=0), np.std(values, axis=0, ddof=1)
+        for i, deviations in enumerate(_deviations(values, sizes)):
+            rms[i].add(deviations)
+            if keep:
+                kept[i][:, band] = deviations
+    return good, scatter, [r.root() for r in rms], kept
+
+
+def _white_noise(rng, scatter, n_batches, scratch):
+    """White noise (batch, pixel) of the pixels' ``scatter``: ``rng.standard_normal((n_batches, pixel))``
+    times it, drawn a batch at a time (the same numbers, in the same order)."""
+    white = _pixel_array((n_batches, scatter.size), scratch, "white")
+    for b in range(n_batches):
+        white[b] = rng.standard_normal(scatter.size) * scatter
+    return white
+
+
+def _block_sweep(offsets, floors, white, weights, good, sizes, pixels_per_block, paper_limit):
+    """What needs whole blocks, a band of them at a time: the blocks' mean offsets (batch, block), the sums
+    over pixels and blocks of the batches' floors' variances (batch,) and of the paper's limits' (size,),
+    and the rms over pixels of the white noise's deviations (size,)."""
+    n_batches, n_blocks = offsets.shape[0], weights.shape[1]
+    blocks = np.zeros((n_batches, n_blocks))
+    sums = {name: np.zeros(n) for name, n in (("pixel", n_batches), ("block", n_batches), ("paper", len(sizes)),
+                                              ("paper_block", len(sizes)))}
+    white_rms = _RootMeanSquare(len(sizes))
+    for band in _pixel_bands(weights, pixels_per_block):
+        band_good = good[band]
+        band_weights, columns = _band_weights(weights, band)
+        blocks[:, columns] = np.where(band_good, offsets[:, band], 0.0) @ band_weights
+        variance = np.where(band_good, floors[:, band], 0.0) ** 2
+        sums["pixel"] += variance.sum(axis=1)
+        sums["block"] += (variance @ band_weights**2).sum(axis=1)  # independent pixels in a block
+        white_rms.add(_deviations(white[:, band], sizes)[0])
+        paper = np.where(band_good, paper_limit(band), 0.0) ** 2
+        sums["paper"] += paper.sum(axis=1)
+        sums["paper_block"] += (paper @ band_weights**2).sum(axis=1)
+    return blocks, sums, white_rms.root()
+
+
 def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, amplitude, iota, alpha, read_noise, k,
                      block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None,
-                     first_frame=None, global_floor=None) -> AllanStatistics:
+                     first_frame=None, global_floor=None, pixels_per_block=None, scratch=None) -> AllanStatistics:
     """Deviations, their white-noise references and photon-noise limits from the batch offsets (arrays only).
 
     Parameters are those of :func:`allan_dataset`, with the detector's
     ``gain`` (e-/adu) for the detector; the pixels are ``rows``, ``cols``.
+    ``offsets`` and ``floors`` may be ScratchArrays (or anything giving
+    ``[:, pixels]`` for a slice of pixels): they are read
+    ``pixels_per_block`` pixels at a time (in bands of whole blocks where
+    blocks are formed; None: all at once), the white-noise cube goes to
+    ``scratch`` if given, and so do the per-pixel deviations (size, pixel)
+    that are not ``groups``'. The same values whatever the bands, to rounding.
 
     Returns
     -------
     AllanStatistics
     """
-    n_batches = offsets.shape[0]
+    n_batches, n_pixels = offsets.shape
     sizes = group_sizes(n_batches)
     frames_per_batch = float(np.mean(batches[:, 1] - batches[:, 0]))
     n_frames = sizes * frames_per_batch
-    good = np.isfinite(offsets).all(axis=0)
+    # groups as means of their batch fits (kept per pixel only if they are the product's curves)
+    good, scatter, (mean_batch_means, mean_allan_batch_means), kept = _batch_mean_sweep(
+        offsets, sizes, pixels_per_block, groups is None, scratch)
     weights = block_weights(rows, cols, good=good, block=block)
-    blocks = np.where(good, offsets, 0.0) @ weights
     # white noise of the same per-pixel (and per-block) scatter as the data at one batch per group
     rng = np.random.default_rng(seed)
-    # in place, and dropped once its statistics are taken: memory grows with batches x pixels here
-    white = rng.standard_normal(offsets.shape)
-    white *= np.std(offsets, axis=0, ddof=1)
-    white_blocks = rng.standard_normal(blocks.shape) * np.std(blocks, axis=0, ddof=1)
+    white = _white_noise(rng, scatter, n_batches, scratch)
+    k_norm = float(np.hypot(*k))
+    pixel_values = [np.broadcast_to(np.asarray(v, float), (n_pixels,)) for v in (iota, alpha, read_noise)]
 
-    per_pixel, per_pixel_allan = _deviations(offsets, sizes)  # groups as means of their batch fits
-    per_block, per_block_allan = _deviations(blocks, sizes)
-    white_pixel, _ = _deviations(white, sizes)
+    def paper_limit(band):
+        return photon_limit(n_frames, level, amplitude=amplitude, iota=pixel_values[0][band],
+                            alpha=pixel_values[1][band], gain=gain, read_noise=pixel_values[2][band], k_norm=k_norm)
+
+    blocks, sums, white_mean = _block_sweep(offsets, floors, white, weights, good, sizes, pixels_per_block,
+                                            paper_limit)
     del white
+    white_blocks = rng.standard_normal(blocks.shape) * np.std(blocks, axis=0, ddof=1)
+    per_block, per_block_allan = _deviations(blocks, sizes)
     white_block, _ = _deviations(white_blocks, sizes)
     # The limits: the variance of a group mean is the sum of its batches' variances over m^2,
     # averaged over groups (as the deviation between group means is), then over pixels or blocks:
     # the mean batch variance over the batches the groups use, over m.
-    variance = np.where(good, floors, 0.0)
-    variance **= 2
-    pixel_variance = variance.mean(axis=1) * good.size / good.sum()  # (batch,): mean over good pixels
-    block_variance = (variance @ weights**2).mean(axis=1)  # independent pixels in a block
+    pixel_variance = sums["pixel"] / good.sum()  # (batch,): mean over good pixels
+    block_variance = sums["block"] / weights.shape[1]
     used = (n_batches // sizes) * sizes
     limit_pixel = np.sqrt(np.array([pixel_variance[:n].mean() for n in used]) / sizes)
     limit_block = np.sqrt(np.array([block_variance[:n].mean() for n in used]) / sizes)
     batch_means = {}
+    mean, allan_mean = mean_batch_means, mean_allan_batch_means
+    per_pixel, per_pixel_allan = kept if kept is not None else (None, None)
     if groups is not None:
         # the contract's curves: each group fitted as a whole; the means of batch fits kept beside them
-        if groups["deviation"].shape != per_pixel.shape or groups["block_deviation"].shape != per_block.shape:
+        if groups["deviation"].shape != (len(sizes), n_pixels) or groups["block_deviation"].shape != per_block.shape:
             raise ValueError(f"group statistics of shape {groups['deviation'].shape} and "
                              f"{groups['block_deviation'].shape} for {len(sizes)} group sizes, "
-                             f"{per_pixel.shape[1]} pixels and {per_block.shape[1]} blocks")
-        batch_means = {"deviation_mean_batch_means": _mean_variance_root(per_pixel),
-                       "photon_limit_pixel_batch_means": limit_pixel}
+                             f"{n_pixels} pixels and {per_block.shape[1]} blocks")
+        batch_means = {"deviation_mean_batch_means": mean_batch_means, "photon_limit_pixel_batch_means": limit_pixel}
         per_pixel, per_pixel_allan = groups["deviation"], groups["allan"]
+        mean, allan_mean = _rms_of(per_pixel, pixels_per_block), _rms_of(per_pixel_allan, pixels_per_block)
         per_block, per_block_allan = groups["block_deviation"], groups["block_allan"]
         limit_pixel, limit_block = groups["limit_pixel"], groups["limit_block"]
-    k_norm = float(np.hypot(*k))
-    paper = np.where(good, photon_limit(n_frames, level, amplitude=amplitude, iota=iota, alpha=alpha, gain=gain,
-                                        read_noise=read_noise, k_norm=k_norm), 0.0)
     first = {}
     if first_frame is not None:
         use = good & np.isfinite(first_frame)
@@ -771,20 +985,18 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
     if global_floor is not None:  # the whole acquisition's floors (pixel,) and its frames
         floor, total = global_floor
         first["photon_limit_pixel_global"] = np.sqrt(np.mean(floor[good] ** 2) * total / n_frames)
-    mean = _mean_variance_root(per_pixel)
     if batch_means:
         batch_means["slope_batch_means"] = log_slope(batch_means["deviation_mean_batch_means"])
     sample = np.flatnonzero(good)[np.linspace(0, good.sum() - 1, min(n_sample_pixels, good.sum())).astype(int)]
     return AllanStatistics(
         group_size=sizes, n_groups=n_batches // sizes, n_frames=n_frames, frames_per_batch=frames_per_batch,
-        deviation=per_pixel, allan_deviation=per_pixel_allan, deviation_mean=mean,
-        allan_deviation_mean=_mean_variance_root(per_pixel_allan),
+        deviation=per_pixel, allan_deviation=per_pixel_allan, deviation_mean=mean, allan_deviation_mean=allan_mean,
         deviation_block_mean=_mean_variance_root(per_block),
         allan_deviation_block_mean=_mean_variance_root(per_block_allan),
-        white_deviation_mean=_mean_variance_root(white_pixel), white_deviation_block_mean=_mean_variance_root(white_block),
+        white_deviation_mean=white_mean, white_deviation_block_mean=_mean_variance_root(white_block),
         photon_limit_pixel=limit_pixel, photon_limit_block=limit_block,
-        photon_limit_pixel_paper=np.sqrt(np.sum(paper**2, axis=1) / good.sum()),
-        photon_limit_block_paper=np.sqrt(np.mean(paper**2 @ weights**2, axis=1)),
+        photon_limit_pixel_paper=np.sqrt(sums["paper"] / good.sum()),
+        photon_limit_block_paper=np.sqrt(sums["paper_block"] / weights.shape[1]),
         slope=log_slope(mean),
         sample_pixel=sample, sample_deviation=per_pixel[:, sample],
         batch_start=batches[:, 0], batch_frames=batches[:, 1] - batches[:, 0], batch_offset=offsets,
@@ -793,7 +1005,7 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
 
 def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, amplitude, iota, alpha, read_noise,
                   k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None,
-                  first_frame=None, global_floor=None) -> xr.Dataset:
+                  first_frame=None, global_floor=None, pixels_per_block=None, scratch=None) -> xr.Dataset:
     """The ``allan/<baseline>.nc`` product from the batch offsets.
 
     The statistics are :func:`allan_statistics`'s; this adds the maps, units
@@ -838,6 +1050,11 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         group, sqrt(frames / n_frames), is added as
         ``photon_limit_pixel_global`` (the reference every group's deviation
         should meet: docs/metrology.md).
+    pixels_per_block : int, optional
+        Pixels read at a time (:func:`allan_statistics`); None: all at once.
+    scratch : path, optional
+        A folder for the (batch, pixel) and (size, pixel) arrays the
+        statistics make (None: in memory).
 
     Returns
     -------
@@ -854,11 +1071,14 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
         With ``first_frame``, also ``photon_limit_pixel_first_frame``
         (n_frames) and ``first_frame_noise`` (scalar, adu). With
         ``global_floor``, ``photon_limit_pixel_global`` (n_frames).
+        Pixel arrays held on disk (``offsets``, and with ``scratch`` the
+        deviations) give maps read lazily from there.
     """
     statistics = allan_statistics(offsets, floors, batches, rows, cols, gain=detector.gain, level=level,
                                   amplitude=amplitude, iota=iota, alpha=alpha, read_noise=read_noise, k=k,
                                   block=block, seed=seed, n_sample_pixels=n_sample_pixels, groups=groups,
-                                  first_frame=first_frame, global_floor=global_floor)
+                                  first_frame=first_frame, global_floor=global_floor,
+                                  pixels_per_block=pixels_per_block, scratch=scratch)
     return statistics_dataset(statistics, rows, cols, detector.shape, block=block)
 
 
@@ -908,12 +1128,55 @@ def _allan_variables(statistics: AllanStatistics, block: int) -> dict:
     return {name: spec for name, spec in variables.items() if getattr(statistics, name) is not None}
 
 
+class _PixelMaps:
+    """(n, row, col) maps of ``dtype`` of a (n, pixel) array at ``rows``, ``cols`` (NaN elsewhere), made a few
+    rows of the detector at a time when read: an xarray backend array (a product variable that stays on disk,
+    read lazily, and that :func:`dice_core.io.write_product` writes a slice at a time)."""
+
+    def __init__(self, values, rows, cols, shape, dtype):
+        self.values, self.rows, self.cols = values, rows, cols
+        self.shape, self.dtype = (values.shape[0], *shape), np.dtype(dtype)
+
+    @staticmethod
+    @functools.cache
+    def lazy_type():
+        """This class as an xarray backend array (xarray imported when first needed)."""
+        from xarray.backends import BackendArray
+
+        return type("PixelMaps", (_PixelMaps, BackendArray), {})
+
+    def __getitem__(self, key):
+        from xarray.core import indexing
+
+        return indexing.explicit_indexing_adapter(key, self.shape, indexing.IndexingSupport.OUTER, self._outer)
+
+    def _outer(self, key):
+        n, rows, cols = key  # each an int, a slice or an array of ints (outer indexing)
+        wanted = np.arange(self.shape[1])[rows]
+        lo, hi = (int(np.min(wanted)), int(np.max(wanted)) + 1) if np.size(wanted) else (0, 0)
+        inside = np.flatnonzero((self.rows >= lo) & (self.rows < hi))
+        # the pixels of these rows: one slice when the pixels are in row order, as np.nonzero gives them
+        pixels = slice(inside[0], inside[-1] + 1) if inside.size and inside[-1] - inside[0] + 1 == inside.size \
+            else inside
+        values = (self.values[n, pixels] if isinstance(n, slice)
+                  else np.stack([self.values[i, pixels] for i in np.atleast_1d(n)]))
+        out = np.full((values.shape[0], hi - lo, self.shape[2]), np.nan, self.dtype)
+        out[:, self.rows[inside] - lo, self.cols[inside]] = values  # cast as astype() would
+        out = out[:, np.asarray(wanted) - lo][..., cols]
+        return out[0] if np.ndim(n) == 0 and not isinstance(n, slice) else out
+
+
 def statistics_dataset(statistics: AllanStatistics, rows, cols, shape, *, block: int = 10) -> xr.Dataset:
     """The ``allan/<baseline>.nc`` product of :func:`allan_statistics`: pixel arrays as (row, col) maps of
     the detector's ``shape`` (NaN off ``rows``, ``cols``), units and long names; the batch offsets stored
-    as float32."""
+    as float32. Pixel arrays held on disk (ScratchArrays) stay there: their maps are read lazily
+    (:class:`_PixelMaps`)."""
 
     def as_maps(values, dtype):
+        if not isinstance(values, np.ndarray):
+            from xarray.core import indexing
+
+            return indexing.LazilyIndexedArray(_PixelMaps.lazy_type()(values, rows, cols, shape, dtype))
         out = np.full((values.shape[0], *shape), np.nan, dtype)
         out[:, rows, cols] = values  # cast as astype() would, with no float64 map of the detector on the way
         return out
@@ -935,7 +1198,7 @@ def statistics_dataset(statistics: AllanStatistics, rows, cols, shape, *, block:
 
 @one_blas_thread
 def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detector, block: int = 10,
-                      workers: int = 1, label: str = "baseline") -> xr.Dataset:
+                      workers: int = 1, label: str = "baseline", scratch=None, pixels_per_block=None) -> xr.Dataset:
     """Allan deviations of one baseline from its raw frames and its global solution.
 
     Parameters
@@ -953,6 +1216,26 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
         Side of the pixel blocks, pixel.
     workers : int
         Processes reading the stream's parts at once (see :func:`batch_offsets`).
+    scratch : path, optional
+        Folder in which a temporary folder (:func:`dice_core.scratch.scratch_directory`,
+        removed on return or error) holds what grows with pixels times
+        batches: the batches' sums, offsets and floors, the white-noise cube,
+        the per-pixel deviations (the job's output folder: the disk of the
+        results, not the system's temporary one). None: the system's
+        temporary folder.
+    pixels_per_block : int, optional
+        Pixels the statistics read at a time (in bands of whole blocks); None:
+        :data:`BAND_NUMBERS` over the batches. The product is the same whatever
+        it is, to rounding.
+
+    Returns
+    -------
+    xarray.Dataset
+        The ``allan/<baseline>.nc`` product (:func:`allan_dataset`). Its maps
+        over batches and group sizes (``batch_offset``, ``deviation``,
+        ``allan_deviation``) stay on disk, in files already unlinked whose
+        space is freed with the dataset: read lazily, and written a slice at
+        a time by :func:`dice_core.io.write_product`.
 
     Raises
     ------
@@ -983,26 +1266,30 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
     del head
     iota, alpha = metrology["iota"].values[rows, cols], metrology["alpha"].values[rows, cols]
     pixel_factors = np.column_stack([iota, alpha * np.sin(reference_phase), alpha * np.cos(reference_phase)])
-    offsets, sums = batch_offsets(stream.centred(reference), batches, frame_factors,
-                                  np.nan_to_num(dark["dark"].values), reference_phase, k, rows, cols,
-                                  pixel_factors=pixel_factors, reference=reference, workers=workers,
-                                  return_sums=True, label=label)
     read_noise = np.nan_to_num(dark["noise"].values[rows, cols])
     sizes = group_sizes(len(batches))
-    good = np.isfinite(offsets).all(axis=0)
-    groups = group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes,
-                        pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise, good=good,
-                        weights=block_weights(rows, cols, good=good, block=block))
-    del sums  # the groups are reduced: only the batch offsets go on
-    # the batches' floors once the sums are gone: the groups' fits hold two maps a group at one batch a
-    # group, so the job's peak is there; the floors beside them would add an eighth map a batch
-    floors = batch_floors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
-                          read_noise=read_noise, k_norm=np.hypot(*k))
+    band = max(1, BAND_NUMBERS // len(batches)) if pixels_per_block is None else pixels_per_block
     global_floor = None
     if "photon_noise_floor" in metrology:  # the whole acquisition's floor, for the curves' reference
         global_floor = (metrology["photon_noise_floor"].values[rows, cols], phase.size)
-    log.info("%s: %d group sizes fitted as a whole, from %d to %d batches", label, len(sizes), sizes[0], sizes[-1])
-    return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),
-                         amplitude=float(np.mean(amplitude)), iota=iota, alpha=alpha, read_noise=read_noise, k=k,
-                         block=block, groups=groups, first_frame=first_frame,
-                         global_floor=global_floor)
+    with scratch_directory(scratch) as folder:
+        offsets, sums = batch_offsets(stream.centred(reference), batches, frame_factors,
+                                      np.nan_to_num(dark["dark"].values), reference_phase, k, rows, cols,
+                                      pixel_factors=pixel_factors, reference=reference, workers=workers,
+                                      return_sums=True, scratch=folder, label=label)
+        good = np.ones(rows.size, bool)
+        for pixels in _plain_bands(rows.size, band):
+            good[pixels] = np.isfinite(offsets[:, pixels]).all(axis=0)
+        groups = group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes,
+                            pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise, good=good,
+                            weights=block_weights(rows, cols, good=good, block=block), pixels_per_block=band,
+                            scratch=folder)
+        del sums  # its file's space freed: the groups are reduced
+        floors = _BatchFloors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
+                              read_noise=read_noise, k_norm=np.hypot(*k))  # made a band at a time
+        log.info("%s: %d group sizes fitted as a whole, from %d to %d batches", label, len(sizes), sizes[0],
+                 sizes[-1])
+        return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),
+                             amplitude=float(np.mean(amplitude)), iota=iota, alpha=alpha, read_noise=read_noise,
+                             k=k, block=block, groups=groups, first_frame=first_frame, global_floor=global_floor,
+                             pixels_per_block=band, scratch=folder)

@@ -844,7 +844,10 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
     first of ``roots`` that holds it, whose name ``relative_to`` gives, and the
     SHA-256 of its bytes) and ``history``: the inputs' (and the dataset's own)
     history lines, once each, then this write's line, CF style. The file is written
-    through :func:`atomic_write`, so an existing product is never left half-written. A file written under
+    through :func:`atomic_write`, so an existing product is never left half-written; a floating-point
+    variable not in memory (read lazily: a file's, or maps kept on disk such as the Allan step's) is written
+    :data:`WRITE_SLICE_BYTES` at a time along its first dimension, after the others, never whole in memory
+    (:func:`_write_slices`). A file written under
     the results folder of ``roots`` that is an instance of a product of the catalogue
     (:mod:`dice_core.products`) must hold the variables its entry promises, on its dims and in its units.
 
@@ -887,8 +890,43 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
     })
     if code_version:
         ds.attrs["code_version"] = str(code_version)
+    streamed = [name for name, var in ds.data_vars.items() if _streamable(var.variable)]
     with atomic_write(path) as tmp:
-        ds.to_netcdf(tmp, engine="netcdf4")
+        ds.drop_vars(streamed).to_netcdf(tmp, engine="netcdf4")
+        _write_slices(tmp, ds, streamed)
+
+
+#: Bytes of a lazily held variable :func:`write_product` reads and writes at a time (at least one slice
+#: along its first dimension).
+WRITE_SLICE_BYTES = 2**24
+
+
+def _streamable(variable) -> bool:
+    """Whether :func:`write_product` writes ``variable`` a slice at a time: a floating-point array not in
+    memory (read lazily, as a file's or a product's maps on disk), with no encoding of its own to honour."""
+    return (not variable._in_memory and variable.ndim > 0 and np.issubdtype(variable.dtype, np.floating)
+            and not variable.encoding)
+
+
+def _write_slices(path, ds, names):
+    """Append the variables ``names`` of ``ds`` to the netCDF file ``path`` (which holds the rest of ``ds``),
+    :data:`WRITE_SLICE_BYTES` at a time along their first dimension, as xarray would have written them
+    whole (NaN as the fill value, the attributes)."""
+    if not names:
+        return
+    import netCDF4
+
+    with netCDF4.Dataset(path, "a") as nc:
+        for name in names:
+            variable = ds[name].variable
+            for dim, n in zip(variable.dims, variable.shape):
+                if dim not in nc.dimensions:
+                    nc.createDimension(dim, n)
+            target = nc.createVariable(name, variable.dtype, variable.dims, fill_value=np.nan)
+            target.setncatts(dict(variable.attrs))
+            step = max(1, WRITE_SLICE_BYTES // max(1, variable[0].size * variable.dtype.itemsize))
+            for lo in range(0, variable.shape[0], step):
+                target[lo:lo + step] = variable[lo:lo + step].values
 
 
 def _existing_product(path) -> Path:

@@ -118,12 +118,14 @@ COSTS: dict[str, StepCost] = {
                            s_per_mpixel=30.0),
     "fit_finish": StepCost(base_mb=400.0, mb_per_mpixel=500.0, mb_per_mframe=170.0, start_s=3.0,
                            s_per_mpixel=80.0),  # reads the state and the parts' digests, no cube
-    # each batch's offset map in memory: batches (one a fringe period) x pixels; 7.2 GB and 353 s for
-    # 1024x1024 x 20,000 frames (160 batches of 125 frames). About 49 bytes a pixel and batch, measured at
-    # 128x128 and 256x256 with 140 and 281 batches of 71 frames (BENCHMARKS.md, "Reads and memory of one
-    # baseline"): per sample, 49 / (frames a batch), which a sweep slower than a fringe period per 125
-    # frames keeps under this coefficient
-    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=1000.0, mb_per_gsample=300.0, start_s=3.0,
+    # what grows with pixels times batches on disk (docs/metrology.md, "The Allan job, on disk and in bands of
+    # pixels"): measured 118 and 164 MB above the interpreter (108 MB) at 256x256 and 512x512 with 190
+    # batches of 42 frames, 247 bytes a pixel (the inputs' maps, the fit's per-pixel arrays, a chunk), and
+    # about 8 bytes a batch-pixel number of a band of pixels (BENCHMARKS.md, "The Allan job on disk"). A band is
+    # at least one row of 10x10-pixel blocks: 10 x 4096 pixels x 160 batches at 4096x4096 (50 MB), which the
+    # per-sample term covers for batches of 40 frames or more (0.5 MB per 1e9 samples). About 4.4 GB at
+    # 4096x4096 x 160 batches (113 GB before, 47 bytes a pixel and batch).
+    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=300.0, mb_per_gsample=0.5, start_s=3.0,
                                 s_per_gsample=17.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),
     "measure_centroids": StepCost(base_mb=170.0, start_s=5.0, s_per_position=0.1),

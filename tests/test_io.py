@@ -614,3 +614,56 @@ def test_a_streamed_file_is_hashed_from_the_bytes_the_stream_reads_not_read_agai
 
 def _frames_of(lane):
     return sum(chunk.frames.shape[0] for chunk in lane)
+
+
+class _SlicedReads:
+    """A lazily read (n, m) float32 array (an xarray backend array) that counts its reads and fails on read
+    ``fail_at`` if given."""
+
+    def __init__(self, values, fail_at=None):
+        self.values, self.shape, self.dtype, self.reads, self.fail_at = values, values.shape, values.dtype, [], fail_at
+
+    def __getitem__(self, key):
+        from xarray.core import indexing
+
+        return indexing.explicit_indexing_adapter(key, self.shape, indexing.IndexingSupport.BASIC, self._read)
+
+    def _read(self, key):
+        self.reads.append(key)
+        if self.fail_at is not None and len(self.reads) > self.fail_at:
+            raise RuntimeError("the disk went away")
+        return self.values[key]
+
+
+def test_a_variable_not_in_memory_is_written_a_slice_at_a_time_and_never_half(tmp_path, monkeypatch):
+    """write_product writes a lazily read floating-point variable WRITE_SLICE_BYTES at a time along its first
+    dimension (NaN kept, its attributes, the fill value xarray gives): the file read back equals the in-memory
+    product; a read failing midway leaves no file."""
+    from xarray.backends import BackendArray
+    from xarray.core import indexing
+
+    from dice_core import io
+
+    class Lazy(_SlicedReads, BackendArray):
+        pass
+
+    values = np.arange(7 * 12, dtype=np.float32).reshape(7, 12)
+    values[2, 3] = np.nan
+    monkeypatch.setattr(io, "WRITE_SLICE_BYTES", 2 * 12 * 4)  # two rows a slice
+    lazy = Lazy(values)
+
+    def product(data):
+        return xr.Dataset({"maps": (("batch", "col"), data, {"units": "pixel", "long_name": "maps"}),
+                           "small": (("col",), np.ones(12), {"units": "1"})},
+                          coords={"batch": np.arange(7), "col": np.arange(12)})
+
+    write_product(product(indexing.LazilyIndexedArray(lazy)), tmp_path / "lazy.nc", title="t")
+    write_product(product(values), tmp_path / "whole.nc", title="t")
+    assert len(lazy.reads) == 4  # rows 0-1, 2-3, 4-5, 6
+    one, two = read_product(tmp_path / "lazy.nc"), read_product(tmp_path / "whole.nc")
+    xr.testing.assert_identical(one.drop_attrs(), two.drop_attrs())
+    assert one["maps"].attrs == two["maps"].attrs and np.isnan(one["maps"].encoding["_FillValue"])
+    with pytest.raises(RuntimeError, match="the disk went away"):
+        write_product(product(indexing.LazilyIndexedArray(Lazy(values, fail_at=2))), tmp_path / "failed.nc",
+                      title="t")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lazy.nc", "whole.nc"]

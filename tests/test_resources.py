@@ -15,10 +15,11 @@ PAPER_PIXELS = 80 * 84
     ("allan_deviation", 200_000, 491, 14, PAPER_PIXELS),
     # BENCHMARKS.md, one 20,000-frame metrology file simulated (3.4 s alone), memory_streaming.py's 221 MiB
     ("simulate_file", 20_000, 232, 3.4, PAPER_PIXELS),
-    # BENCHMARKS.md, "Reads and memory of one baseline": the Allan job's peak (VmHWM) at 281 batches of 71
-    # frames, the base commit's code (this branch's is lower), on 128x128 and 256x256 pixels
-    ("allan_deviation", 20_000, 354, 19.3, 128 * 128),
-    ("allan_deviation", 20_000, 1035, 125.7, 256 * 256),
+    # BENCHMARKS.md, "The Allan job on disk": the Allan job's peak (VmHWM) at 190 batches of 42 frames on
+    # 256x256 and 512x512 pixels, its batches' arrays on disk (before, 2353 MB at 512x512: 47 bytes a pixel
+    # and batch, "Reads and memory of one baseline")
+    ("allan_deviation", 8_000, 226, 45.0, 256 * 256),
+    ("allan_deviation", 8_000, 273, 195.3, 512 * 512),
 ])
 def test_requests_cover_the_paper_scale_measurements(step, frames, max_rss_mb, seconds, pixels):
     asked = job_resources(step, pixels=pixels, frames=frames)

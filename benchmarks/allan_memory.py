@@ -1,0 +1,193 @@
+"""Peak memory and time of the Allan step (``allan_deviation``) against pixels and batches.
+
+For a detector size and frame count given, in one run:
+
+1. one baseline (H1H4, 2.4-pixel fringes at 2 degrees, the default preset's noise) simulated with a fast
+   sweep (``--sweep-frames`` frames a one-way sweep: short batches, so many of them), by the library
+   (``dice_core.simulation``), into ``<workdir>``; fitted once (``fringe_fit.fit_baseline``) and its
+   ``metrology`` product and dark written there (reused by later runs of the same size);
+2. one plain read pass of the baseline's files in a fresh process (float32 chunks summed over frames): what
+   reading the cube costs, the yardstick of the times;
+3. for each code tree given (``--tree name=path``: e.g. the base commit's ``git archive`` beside this tree),
+   a fresh process that imports that tree's ``dice_core`` and does what the workflow's script does
+   (``allan.allan_of_baseline`` then ``io.write_product``; a tree whose ``allan_of_baseline`` takes
+   ``scratch`` is given the product's folder, as the script does). Each reports its wall time, its peak RSS
+   (``VmHWM``) and its RSS once its imports are done (``VmRSS``): their difference is the step's own memory.
+
+Printed: per tree, batches, time (and over the plain pass), peak RSS, the step's own memory and that per pixel
+and per pixel and batch; for each tree after the first, the largest difference of its product from the
+first tree's (every variable, coordinate and attribute compared). Every run's numbers are appended to
+``<workdir>/allan_memory.json``, one line a run.
+
+    git archive <base> dice_core | tar -x -C /tmp/dice-base
+    python benchmarks/allan_memory.py --workdir /tmp/dice-allanmem --tree base=/tmp/dice-base --tree new=$PWD \\
+        --size 512 --frames 8000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+BASELINE = "H1H4"
+
+#: What the job's process runs (argv: tree, manifest, metrology, dark, baseline, output, workers, pixels per
+#: block or "default"): the workflow script's calls.
+JOB = r"""
+import inspect, json, sys, time
+tree, manifest, metrology, dark, baseline, output, workers, per_block = sys.argv[1:9]
+sys.path.insert(0, tree)
+from pathlib import Path
+import numpy as np
+import xarray, netCDF4, scipy.sparse  # the workflow's imports, before the step is timed
+import dice_core
+from dice_core import allan, io
+from dice_core.manifest import load_manifest
+
+def status(key):
+    for line in open("/proc/self/status"):
+        if line.startswith(key):
+            return int(line.split()[1]) / 1024
+
+base = status("VmRSS")
+start = time.perf_counter()
+manifest = load_manifest(manifest)
+stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames="auto", dtype="float32")
+extra = {}
+if "scratch" in inspect.signature(allan.allan_of_baseline).parameters:
+    extra["scratch"] = Path(output).parent
+    if per_block != "default":
+        extra["pixels_per_block"] = int(per_block)
+product = allan.allan_of_baseline(stream, io.read_product(metrology), dark=io.read_product(dark),
+                                  detector=manifest.detector, workers=int(workers), **extra)
+io.write_product(product, output, title="allan", inputs=[])
+print(json.dumps({"seconds": time.perf_counter() - start, "peak_mb": status("VmHWM"), "base_mb": base,
+                  "batches": int(product.sizes["batch"]), "pixels": int(np.isfinite(product["deviation"][0]).sum())}))
+"""
+
+
+def run_job(tree, manifest, metrology, dark, baseline, output, *, workers=1, pixels_per_block="default") -> dict:
+    """The Allan step of the code ``tree`` in a fresh process: its report (seconds, peak and base RSS in MiB,
+    batches, pixels)."""
+    job = subprocess.run([sys.executable, "-c", JOB, str(Path(tree).resolve()), str(manifest), str(metrology),
+                          str(dark), baseline, str(output), str(workers), str(pixels_per_block)],
+                         check=True, capture_output=True, text=True)
+    return json.loads(job.stdout.strip().splitlines()[-1])
+
+
+PLAIN = r"""
+import sys, time
+sys.path.insert(0, sys.argv[1])
+from dice_core import io
+from dice_core.manifest import load_manifest
+manifest = load_manifest(sys.argv[2])
+stream = io.FrameStream(manifest.baselines["H1H4"], manifest.detector, chunk_frames="auto", dtype="float32")
+start = time.perf_counter()
+total = 0.0
+for chunk in stream:
+    total += float(chunk.frames.sum(dtype="float64"))
+print(time.perf_counter() - start)
+"""
+
+
+def prepare(size: int, frames: int, sweep_frames: int, folder: Path) -> None:
+    """Simulate, fit and write the metrology product and dark of the bench (once per folder)."""
+    import numpy as np
+    import xarray as xr
+
+    from dice_core import fringe_fit, fringes, io, simulation
+    from dice_core.manifest import load_manifest
+
+    if (folder / "metrology.nc").exists():
+        return
+    cfg = simulation.SimulationConfig.from_dict({
+        "name": "allan-memory", "frames_per_file": 2000,
+        "detector": {"shape": [size, size], "science_rows": [0, size], "science_cols": [0, size]},
+        "dark": {"frames": 2}, "flats": {"frames": 2},
+        "stars": {"positions": 1, "frames": 1, "pattern_centre": [size / 2, size / 2], "pattern_side": 16.0},
+        "metrology": {"frames": frames, "sweep_frames": sweep_frames,
+                      "baselines": {BASELINE: {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
+    manifest = load_manifest(simulation.simulate_dataset(cfg, folder / "raw"))
+    truth = io.read_product(folder / "raw" / "truth.nc")
+    stream = io.FrameStream(manifest.baselines[BASELINE], manifest.detector, dtype="float32")
+    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
+                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
+    io.write_product(fringes.solution_dataset(solution, manifest.detector), folder / "metrology.nc", title="fit")
+    dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values, {"units": "adu"}),
+                       "noise": (("row", "col"), truth["read_noise"].values, {"units": "adu"})})
+    io.write_product(dark, folder / "dark.nc", title="dark")
+    del np
+
+
+def differences(one: Path, two: Path) -> dict:
+    """Largest absolute difference of every variable of two products (NaN where they agree on NaN), and
+    whether their dims, coordinates and attributes are the same."""
+    import numpy as np
+    import xarray as xr
+
+    a, b = xr.load_dataset(one), xr.load_dataset(two)
+    same = (set(a.data_vars) == set(b.data_vars) and all(a[v].dims == b[v].dims and a[v].attrs == b[v].attrs
+                                                         for v in a.data_vars)
+            and all(a[c].equals(b[c]) for c in a.coords) and set(a.coords) == set(b.coords)
+            and {k: v for k, v in a.attrs.items() if k != "history"}
+            == {k: v for k, v in b.attrs.items() if k != "history"})
+    out = {}
+    for name in a.data_vars:
+        x, y = np.asarray(a[name].values, float), np.asarray(b[name].values, float)
+        nan_same = bool(np.array_equal(np.isnan(x), np.isnan(y)))
+        out[name] = float(np.nanmax(np.abs(x - y))) if nan_same and np.isfinite(x).any() else (0.0 if nan_same
+                                                                                              else float("inf"))
+    return {"same_metadata": bool(same), "max_difference": out}
+
+
+def main(argv=None):
+    from workflow_metrology import machine
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--workdir", type=Path, default=Path("/tmp/dice-allanmem"))
+    parser.add_argument("--tree", action="append", required=True, help="name=path of a code tree")
+    parser.add_argument("--size", type=int, default=512, help="detector side, pixel")
+    parser.add_argument("--frames", type=int, default=8000)
+    parser.add_argument("--sweep-frames", type=int, default=60)
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--pixels-per-block", default="default",
+                        help="the Allan step's bands of pixels (a tree that has them; default: its own choice)")
+    args = parser.parse_args(argv)
+    folder = (args.workdir / f"s{args.size}_f{args.frames}_w{args.sweep_frames}").resolve()
+    folder.mkdir(parents=True, exist_ok=True)
+    prepare(args.size, args.frames, args.sweep_frames, folder)
+    results = {"machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+               "load": os.getloadavg(), "size": args.size, "frames": args.frames, "workers": args.workers,
+               "pixels_per_block": args.pixels_per_block}
+    plain = subprocess.run([sys.executable, "-c", PLAIN, str(REPO), str(folder / "raw" / "dataset.yaml")],
+                           check=True, capture_output=True, text=True)
+    results["plain_pass_s"] = float(plain.stdout)
+    products = {}
+    for spec in args.tree:
+        name, tree = spec.split("=", 1)
+        output = folder / f"allan-{name}-{args.pixels_per_block}.nc"
+        run = run_job(tree, folder / "raw" / "dataset.yaml", folder / "metrology.nc", folder / "dark.nc", BASELINE,
+                      output, workers=args.workers, pixels_per_block=args.pixels_per_block)
+        own = run["peak_mb"] - run["base_mb"]
+        run.update(own_mb=own, bytes_per_pixel=own * 2**20 / args.size**2,
+                   bytes_per_pixel_batch=own * 2**20 / args.size**2 / run["batches"],
+                   over_plain=run["seconds"] / results["plain_pass_s"])
+        if products:
+            run["against_" + next(iter(products))] = differences(next(iter(products.values())), output)
+        products[name] = output
+        results[name] = run
+        print(name, json.dumps(run, indent=1))
+    print(f"plain pass {results['plain_pass_s']:.1f} s; load {results['load']}; {results['machine']}")
+    with open(args.workdir / "allan_memory.json", "a") as f:  # one line a run
+        f.write(json.dumps(results) + "\n")
+
+
+if __name__ == "__main__":
+    sys.path[:0] = [str(REPO), str(REPO / "benchmarks")]
+    main()
