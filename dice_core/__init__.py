@@ -138,6 +138,14 @@ def run_logged(log_path, step, /, *args, provenance=None, **kwargs):
     logging.captureWarnings(True)
     log = logging.getLogger("dice")
     log.info("dice_core %s: %s", __version__, step_name)
+    # a job stopped politely (Snakemake, a cluster's time limit, scancel: SIGTERM) ends as an exception does, so
+    # that what it cleans up on the way out goes (a product's temporary file, the Allan step's scratch folder)
+    import signal
+
+    def stopped(signum, frame):
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stopped)
     # What the environment asks of thread pools; the reductions set their own (dice_core.parallel).
     threads = [f"{name}={os.environ[name]}" for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
                                                           "MKL_NUM_THREADS") if name in os.environ]

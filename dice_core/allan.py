@@ -584,11 +584,9 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
         Pixels of a band the groups are fitted over at a time (never cutting
         a block of ``weights``; None: every pixel at once). A group's offsets
         are wrapped about one circular mean and have one affine part removed
-        over every pixel: the mean is the first band's (any centre near the
-        phases gives the same offsets, up to a constant the affine part takes
-        out), the affine part's projections are summed over the bands in a
-        first sweep and removed in a second. The same values whatever the
-        bands, to rounding.
+        over every pixel: the means are summed over the bands in a sweep of
+        their own, the affine part's projections in a second, and removed in
+        a third. The same values whatever the bands, to rounding.
     scratch : path, optional
         A folder for ``deviation`` and ``allan`` as ScratchArrays (None: in memory).
 
@@ -620,8 +618,18 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
            "block_deviation": np.full((len(sizes), n_blocks), np.nan),
            "block_allan": np.full((len(sizes), n_blocks), np.nan)}
     centres, projections = {}, {}
+    if len(bands) > 1:
+        # each group's wrapping centre, its circular mean over every pixel, before any band is wrapped: the
+        # centre of one band alone may be its bad pixels' (a dead edge's random phases), which would put the
+        # good pixels' common phase on the cut at +-pi; a sweep of its own, every group fitted once more
+        for band in bands:
+            band_fit, band_sums = fit.band(band), sums[:, :, band]
+            for size_groups in groups:
+                for lo, hi in size_groups:
+                    turned = band_fit.turned(cum_FtF[hi] - cum_FtF[lo], band_sums[lo:hi].sum(axis=0, dtype=np.float64))
+                    centres[lo, hi] = centres.get((lo, hi), 0j) + turned.sum()  # its direction: the mean's
     variance_pixel, variance_block = np.zeros(len(sizes)), np.zeros(len(sizes))
-    for band in bands:  # the first sweep: the wrapping centres, the affine parts and the limits
+    for band in bands:  # the first sweep: the affine parts and the limits (and one band's centres)
         band_fit, band_sums = fit.band(band), sums[:, :, band]
         weights_band = _band_weights(weights, band)[0]
         for i, size_groups in enumerate(groups):

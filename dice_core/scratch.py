@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import logging
 import os
 import secrets
 import tempfile
@@ -29,8 +30,16 @@ def scratch_directory(near=None):
     block ends, on an error too: yields its path."""
     if near is not None:
         Path(near).mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=".dice-scratch-", dir=near) as folder:
-        yield Path(folder)
+    # the folder may not go at once where its files are still open (NFS keeps an open file removed as a
+    # .nfs file until it is closed): a warning then, not a failure of the job that made it
+    folder = tempfile.TemporaryDirectory(prefix=".dice-scratch-", dir=near, ignore_cleanup_errors=True)
+    try:
+        yield Path(folder.name)
+    finally:
+        folder.cleanup()
+        if Path(folder.name).exists():
+            logging.getLogger("dice").warning("could not remove the scratch folder %s; remove it by hand",
+                                              folder.name)
 
 
 class ScratchArray:
@@ -128,8 +137,13 @@ class ScratchArray:
         values = np.ascontiguousarray(np.broadcast_to(np.asarray(values, self.dtype), shape)).reshape(-1, hi - lo)
         fd = self._open().fileno()
         for row, offset in zip(values, self._offsets(leading, lo)):
-            if row.nbytes and os.pwritev(fd, [row], offset) != row.nbytes:
-                raise OSError(f"{self.path}: short write")
+            try:
+                written = os.pwritev(fd, [row], offset) if row.nbytes else 0
+            except OSError as exc:  # a full disk says ENOSPC without a file name: the scratch file's, in one line
+                raise OSError(exc.errno, f"{exc.strerror} (writing the Allan step's scratch array)",
+                              str(self.path)) from None
+            if written != row.nbytes:  # (a full disk may also stop a write short)
+                raise OSError(f"{self.path}: short write, {written} of {row.nbytes} bytes (is the disk full?)")
 
     def __array__(self, dtype=None, copy=None):
         whole = self[...]

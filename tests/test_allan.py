@@ -586,23 +586,27 @@ def test_statistics_in_bands_on_disk_are_those_of_the_whole_arrays(rng, tmp_path
 
 
 def test_group_fits_in_bands_are_those_of_every_pixel_at_once(rng, tmp_path):
-    """group_fits over bands of whole blocks (one circular mean from the first band, the affine part's
-    projections summed over the bands) gives the deviations of the groups fitted over every pixel at once, to
-    rounding, for the phase-only and the three-term fits; the sums read from a file as from memory."""
+    """group_fits over bands of whole blocks (each group's circular mean and the affine part's projections
+    summed over the bands) gives the deviations of the groups fitted over every pixel at once, to rounding, for
+    the phase-only and the three-term fits, also where the first band's pixels have no usable phase (reference
+    phases half a turn off: a first band's own mean would put the good pixels' phase on the cut at +-pi); the
+    sums read from a file as from memory."""
     from dice_core.scratch import scratch_directory
 
     chunks, factors, phi, theta, rows, cols = synthetic_fringes(rng, n_frames=3000, shape=(23, 14), noise=3.0)
     batches = allan.fringe_batches(phi)
     k = (2.6, 0.15)
-    reference_phase = theta + 0.4 + 2e-3 * rng.standard_normal(rows.size)
-    held = np.column_stack([np.ones(rows.size), np.sin(reference_phase), np.cos(reference_phase)])
+    good_phase = theta + 0.4 + 2e-3 * rng.standard_normal(rows.size)
+    bad_first_band = good_phase.copy()
+    bad_first_band[:40] += np.pi  # the worst case: their mean exactly opposite the others'
     sizes = allan.group_sizes(len(batches))
-    with scratch_directory(tmp_path) as folder:
-        offsets, sums = allan.batch_offsets(chunks, batches, factors, np.zeros((23, 14)), reference_phase, k, rows,
-                                            cols, pixel_factors=held, return_sums=True, scratch=folder)
-        good = np.isfinite(offsets[...]).all(axis=0)
-        weights = allan.block_weights(rows, cols, good=good, block=3)
-        for phase_only in (True, False):
+    for reference_phase, phase_only in ((good_phase, True), (good_phase, False), (bad_first_band, True)):
+        held = np.column_stack([np.ones(rows.size), np.sin(reference_phase), np.cos(reference_phase)])
+        with scratch_directory(tmp_path) as folder:
+            offsets, sums = allan.batch_offsets(chunks, batches, factors, np.zeros((23, 14)), reference_phase, k,
+                                                rows, cols, pixel_factors=held, return_sums=True, scratch=folder)
+            good = np.isfinite(offsets[...]).all(axis=0)
+            weights = allan.block_weights(rows, cols, good=good, block=3)
             common = dict(pixel_factors=held, gain=2.0, read_noise=np.full(rows.size, 3.0), good=good,
                           weights=weights, phase_only=phase_only)
             whole = allan.group_fits(sums[...], batches, factors, reference_phase, k, rows, cols, sizes, **common)
@@ -612,6 +616,7 @@ def test_group_fits_in_bands_are_those_of_every_pixel_at_once(rng, tmp_path):
             for name, values in whole.items():
                 np.testing.assert_allclose(np.asarray(banded[name]), values, rtol=1e-9, atol=0, err_msg=name)
             assert np.all(np.isfinite(whole["deviation"])) and whole["deviation"].min() > 0
+            del offsets, sums, banded
 
 
 def test_the_product_written_a_slice_at_a_time_is_the_one_built_in_memory(tmp_path):
@@ -685,3 +690,35 @@ def test_the_allan_step_never_holds_a_map_of_every_batch(tmp_path):
     n_batches = product.sizes["batch"]
     assert n_batches > 150, n_batches
     assert peak < n_batches * n_pixels * 8, (peak, n_batches * n_pixels * 8)
+
+
+def test_a_step_stopped_with_sigterm_removes_its_scratch_folder(tmp_path):
+    """Snakemake and a cluster's time limit stop a job with SIGTERM: a workflow step (dice_core.run_logged) then
+    ends as on an exception, exit status 143, and its scratch folder goes (the Allan step's may hold tens of GB)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(f"""
+        import time
+        import dice_core
+        from dice_core.scratch import scratch_directory
+
+        def step():
+            with scratch_directory({str(tmp_path)!r}) as folder:
+                (folder / "sums.bin").write_bytes(b"0" * 1000)
+                print(folder, flush=True)
+                time.sleep(60)
+
+        dice_core.run_logged({str(tmp_path / "step.log")!r}, step)
+    """)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                        os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=env)
+    folder = Path(run.stdout.readline().strip())
+    assert folder.is_dir()
+    run.send_signal(signal.SIGTERM)
+    assert run.wait(timeout=30) == 128 + signal.SIGTERM
+    assert not folder.exists() and not list(tmp_path.glob(".dice-scratch-*"))
