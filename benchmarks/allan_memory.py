@@ -98,7 +98,6 @@ print(time.perf_counter() - start)
 
 def prepare(size: int, frames: int, sweep_frames: int, folder: Path) -> None:
     """Simulate, fit and write the metrology product and dark of the bench (once per folder)."""
-    import numpy as np
     import xarray as xr
 
     from dice_core import fringe_fit, fringes, io, simulation
@@ -122,7 +121,6 @@ def prepare(size: int, frames: int, sweep_frames: int, folder: Path) -> None:
     dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values, {"units": "adu"}),
                        "noise": (("row", "col"), truth["read_noise"].values, {"units": "adu"})})
     io.write_product(dark, folder / "dark.nc", title="dark")
-    del np
 
 
 def differences(one: Path, two: Path) -> dict:

@@ -14,7 +14,6 @@ time and CPU time (Snakemake's ``benchmark:`` files: the whole job) and the rati
 from __future__ import annotations
 
 import argparse
-import concurrent.futures
 import csv
 import statistics
 import subprocess
@@ -27,37 +26,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import workflow_metrology  # noqa: E402  (a benchmark script beside this one, not a package)
 
 BASELINE = workflow_metrology.BASELINE
-
-
-def config(frames):
-    """workflow_metrology's bench with the baseline in two files, so that it reads in two parts."""
-    from dice_core import simulation
-
-    cfg = workflow_metrology.config(frames).to_dict()
-    cfg["frames_per_file"] = -(-frames // 2)
-    return simulation.SimulationConfig.from_dict(cfg)
-
-
-def _write(frames, relpath, outdir):
-    from dice_core import simulation
-    from dice_core.io import read_product
-
-    simulation.write_file(config(frames), read_product(Path(outdir) / "truth.nc"), relpath=relpath, outdir=outdir)
-
-
-def prepare(frames, data):
-    """Simulate the dataset into ``data`` unless it is there; its manifest."""
-    from dice_core import simulation
-    from dice_core.io import write_product
-
-    manifest = data / "dataset.yaml"
-    if not manifest.exists():
-        cfg = config(frames)
-        write_product(simulation.make_truth(cfg), data / "truth.nc", title="benchmark truth")
-        with concurrent.futures.ProcessPoolExecutor(2) as pool:
-            list(pool.map(_write, *zip(*[(frames, rel, data) for rel in simulation.file_jobs(cfg)])))
-        simulation.write_manifest(cfg, data)
-    return manifest
 
 
 def run(manifest, results, threads):
@@ -89,7 +57,7 @@ def main(argv=None):
     print("|---|---|---|---|---:|")
     for frames in args.frames:
         data = (args.workdir / f"n{frames}").resolve()
-        manifest = prepare(frames, data)
+        manifest = workflow_metrology.prepare(frames, data, frames_per_file=-(-frames // 2))  # two files
         times = {1: [], 2: []}
         for _ in range(args.repeat):
             for threads in (1, 2):

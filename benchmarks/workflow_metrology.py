@@ -40,11 +40,11 @@ REPO = Path(__file__).resolve().parents[1]
 BASELINE = "H1H4"
 
 
-def config(frames):
+def config(frames, frames_per_file=20000):
     from dice_core import simulation
 
     return simulation.SimulationConfig.from_dict({
-        "name": "workflow-bench", "seed": 20150926, "frames_per_file": 20000,
+        "name": "workflow-bench", "seed": 20150926, "frames_per_file": frames_per_file,
         "detector": {"shape": [80, 84], "science_rows": [2, 79], "science_cols": [10, 83],
                      "gain": 10.0, "read_noise": 4.0},
         "dark": {"frames": 400}, "flats": {"frames": 400, "level": 20000.0},
@@ -54,15 +54,15 @@ def config(frames):
     })
 
 
-def _write(frames, relpath, outdir):
+def _write(frames, frames_per_file, relpath, outdir):
     from dice_core import simulation
     from dice_core.io import read_product
 
-    cfg = config(frames)
+    cfg = config(frames, frames_per_file)
     simulation.write_file(cfg, read_product(Path(outdir) / "truth.nc"), relpath=relpath, outdir=outdir)
 
 
-def prepare(frames, data):
+def prepare(frames, data, frames_per_file=20000):
     """Simulate the dataset into ``data`` (two processes, one file each at a time), unless already there."""
     from dice_core import simulation
     from dice_core.io import write_product
@@ -70,11 +70,12 @@ def prepare(frames, data):
     manifest = data / "dataset.yaml"
     if manifest.exists():
         return manifest
-    cfg = config(frames)
+    cfg = config(frames, frames_per_file)
     write_product(simulation.make_truth(cfg), data / "truth.nc", title="benchmark truth")
     start = time.perf_counter()
     with concurrent.futures.ProcessPoolExecutor(2) as pool:
-        list(pool.map(_write, *zip(*[(frames, relpath, data) for relpath in simulation.file_jobs(cfg)])))
+        list(pool.map(_write, *zip(*[(frames, frames_per_file, relpath, data)
+                                     for relpath in simulation.file_jobs(cfg)])))
     simulation.write_manifest(cfg, data)
     print(f"simulated {frames} frames in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     return manifest

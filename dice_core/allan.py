@@ -379,7 +379,9 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
         A folder (:func:`dice_core.scratch.scratch_directory`): the offsets
         and sums are returned as :class:`~dice_core.scratch.ScratchArray`
         files there, and the job holds one batch's at a time (besides each
-        lane's batches being summed). None: arrays in memory.
+        lane's batches being summed). None: the offsets and sums returned in
+        memory (the sums still pass through a file of a temporary folder of
+        the system's, which the lanes write into).
 
     Returns
     -------
@@ -599,7 +601,7 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
         part removed) of each pixel and block; ``limit_pixel`` and
         ``limit_block`` (size,): their photon-noise limits, the groups'
         variances from their own fits averaged over groups, then over pixels or
-        blocks. All in pixel. A band's groups of every size in memory at a time.
+        blocks. All in pixel. One group size's groups of a band in memory at a time.
     """
     fit = _BatchFit(idx=None, level=None, reference_phase=np.asarray(reference_phase, float),
                     design=polynomial_design(np.asarray(cols, float), np.asarray(rows, float), degree=1),
@@ -629,7 +631,7 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
                     turned = band_fit.turned(cum_FtF[hi] - cum_FtF[lo], band_sums[lo:hi].sum(axis=0, dtype=np.float64))
                     centres[lo, hi] = centres.get((lo, hi), 0j) + turned.sum()  # its direction: the mean's
     variance_pixel, variance_block = np.zeros(len(sizes)), np.zeros(len(sizes))
-    for band in bands:  # the first sweep: the affine parts and the limits (and one band's centres)
+    for band in bands:  # the next sweep: the affine parts and the limits (and the centres, where one band is all)
         band_fit, band_sums = fit.band(band), sums[:, :, band]
         weights_band = _band_weights(weights, band)[0]
         for i, size_groups in enumerate(groups):
@@ -643,7 +645,7 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
                     read_noise=read_noise[band], k_norm=fit.k_norm, phase_only=phase_only), 0.0) ** 2
                 variance_pixel[i] += variance.sum()
                 variance_block[i] += (variance @ weights_band**2).sum()
-    for band in bands:  # the second: each band's group offsets, their deviations
+    for band in bands:  # the last: each band's group offsets, their deviations
         band_fit, band_sums, band_good = fit.band(band), sums[:, :, band], good[band]
         weights_band, columns = _band_weights(weights, band)
         for i, size_groups in enumerate(groups):
@@ -1227,7 +1229,7 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
     scratch : path, optional
         Folder in which a temporary folder (:func:`dice_core.scratch.scratch_directory`,
         removed on return or error) holds what grows with pixels times
-        batches: the batches' sums, offsets and floors, the white-noise cube,
+        batches: the batches' sums and offsets, the white-noise cube,
         the per-pixel deviations (the job's output folder: the disk of the
         results, not the system's temporary one). None: the system's
         temporary folder.

@@ -47,6 +47,7 @@ rad/pixel for wavevectors.
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 
@@ -308,7 +309,7 @@ class TwoSourceFit:
         Rms of the pixel phases about the fitted surface, rad (the offsets
         times |K|).
     iterations : int
-        Gauss-Newton iterations run.
+        Gauss-Newton iterations run, summed over the refinement's stages.
     plane_wave_departure : ndarray (pixel,)
         The fitted surface minus its best plane, over |K|, pixel: what a
         plane-wave reduction would have put into the offsets.
@@ -334,11 +335,6 @@ class TwoSourceFit:
     surface: np.ndarray
     x: np.ndarray
     y: np.ndarray
-
-    @property
-    def affine(self) -> np.ndarray:
-        """The affine fields 1, x, y of the pixels (3, pixel), formed when asked (:func:`affine_basis`)."""
-        return affine_basis(self.x, self.y)
 
     def offsets_of(self, theta) -> np.ndarray:
         """Offsets (pixel) of other pixel phases (rad, same pixels) against this fit's surface and modes.
@@ -398,9 +394,13 @@ class _PhasePixels:
         """Phase and gradient of the tips' surface at the pixels ``s`` (:func:`two_source_phase`)."""
         return two_source_phase(self.x[s], self.y[s], *tips, wavelength=self.wavelength, pixel_pitch=self.pixel_pitch)
 
+    @functools.cached_property
+    def centre(self):
+        """The pixels' bounding-box centre, ([x], [y]), pixel: found once (each block's Jacobian is taken from it)."""
+        return np.array([(self.x.max() + self.x.min()) / 2]), np.array([(self.y.max() + self.y.min()) / 2])
+
     def _centre_jacobian(self, tips):
-        centre = np.array([(self.x.max() + self.x.min()) / 2]), np.array([(self.y.max() + self.y.min()) / 2])
-        return tip_jacobian(*centre, *tips, wavelength=self.wavelength, pixel_pitch=self.pixel_pitch)[0]
+        return tip_jacobian(*self.centre, *tips, wavelength=self.wavelength, pixel_pitch=self.pixel_pitch)[0]
 
     def jacobian_centre(self, tips) -> np.ndarray:
         """d (sign Phi) / d tips (6,) at the pixels' centre, rad per mm of tip."""

@@ -22,8 +22,8 @@ from dice_core import products
 from dice_core.centroids import MODES, mode_needs
 from dice_core.manifest import same_wavelength
 
-__all__ = ["PlanningError", "Plan", "plan_run", "Sweep", "plan_sweep", "folder_value", "reduction_point_config",
-           "module_name", "SWEEPS_FOLDER", "load_dataset", "point_dataset_name"]
+__all__ = ["PlanningError", "Plan", "plan_run", "run_roots", "Sweep", "plan_sweep", "folder_value",
+           "reduction_point_config", "module_name", "SWEEPS_FOLDER", "load_dataset", "point_dataset_name"]
 
 #: The sweeps' folder beside the datasets' own, under the results folder: no dataset may be named after it.
 SWEEPS_FOLDER = products.SWEEPS_FOLDER
@@ -553,6 +553,11 @@ def load_dataset(value: str, *, presets: Path, results: str, raw=None, overrides
         raise PlanningError(str(exc)) from None
 
 
+def run_roots(manifest, config: dict) -> tuple[str, str]:
+    """The folders a run of ``config`` on ``manifest`` writes below: ``results/<name>`` and ``results/sweeps``."""
+    return f"{config['results']}/{manifest.name}", f"{config['results']}/{SWEEPS_FOLDER}"
+
+
 def plan_run(manifest, config: dict) -> tuple[Plan, list[str]]:
     """The plan of the workflow's run of ``config`` (defaults set) on ``manifest``, and its default targets, with
     every check the workflow makes of them before a job runs: the dataset's name, the names its products'
@@ -564,7 +569,7 @@ def plan_run(manifest, config: dict) -> tuple[Plan, list[str]]:
     PlanningError
         The first problem, in one line.
     """
-    plan = Plan(manifest, config, f"{config['results']}/{manifest.name}", f"{config['results']}/{SWEEPS_FOLDER}")
+    plan = Plan(manifest, config, *run_roots(manifest, config))
     check_dataset_name(manifest)
     plan.check_names()
     return plan, plan.default_targets()

@@ -106,11 +106,11 @@ COSTS: dict[str, StepCost] = {
     # a later pass (pass 1 now hashes what it streams: kept at 15 until measured from a disk again). The
     # start forms pass 1's 7-column design and projector: 536 MB at 1024x1024. The sum of
     # a pass (11 s) and the product (74-78 s: the pixel solution and the tips' refinement) hold all frames'
-    # factors (frames: the baseline's) and per-pixel arrays: 315-333 and 579 bytes a pixel above the
-    # interpreter (about 115 MB) at 1024x1024, 312-328 for the sum at 2048x2048, the gauge's basis swept
-    # over blocks of pixels; the product 397-420 bytes a pixel (447 at 512x512) with the tips' refinement, the
-    # plane and the affine fits swept over blocks of pixels too, and the state spent as used
-    # (BENCHMARKS.md, "Memory of a split fit's reduction and product"; 1.5-1.6 and 1.85 GB before).
+    # factors (frames: the baseline's) and per-pixel arrays, above the interpreter (about 115 MB): the sum
+    # 270 bytes a pixel at 1024x1024 and the product 397-420 (447 at 512x512), both swept over blocks of
+    # pixels and the state spent as used (library, benchmarks/fit_memory.py: BENCHMARKS.md, "Memory of a split
+    # fit's reduction and product"; before, 315-333 and 579, and 1.5-1.6 and 1.85 GB at first); through the
+    # workflow at 2048x2048, 229 and 312 ("A 2048x2048 x 2,000-frame baseline through the split fit").
     "fit_start": StepCost(base_mb=400.0, mb_per_mpixel=2500.0, start_s=3.0, s_per_mpixel=60.0),
     "fit_part": StepCost(base_mb=400.0, mb_per_mpixel=600.0, mb_per_mframe=170.0, start_s=3.0,
                          s_per_gsample=15.0),
@@ -119,12 +119,14 @@ COSTS: dict[str, StepCost] = {
     "fit_finish": StepCost(base_mb=400.0, mb_per_mpixel=500.0, mb_per_mframe=170.0, start_s=3.0,
                            s_per_mpixel=80.0),  # reads the state and the parts' digests, no cube
     # what grows with pixels times batches on disk (docs/metrology.md, "The Allan job, on disk and in bands of
-    # pixels"): measured 118 and 164 MB above the interpreter (108 MB) at 256x256 and 512x512 with 190
+    # pixels"): measured (library, benchmarks/allan_memory.py, one worker) 118 and 164 MB above the interpreter
+    # (108 MB) at 256x256 and 512x512 with 190
     # batches of 42 frames, 247 bytes a pixel (the inputs' maps, the fit's per-pixel arrays, a chunk), and
     # about 8 bytes a batch-pixel number of a band of pixels (BENCHMARKS.md, "The Allan job on disk"). A band is
     # at least one row of 10x10-pixel blocks: 10 x 4096 pixels x 160 batches at 4096x4096 (50 MB), which the
     # per-sample term covers for batches of 40 frames or more (0.5 MB per 1e9 samples). About 4.4 GB at
-    # 4096x4096 x 160 batches (113 GB before, 47 bytes a pixel and batch).
+    # 4096x4096 x 160 batches (113-126 GB before, 42-47 bytes a pixel and batch). Not measured: the memory of
+    # the two worker processes the job has for a large baseline.
     "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=300.0, mb_per_gsample=0.5, start_s=3.0,
                                 s_per_gsample=17.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),

@@ -5,8 +5,9 @@ folder) removed when its block ends, on an error too. A :class:`ScratchArray` is
 it is read and written by numpy indexing: runs along the last axis (``a[b]``, ``a[:, lo:hi]``) with
 ``pread``/``pwrite``, any other key through a map of the file made for it and dropped after it, so that what
 the job reads or writes is in its memory only for that access (a map kept open keeps every page it touched
-counted in the job's resident memory, and a map's faults bring in the neighbouring pages too). The file stays open: an array
-stays readable after its folder is removed, and its disk space is freed when the array is dropped.
+counted in the job's resident memory, and a map's faults bring in the neighbouring pages too). The file stays
+open: an array stays readable after its folder is removed, and its disk space is freed when the array is
+dropped.
 """
 
 from __future__ import annotations
@@ -140,7 +141,7 @@ class ScratchArray:
             try:
                 written = os.pwritev(fd, [row], offset) if row.nbytes else 0
             except OSError as exc:  # a full disk says ENOSPC without a file name: the scratch file's, in one line
-                raise OSError(exc.errno, f"{exc.strerror} (writing the Allan step's scratch array)",
+                raise OSError(exc.errno, f"{exc.strerror} (writing a scratch array)",
                               str(self.path)) from None
             if written != row.nbytes:  # (a full disk may also stop a write short)
                 raise OSError(f"{self.path}: short write, {written} of {row.nbytes} bytes (is the disk full?)")

@@ -15,7 +15,8 @@ PAPER_PIXELS = 80 * 84
     ("allan_deviation", 200_000, 491, 14, PAPER_PIXELS),
     # BENCHMARKS.md, one 20,000-frame metrology file simulated (3.4 s alone), memory_streaming.py's 221 MiB
     ("simulate_file", 20_000, 232, 3.4, PAPER_PIXELS),
-    # BENCHMARKS.md, "The Allan job on disk": the Allan job's peak (VmHWM) at 190 batches of 42 frames on
+    # BENCHMARKS.md, "The Allan job on disk" (library: the script's calls in a fresh process, one worker, not
+    # through Snakemake): the Allan step's peak (VmHWM) at 190 batches of 42 frames on
     # 256x256 and 512x512 pixels, its batches' arrays on disk (before, 2353 MB at 512x512: 47 bytes a pixel
     # and batch, "Reads and memory of one baseline")
     ("allan_deviation", 8_000, 226, 45.0, 256 * 256),

@@ -49,8 +49,7 @@ try:
     )
 except (dice_settings.SettingsError, planning.PlanningError) as exc:
     fail(exc)
-OUT = f"{config['results']}/{MANIFEST.name}"
-SWEEP_ROOT = f"{config['results']}/{planning.SWEEPS_FOLDER}"
+OUT, SWEEP_ROOT = planning.run_roots(MANIFEST, config)
 # A sweep point of the reduction alone reads its dataset's raw files where the main run simulates them
 # (config raw), instead of simulating them again.
 RAW = local_path(config["raw"]) if config.get("raw") else f"{OUT}/raw"
