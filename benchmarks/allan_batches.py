@@ -19,7 +19,6 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import xarray as xr
 
 from dice_core import allan, fringe_fit, fringes, simulation
 from dice_core.geometry import BaselineGeometry

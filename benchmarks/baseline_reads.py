@@ -33,10 +33,8 @@ Prints one Markdown table per size and writes every number to ``<workdir>/reads.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
-import subprocess
 import sys
 import time
 from collections import defaultdict
@@ -44,7 +42,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
-from workflow_metrology import BASELINE, PLAIN_PASS, machine  # noqa: E402  (a script beside this one)
+from user_path import benchmark_record, machine, plain_read, snakemake  # noqa: E402  (scripts beside this one)
+from workflow_metrology import BASELINE  # noqa: E402
 
 #: Written into the workdir as ``sitecustomize.py``: every Python process started with it on the path
 #: (the jobs' scripts) appends its reads and peak memory to $DICE_BENCH_IO_LOG at exit.
@@ -132,24 +131,18 @@ def prepare(rows, cols, frames, frames_per_file, sweep_frames, data: Path) -> Pa
 
 
 def plain_pass(manifest) -> float:
-    out = subprocess.run([sys.executable, "-c", PLAIN_PASS, str(manifest), BASELINE, "float32"], check=True,
-                         capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)}).stdout
-    return json.loads(out)["seconds"]
+    return plain_read(manifest, BASELINE)["seconds"]
 
 
 def run(tree: Path, manifest: Path, results: Path, name: str, *, split: bool, cores: int, hook: Path, log: Path):
     """The README's command for the baseline's two products, from ``tree``; the jobs' records."""
     targets = [f"{results}/{name}/metrology/{BASELINE}.nc", f"{results}/{name}/allan/{BASELINE}.nc"]
-    cmd = [sys.executable, "-m", "snakemake", "--cores", str(cores), "--snakefile", str(tree / "Snakefile"),
-           "--directory", str(tree), "--configfile", str(hook.parent / f"split_{str(split).lower()}.yaml"),
-           "--config", f"dataset={manifest}", f"results={results}", "--forceall", "--", *targets]
     log.unlink(missing_ok=True)
     env = {**os.environ, "PYTHONPATH": f"{hook}:{tree}", "DICE_BENCH_IO_LOG": str(log)}
-    start = time.perf_counter()
-    done = subprocess.run(cmd, cwd=tree, capture_output=True, text=True, env=env)
-    wall = time.perf_counter() - start
-    if done.returncode:
-        sys.exit(f"{' '.join(cmd)} failed:\n{done.stderr[-4000:]}")
+    wall = snakemake("--snakefile", str(tree / "Snakefile"), "--directory", str(tree),
+                     "--configfile", str(hook.parent / f"split_{str(split).lower()}.yaml"),
+                     "--config", f"dataset={manifest}", f"results={results}", "--forceall", "--", *targets,
+                     cores=cores, tree=tree, env=env).wall_s
     jobs = defaultdict(list)
     for line in log.read_text().splitlines():
         record = json.loads(line)
@@ -159,15 +152,10 @@ def run(tree: Path, manifest: Path, results: Path, name: str, *, split: bool, co
             jobs[step].append(record)
     bench = results / name / "benchmarks"
     for step in jobs:
-        seconds = [_bench_seconds(path) for path in sorted(bench.glob(f"{step}_*.tsv"))]
+        seconds = [benchmark_record(path)["s"] for path in sorted(bench.glob(f"{step}_*.tsv"))]
         for record in jobs[step]:
             record["benchmark_s"] = seconds
     return wall, dict(jobs)
-
-
-def _bench_seconds(path) -> float:
-    with open(path, newline="") as f:
-        return float(next(csv.DictReader(f, delimiter="\t"))["s"])
 
 
 def compare(first: Path, second: Path) -> list[str]:

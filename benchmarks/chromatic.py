@@ -21,17 +21,12 @@ quantity per wavelength against N. Every run's numbers go to ``<workdir>/<N>.jso
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import subprocess
-import sys
-import time
 from collections import defaultdict
 from pathlib import Path
 
 import yaml
-
-REPO = Path(__file__).resolve().parents[1]
+from user_path import benchmark_record, snakemake
 
 
 def overrides(n: int, rows: int, cols: int) -> dict:
@@ -49,24 +44,17 @@ def run(workdir: Path, n: int, rows: int, cols: int) -> dict:
     config = workdir / f"{n}.yaml"
     config.write_text(yaml.safe_dump({"dataset": "chromatic", "results": str(workdir / f"results-{n}"),
                                       "simulation": overrides(n, rows, cols)}))
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--configfile", str(config)]
-    print(f"$ {' '.join(cmd)}", flush=True)
-    start = time.perf_counter()
-    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
-    wall = time.perf_counter() - start
-    if done.returncode != 0:
-        sys.exit(f"{' '.join(cmd)} failed:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    wall = snakemake("--configfile", str(config), echo=True).wall_s
     jobs = defaultdict(list)
     for tsv in (workdir / f"results-{n}").glob("*/benchmarks/*.tsv"):
-        with open(tsv, newline="") as handle:
-            record = next(csv.DictReader(handle, delimiter="\t"))
+        record = benchmark_record(tsv)
         step = tsv.stem
         for prefix in ("measure_centroids_flat+metrology+chromatic", "chromatic_calibration", "measure_centroids",
                        "fit_fringes", "allan_deviation", "measure_prnu", "simulate_file", "stack_position"):
             if step.startswith(prefix):
                 step = prefix
                 break
-        jobs[step].append((float(record["s"]), float(record["max_rss"])))
+        jobs[step].append((record["s"], record["max_rss"]))
     summary = {step: {"jobs": len(v), "seconds": sum(s for s, _ in v), "peak_mb": max(m for _, m in v)}
                for step, v in sorted(jobs.items())}
     result = {"wavelengths": n, "shape": [rows, cols], "wall_s": wall, "steps": summary}

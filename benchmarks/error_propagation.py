@@ -29,8 +29,8 @@ sweeps = [error_budget.sweep(s, trials=args.trials, seed=args.seed, weighting=ar
 rows = error_budget.error_propagation_table(sweeps)
 elapsed = time.perf_counter() - start
 
-print(f"| source | per axis (MC) | 2-D (MC) | analytic per axis | analytic 2-D | Cramer-Rao per axis "
-      f"| paper | convention matching the paper | amplitude for 5e-6 pixel | paper's |")
+print("| source | per axis (MC) | 2-D (MC) | analytic per axis | analytic 2-D | Cramer-Rao per axis "
+      "| paper | convention matching the paper | amplitude for 5e-6 pixel | paper's |")
 print("|---|---:|---:|---:|---:|---:|---:|---|---:|---:|")
 for r in rows:
     bound = "" if r["cramer_rao"] is None else f"{r['cramer_rao']:.3f}"

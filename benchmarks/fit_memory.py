@@ -96,13 +96,11 @@ def prepare(rows: int, cols: int, frames: int, folder: Path) -> int:
     from dice_core import fringe_fit, io, simulation
     from dice_core.manifest import load_manifest
 
-    scale = min(rows, cols) / 1024
-    overrides = {"detector.shape": [rows, cols], "detector.science_rows": [2, rows - 2],
-                 "detector.science_cols": [8, cols - 2], "metrology.frames": frames,
-                 "frames_per_file": frames // 2, "dark.frames": 2, "flats.frames": 2, "stars.positions": 1,
-                 "stars.frames": 1, "metrology.envelope_sigma": 1500.0 * scale,
-                 "stars.pattern_centre": [cols / 2, rows / 2], "stars.pattern_side": 400.0 * scale}
-    cfg = simulation.load_preset(REPO / "config" / "presets" / "large.yaml", overrides=overrides)
+    from large_detector import PRESET, size_overrides  # the large preset scaled to the size, as there
+
+    overrides = {**size_overrides(rows, cols, frames), "frames_per_file": frames // 2, "dark.frames": 2,
+                 "flats.frames": 2, "stars.positions": 1, "stars.frames": 1}
+    cfg = simulation.load_preset(PRESET, overrides=overrides)
     path = simulation.simulate_dataset(cfg, folder / "raw")
     manifest = load_manifest(path)
     truth = io.read_product(folder / "raw" / "truth.nc")

@@ -31,12 +31,10 @@ The dataset of the preset's own size is ``sim-large``; another size is ``sim-lar
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import re
 import resource
 import shutil
-import subprocess
 import sys
 import time
 from collections import defaultdict
@@ -47,7 +45,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 import job_resources  # noqa: E402  (scripts beside this one)
-from workflow_metrology import PLAIN_PASS, machine  # noqa: E402
+from user_path import benchmark_record, machine, plain_read, snakemake  # noqa: E402
 
 BASELINE = "H1H4"
 PRESET = REPO / "config" / "presets" / "large.yaml"
@@ -76,24 +74,10 @@ def dataset_name(overrides: dict) -> str:
 SNAKEMAKE_OPTIONS: list = []
 
 
-def snakemake(configfile: Path, *targets: str, forcerun: str | None = None) -> float:
+def run_command(configfile: Path, *targets: str, forcerun: str | None = None) -> float:
     """Run the README's command for ``targets``; wall time, s. Exits with Snakemake's output on a failure."""
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--configfile", str(configfile), *SNAKEMAKE_OPTIONS,
-           *(["--forcerun", forcerun] if forcerun else []), "--", *targets]
-    print(f"$ {' '.join(cmd)}", flush=True)
-    start = time.perf_counter()
-    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
-    wall = time.perf_counter() - start
-    if done.returncode:
-        sys.exit(f"{' '.join(cmd)} failed after {wall:.0f} s:\n{done.stderr[-5000:]}")
-    return wall
-
-
-def plain_pass(manifest: Path) -> float:
-    """Seconds of one plain float32 read pass of the baseline in a fresh process (imports excluded)."""
-    out = subprocess.run([sys.executable, "-c", PLAIN_PASS, str(manifest), BASELINE, "float32"], check=True,
-                         capture_output=True, text=True).stdout
-    return json.loads(out)["seconds"]
+    return snakemake("--configfile", str(configfile), *SNAKEMAKE_OPTIONS,
+                     *(["--forcerun", forcerun] if forcerun else []), "--", *targets, echo=True).wall_s
 
 
 def benchmark_rows(out: Path, parts: int, since: float) -> list[dict]:
@@ -115,9 +99,8 @@ def benchmark_rows(out: Path, parts: int, since: float) -> list[dict]:
         if tsv.stat().st_mtime < since:  # an earlier run's job, which this one did not run again
             continue
         name = tsv.relative_to(out / "benchmarks").with_suffix("").as_posix()
-        with open(tsv, newline="") as handle:
-            row = next(csv.DictReader(handle, delimiter="\t"))
-        job = {"job": name, "s": float(row["s"]), "max_rss_mb": float(row["max_rss"])}
+        row = benchmark_record(tsv)
+        job = {"job": name, "s": row["s"], "max_rss_mb": row["max_rss"]}
         if name.startswith("simulate/"):  # a group of files' job, named by its rule
             simulated = resources.group_files(manifest, steps.rule_group(name[len("simulate/"):]))
             metrology = any(Path(f).parent.name == "metrology" for f in simulated)
@@ -178,14 +161,14 @@ def run_size(size: str, args) -> dict:
     print(f"\n## {rows}x{cols} pixels, {frames} frames: {name}", flush=True)
     manifest = out / "raw" / "dataset.yaml"
     started = time.time()
-    simulate_s = snakemake(configfile, str(manifest))
+    simulate_s = run_command(configfile, str(manifest))
     raw_bytes = sum(f.stat().st_size for f in (out / "raw").rglob("*.fits"))
     cube_bytes = sum(f.stat().st_size for f in (out / "raw" / "metrology").rglob("*.fits"))
     targets = {"all": [], "fit": [str(out / "metrology" / f"{BASELINE}.nc")],
                "metrology": [str(out / "metrology" / f"{BASELINE}.nc"), str(out / "allan" / f"{BASELINE}.nc")]}
     targets = targets[args.target]
-    reduce_s = snakemake(configfile, *targets)
-    plain_s = plain_pass(manifest)
+    reduce_s = run_command(configfile, *targets)
+    plain_s = plain_read(manifest, BASELINE)["seconds"]
     jobs = benchmark_rows(out, args.parts, started)
     # each job's data as the workflow's resources see it, for job_resources.py once the raw files are gone
     requested = [[step, int(p), int(n), int(k), float(rss), float(wall), str(tsv)]
@@ -200,11 +183,10 @@ def run_size(size: str, args) -> dict:
         single_config = args.workdir / f"{name}-single.yaml"
         single_config.write_text(yaml.safe_dump({**config, "metrology": {**config["metrology"], "split": False}},
                                                 sort_keys=False))
-        single_s = snakemake(single_config, str(out / "metrology" / f"{BASELINE}.nc"), forcerun="fit_fringes")
-        with open(out / "benchmarks" / f"fit_fringes_{BASELINE}.tsv", newline="") as handle:
-            row = next(csv.DictReader(handle, delimiter="\t"))
+        single_s = run_command(single_config, str(out / "metrology" / f"{BASELINE}.nc"), forcerun="fit_fringes")
+        row = benchmark_record(out / "benchmarks" / f"fit_fringes_{BASELINE}.tsv")
         same = same_product(read_product(out / "metrology" / f"{BASELINE}.nc"), split_product)
-        single = {"command_s": single_s, "s": float(row["s"]), "max_rss_mb": float(row["max_rss"]),
+        single = {"command_s": single_s, "s": row["s"], "max_rss_mb": row["max_rss"],
                   "bit_identical": same}
     largest_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     summary = {"size": size, "name": name, "pixels": rows * cols, "frames": frames,

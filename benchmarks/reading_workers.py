@@ -14,16 +14,12 @@ time and CPU time (Snakemake's ``benchmark:`` files: the whole job) and the rati
 from __future__ import annotations
 
 import argparse
-import csv
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import workflow_metrology  # noqa: E402  (a benchmark script beside this one, not a package)
+import workflow_metrology  # a benchmark script beside this one (its folder is first on sys.path)
+from user_path import benchmark_record, machine, snakemake
 
 BASELINE = workflow_metrology.BASELINE
 
@@ -32,18 +28,12 @@ def run(manifest, results, threads):
     """(fit, Allan) each as (wall s, CPU s) with ``threads`` for both jobs."""
     name = "workflow-bench"
     targets = [f"{results}/{name}/metrology/{BASELINE}.nc", f"{results}/{name}/allan/{BASELINE}.nc"]
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--config", f"dataset={manifest}", f"results={results}",
-           "--set-threads", f"fit_fringes={threads}", f"allan_deviation={threads}",
-           "--forcerun", "fit_fringes", "allan_deviation", "--", *targets]
-    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
-    if done.returncode:
-        sys.exit(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
-    out = []
-    for job in ("fit_fringes", "allan_deviation"):
-        with open(Path(results) / name / "benchmarks" / f"{job}_{BASELINE}.tsv", newline="") as f:
-            row = next(csv.DictReader(f, delimiter="\t"))
-        out.append((float(row["s"]), float(row["cpu_time"])))
-    return out
+    snakemake("--config", f"dataset={manifest}", f"results={results}",
+              "--set-threads", f"fit_fringes={threads}", f"allan_deviation={threads}",
+              "--forcerun", "fit_fringes", "allan_deviation", "--", *targets)
+    records = (benchmark_record(Path(results) / name / "benchmarks" / f"{job}_{BASELINE}.tsv")
+               for job in ("fit_fringes", "allan_deviation"))
+    return [(record["s"], record["cpu_time"]) for record in records]
 
 
 def main(argv=None):
@@ -52,7 +42,7 @@ def main(argv=None):
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/dice-workers"))
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args(argv)
-    print(f"machine: {workflow_metrology.machine()}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+    print(f"machine: {machine()}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
     print("| frames (samples) | job | 1 worker: wall, CPU (s) | 2 workers: wall, CPU (s) | 2 / 1 (median wall) |")
     print("|---|---|---|---|---:|")
     for frames in args.frames:

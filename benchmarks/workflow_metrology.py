@@ -27,16 +27,12 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
-import csv
-import json
-import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from user_path import REPO, benchmark_record, machine, plain_read, snakemake
+
 BASELINE = "H1H4"
 
 
@@ -81,56 +77,20 @@ def prepare(frames, data, frames_per_file=20000):
     return manifest
 
 
-PLAIN_PASS = """
-import json, sys, time
-import numpy as np
-from dice_core.io import FrameStream
-from dice_core.manifest import load_manifest
-manifest = load_manifest(sys.argv[1])
-stream = FrameStream(manifest.baselines[sys.argv[2]], manifest.detector, dtype=sys.argv[3])
-start = time.perf_counter()
-total = 0.0
-for chunk in stream:
-    total = total + chunk.frames.sum(axis=0)
-print(json.dumps({"seconds": time.perf_counter() - start, "frames": stream.n_frames}))
-"""
-
-
 def plain_pass(manifest, dtype="float32"):
     """Seconds of one plain read pass of the baseline in a fresh process (pass alone, imports excluded)."""
-    out = subprocess.run([sys.executable, "-c", PLAIN_PASS, str(manifest), BASELINE, dtype], check=True,
-                         capture_output=True, text=True).stdout
-    return json.loads(out)["seconds"]
-
-
-def read_benchmark(path):
-    """(seconds, peak RSS MiB) of a Snakemake benchmark file."""
-    with open(path, newline="") as f:
-        row = next(csv.DictReader(f, delimiter="\t"))
-    return float(row["s"]), float(row["max_rss"])
+    return plain_read(manifest, BASELINE, dtype=dtype)["seconds"]
 
 
 def run_workflow(manifest, results, name):
+    """The README's command for the baseline's two products, the fit and Allan jobs forced to run: the
+    command's wall time (s) and each job's (s, peak RSS MB) from its ``benchmark:`` file."""
     targets = [f"{results}/{name}/metrology/{BASELINE}.nc", f"{results}/{name}/allan/{BASELINE}.nc"]
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--config", f"dataset={manifest}",
-           f"results={results}", "--forcerun", "fit_fringes", "allan_deviation", "--", *targets]
-    start = time.perf_counter()
-    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
-    wall = time.perf_counter() - start
-    if done.returncode:
-        sys.exit(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
+    run = snakemake("--config", f"dataset={manifest}", f"results={results}",
+                    "--forcerun", "fit_fringes", "allan_deviation", "--", *targets)
     bench = Path(results) / name / "benchmarks"
-    fit = read_benchmark(bench / f"fit_fringes_{BASELINE}.tsv")
-    allan = read_benchmark(bench / f"allan_deviation_{BASELINE}.tsv")
-    return wall, fit, allan
-
-
-def machine():
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor())
-    import numpy
-
-    return f"{os.cpu_count()} cores ({cpu}), Python {platform.python_version()}, numpy {numpy.__version__}"
+    fit, allan = (benchmark_record(bench / f"{job}_{BASELINE}.tsv") for job in ("fit_fringes", "allan_deviation"))
+    return run.wall_s, (fit["s"], fit["max_rss"]), (allan["s"], allan["max_rss"])
 
 
 def main():
