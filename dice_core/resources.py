@@ -250,7 +250,8 @@ def simulation_groups(manifest, frames_of, *, pixels: int, samples: float) -> li
     other acquisitions' files, so that making one file again (Snakemake re-makes a job's every output) rewrites
     no other acquisition's, whose reductions would then run again."""
     positions = [p.acquisition for p in manifest.positions]
-    others = manifest.acquisitions()[:len(manifest.acquisitions()) - len(positions)]  # positions come last
+    acquisitions = manifest.acquisitions()
+    others = acquisitions[:len(acquisitions) - len(positions)]  # positions come last
     segments = [list(a.files) for a in others] + [[f for a in positions for f in a.files]]
     number = 1
     groups = []
