@@ -94,10 +94,11 @@ COSTS: dict[str, StepCost] = {
     "simulate_file": StepCost(base_mb=230.0, mb_per_mpixel=2200.0, start_s=3.0, s_per_gsample=60.0),
     "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
     "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
-    # 1961 MB and 180 s for 1024x1024 x 5000 frames: three passes and the cubes' checksums. An upper bound
-    # since the gauge works in pixel blocks (907 MB for the whole fit at 1024x1024 x 400 frames, library, not
-    # yet measured through the workflow: "Memory of a split fit's reduction and product")
-    "fit_fringes": StepCost(base_mb=400.0, mb_per_mpixel=5000.0, mb_per_mframe=170.0, start_s=3.0,
+    # Through the workflow (Snakemake's benchmark files: the job with its two reading workers), 481 and 727 MB
+    # at 256x256 and 512x512 x 4000 frames (BENCHMARKS.md, "The single fit's memory through the workflow"):
+    # 1250 bytes a pixel above about 400 MB, asked as 1400. 1961 MB and 180 s for 1024x1024 x 5000 frames
+    # with older code (three passes and the cubes' checksums in reads of their own).
+    "fit_fringes": StepCost(base_mb=400.0, mb_per_mpixel=1400.0, mb_per_mframe=170.0, start_s=3.0,
                             s_per_gsample=35.0, s_per_mpixel=80.0),
     # A split fit's jobs (docs/metrology.md), measured on 256x256 to 1024x1024 detectors (BENCHMARKS.md, "A
     # large detector"). A part holds the projector, F'X and a chunk per pixel and its own frames' products

@@ -21,6 +21,10 @@ PAPER_PIXELS = 80 * 84
     # and batch, "Reads and memory of one baseline")
     ("allan_deviation", 8_000, 226, 45.0, 256 * 256),
     ("allan_deviation", 8_000, 273, 195.3, 512 * 512),
+    # BENCHMARKS.md, "The single fit's memory through the workflow": fit_fringes jobs (benchmark files, the
+    # job with its two reading workers) on the large preset scaled to 256x256 and 512x512, 4000 frames
+    ("fit_fringes", 4_000, 481, 13.1, 256 * 256),
+    ("fit_fringes", 4_000, 727, 42.0, 512 * 512),
 ])
 def test_requests_cover_the_paper_scale_measurements(step, frames, max_rss_mb, seconds, pixels):
     asked = job_resources(step, pixels=pixels, frames=frames)
