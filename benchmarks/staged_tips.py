@@ -30,22 +30,21 @@ set: benches converged, rms of the pinned errors / sigma over them.
 
 import argparse
 import logging
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from test_geometry import PITCH, WAVELENGTH, large_bench
 
 from dice_core import geometry
 from dice_core.geometry import fit_two_source, two_source_phase
 
-PITCH, WAVELENGTH, DISTANCE = 24e-6, 633e-9, 0.6
 BASELINES = [(2.4, (0.012, 0.006), 0.035), (4.0, (-0.011, -0.010), 1.545)]
 DENSE = [(2048, *BASELINES[0]), (2048, *BASELINES[1]), (3072, *BASELINES[0]), (4096, *BASELINES[1]),
          (4096, *BASELINES[0])]
-
-
-def off_by(tip, length, rng):
-    error = rng.standard_normal(3)
-    return tip + length * error / np.linalg.norm(error)
 
 
 def pixels_of(kind, side, rng):
@@ -67,23 +66,16 @@ def pixels_of(kind, side, rng):
 
 
 def bench(kind, side, period, midpoint, angle, seed, tip_off=(1e-3, 1e-3), best=False):
-    """One bench: the pixel phases, the true and nominal tips (``tip_off``, m), k_plane (the true phase's mean
-    gradient, or with ``best`` its best plane)."""
+    """One bench (``tests/test_geometry.py``'s ``large_bench``): the pixel phases, their coordinates, the true
+    and nominal tips (``tip_off``, m), k_plane (the true phase's mean gradient, or with ``best`` its best
+    plane)."""
     rng = np.random.default_rng(seed)
     x, y = pixels_of(kind, side, rng)
-    length = WAVELENGTH * DISTANCE / (period * PITCH)
-    direction = np.array([np.cos(angle), np.sin(angle)])
-    mid = np.full(2, (side - 1) / 2) * PITCH + np.asarray(midpoint)
-    a, b = (np.array([*(mid + sign * length * direction), DISTANCE]) for sign in (-0.5, 0.5))
-    dx, dy = 1e-3 * rng.standard_normal((2, x.size))
-    phase, _, _ = two_source_phase(x + dx, y + dy, a, b, wavelength=WAVELENGTH, pixel_pitch=PITCH)
-    true, gx, gy = two_source_phase(x, y, a, b, wavelength=WAVELENGTH, pixel_pitch=PITCH)
-    theta = np.angle(np.exp(1j * (0.4 + phase + 3e-5 * np.hypot(gx, gy) * rng.standard_normal(x.size))))
-    nominal = (off_by(a, tip_off[0], rng), off_by(b, tip_off[1], rng))
-    k_plane = (gx.mean(), gy.mean())
+    theta, truth, nominal, k_plane, _ = large_bench(x, y, side, period, midpoint, angle, rng, tip_off)
     if best:
+        true = two_source_phase(x, y, *truth, wavelength=WAVELENGTH, pixel_pitch=PITCH)[0]
         k_plane = tuple(np.linalg.lstsq(np.array([np.ones(x.size), x, y]).T, true, rcond=None)[0][1:])
-    return theta, x, y, np.array([a, b]), nominal, k_plane
+    return theta, x, y, truth, nominal, k_plane
 
 
 class Stages(logging.Handler):
