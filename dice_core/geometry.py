@@ -91,7 +91,8 @@ STAGE_MIN_PIXELS = 200
 #: the periodogram that finds the plane a stage starts from is summed (picked at random).
 STAGE_BOUND_SAMPLES = 20000
 #: Largest phase (rad) at a stage's edge between the plane a stage starts from, searched for on a grid, and the
-#: periodogram's peak: the grid's step. Four affine fits of the wrapped residual then take the plane to its best.
+#: periodogram's peak: sets the grid's step. The first stage's affine fits of the wrapped residual, or a later
+#: stage's Gauss-Newton steps, then take the plane the rest of the way.
 STAGE_PLANE_STEP = 0.25
 #: Most steps of that grid each way from the plane carried into a stage, per axis.
 STAGE_PLANE_POINTS = 128
