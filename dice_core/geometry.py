@@ -39,7 +39,8 @@ r_k / (1 + r_k) of it, up to 1 % of c.
 The refinement fits wrapped phase residuals, which see the truth only while
 the surface is within about a radian of it everywhere: on a detector wider
 than about 1000 pixels at 600 mm it runs in stages, over discs from the
-centre out (:func:`fit_two_source`, ``STAGE_PHASE_LIMIT``).
+centre out (:func:`fit_two_source`, ``STAGE_PHASE_LIMIT``), each from the
+plane its residual's periodogram peaks at within the plane's 3-sigma error.
 
 Units: m for positions, pixel for x, y and offsets, rad for phases,
 rad/pixel for wavevectors.
@@ -86,8 +87,15 @@ UNOBSERVABLE_MODE = {"units": "1", "long_name": "unobservable offset mode beyond
 STAGE_PHASE_LIMIT = 1.0
 #: Fewest pixels of the first stage of a refinement in stages.
 STAGE_MIN_PIXELS = 200
-#: Pixels over which a stage's phase bound is evaluated (evenly picked; the bound is smooth).
+#: Pixels over which a stage's phase bound is evaluated (evenly picked; the bound is smooth), and over which
+#: the periodogram that finds the plane a stage starts from is summed (picked at random).
 STAGE_BOUND_SAMPLES = 20000
+#: Largest phase (rad) at a stage's edge between the plane a stage starts from, searched for on a grid, and the
+#: periodogram's peak: sets the grid's step. The first stage's affine fits of the wrapped residual, or a later
+#: stage's Gauss-Newton steps, then take the plane the rest of the way.
+STAGE_PLANE_STEP = 0.25
+#: Most steps of that grid each way from the plane carried into a stage, per axis.
+STAGE_PLANE_POINTS = 128
 
 #: Information ratio (data over prior) above which a tip mode counts as refined from the data,
 #: and its offset pattern as unobservable (module docstring).
@@ -349,11 +357,13 @@ class TwoSourceFit:
         return _without_orthonormal(_without_affine(psi, self.x, self.y), self.modes)
 
 
-def _unwrapped_start(theta, x, y, phase_of, k_plane, block, *, gradient=None):
+def _unwrapped_start(theta, x, y, phase_of, k_plane, block, *, gradient=None, search=None):
     """The sign of the surface of the nominal tips (``phase_of(s)``: its phase and gradient at the pixels
     ``s``) that runs the way of ``k_plane``, and the constant and plane (rad, rad/pixel) that unwrap ``theta``
     against it; sums over the pixels taken ``block`` pixels at a time. ``gradient``: the surface's mean
-    gradient over the pixels ``k_plane`` was fitted on, where those are not only these (a stage's disc)."""
+    gradient over the pixels ``k_plane`` was fitted on, where those are not only these (a stage's disc).
+    ``search``: the plane's 3-sigma error (rad/pixel, (2,)), where the plane is searched for first
+    (:func:`_searched_plane`; None: not searched, as where every pixel is refined at once)."""
     n = x.size
     phase0, mean = np.empty(n), np.zeros(2)
     for s in pixel_blocks(n, block):
@@ -368,13 +378,60 @@ def _unwrapped_start(theta, x, y, phase_of, k_plane, block, *, gradient=None):
     # stage's disc: away from the centre both surfaces' mean gradients differ from k_plane, by nearly
     # the same amount, and the plane is their difference.
     plane = np.asarray(k_plane, float) - sign * gradient
-    constant = 0.0
+    constant, plane = _unwrapped_plane(theta, x, y, sign, phase0, 0.0, plane, block, search=search)
+    return sign, constant, plane
+
+
+def _unwrapped_plane(theta, x, y, sign, phase0, constant, plane, block, *, search=None):
+    """The constant and plane (rad, rad/pixel) that unwrap ``theta`` against the surface ``sign`` ``phase0``
+    (rad, at the pixels), from ``constant`` and ``plane``: searched for first if ``search`` (as
+    :func:`_unwrapped_start` takes it) is given, then four affine fits of the wrapped residual, which take
+    the plane to the residual's best while it is well within +-pi of it everywhere."""
+    if search is not None:
+        constant, plane = _searched_plane(theta, x, y, lambda p: sign * phase0[p], constant, plane, search)
+    n = x.size
     for _ in range(4):
         R = stacked_r(_affine_rows(x, y, s, _wrap(theta[s] - sign * phase0[s] - plane[0] * x[s] - plane[1] * y[s]
                                                   - constant)) for s in pixel_blocks(n, block))
         coef = _affine_coefficients(R)[:, 0]
         constant, plane = constant + coef[0], plane + coef[1:]
-    return sign, constant, plane
+    return constant, plane
+
+
+def _searched_plane(theta, x, y, surface_at, constant, plane, error):
+    """The constant and plane (rad, rad/pixel) of the peak of the periodogram of the wrapped residual
+    theta - surface - constant - plane.r (rad, at the pixels; ``surface_at(p)``: the surface at the pixels of
+    index ``p``), the plane searched for within ``error`` (rad/pixel, (2,): its 3-sigma error) of ``plane``.
+
+    The grid's step puts at most ``STAGE_PLANE_STEP`` at the pixels' radius about their centroid between the
+    peak and the nearest point of the grid. The sums are over up to ``STAGE_BOUND_SAMPLES`` of the pixels,
+    picked at random with a fixed seed (evenly picked, a raster's pixels would make a lattice with aliases of
+    its own), a block of them at a time (the grid's exponentials: a block's pixels by grid points a side)."""
+    n = x.size
+    picked = np.arange(n)
+    if n > STAGE_BOUND_SAMPLES:
+        picked = np.sort(np.random.default_rng(0).choice(n, STAGE_BOUND_SAMPLES, replace=False))
+    centre = np.array([x[picked].mean(), y[picked].mean()])
+    u, v = x[picked] - centre[0], y[picked] - centre[1]
+    step = np.sqrt(2) * STAGE_PLANE_STEP / max(float(np.sqrt(np.max(u**2 + v**2))), 1.0)
+    # within step / 2 of a point of the grid each way: at most STAGE_PLANE_STEP at the radius
+    half = np.maximum(np.ceil(np.asarray(error, float) / step - 0.5), 0).astype(int)
+    if np.any(half > STAGE_PLANE_POINTS):
+        log.warning("the plane's 3-sigma error (%s rad/pixel) spans more than %d steps of its search each way: "
+                    "searched over the %d nearest", np.array2string(np.asarray(error), precision=2),
+                    STAGE_PLANE_POINTS, STAGE_PLANE_POINTS)
+        half = np.minimum(half, STAGE_PLANE_POINTS)
+    if not np.any(half):
+        return constant, plane
+    kx, ky = (step * np.arange(-h, h + 1) for h in half)
+    power = np.zeros((kx.size, ky.size), complex)
+    for s in pixel_blocks(picked.size, 2048):
+        p = picked[s]
+        z = np.exp(1j * (theta[p] - surface_at(p) - plane[0] * x[p] - plane[1] * y[p] - constant))
+        power += (z[:, None] * np.exp(-1j * np.outer(u[s], kx))).T @ np.exp(-1j * np.outer(v[s], ky))
+    i, j = np.unravel_index(np.argmax(np.abs(power)), power.shape)
+    k = np.array([kx[i], ky[j]])
+    return constant + float(np.angle(power[i, j])) - float(k @ centre), plane + k
 
 
 @dataclass
@@ -481,26 +538,66 @@ def _stage_discs(x, y):
     return distance, radii
 
 
-def _stage_bound(x, y, tips, covariance, pixels, index=None):
-    """3-sigma phase (rad), beyond the affine part over the pixels ``index`` (None: every pixel), that tips known
-    to ``covariance`` (6, 6), mm^2, put on the worst of them; from up to ``STAGE_BOUND_SAMPLES`` of them,
-    evenly picked (the surface is smooth). ``pixels`` gives the bench (wavelength, pitch)."""
+def _sampled_jacobian(x, y, tips, pixels, index=None):
+    """d Phi / d tips (sample, 6), rad/mm, at up to ``STAGE_BOUND_SAMPLES`` of the pixels ``index`` (None: every
+    pixel), evenly picked (the surface is smooth), and its affine fit's coefficients (3, 6): constant, x, y
+    slopes (rad/mm, rad/pixel/mm). ``pixels`` gives the bench (wavelength, pitch)."""
     n = x.size if index is None else index.size
     picked = np.linspace(0, n - 1, min(n, STAGE_BOUND_SAMPLES)).astype(int)
     index = picked if index is None else index[picked]
     jac = tip_jacobian(x[index], y[index], *tips, wavelength=pixels.wavelength, pixel_pitch=pixels.pixel_pitch)
     jac *= 1e-3  # rad/mm
     affine = affine_basis(x[index], y[index]).T
-    jac -= affine @ np.linalg.lstsq(affine, jac, rcond=None)[0]
+    coef = np.linalg.lstsq(affine, jac, rcond=None)[0]
+    jac -= affine @ coef
+    return jac, coef
+
+
+def _stage_bound(x, y, tips, covariance, pixels, index=None):
+    """3-sigma phase (rad), beyond the affine part over the pixels ``index`` (None: every pixel), that tips known
+    to ``covariance`` (6, 6), mm^2, put on the worst of them; from up to ``STAGE_BOUND_SAMPLES`` of them,
+    evenly picked (the surface is smooth). ``pixels`` gives the bench (wavelength, pitch)."""
+    jac, _ = _sampled_jacobian(x, y, tips, pixels, index)
     return 3 * float(np.sqrt(np.max(np.einsum("pi,ij,pj->p", jac, covariance, jac))))
+
+
+def _plane_error(x, y, tips, covariance, pixels, index, previous=None):
+    """3-sigma error (rad/pixel, (2,)), from tips known to ``covariance`` (6, 6), mm^2, of the plane a stage over
+    the pixels ``index`` starts from, against the best plane of its residual: the plane fitted over the
+    pixels ``previous`` (the last stage's), or, for the first stage (None), the plane-wave solution's less the
+    nominal surface's mean gradient over every pixel (:func:`_unwrapped_start`).
+
+    Linear in the tips' error: the slopes of d Phi / d tips over ``index`` against those over ``previous``,
+    or their mean gradient over every pixel (central differences half a pixel each way), from the bound's
+    evenly picked samples. For the first stage, plus how far the tips' surface's mean gradient over every
+    pixel is from its best plane: a plane-wave solution may be either, or between."""
+    _, slopes = _sampled_jacobian(x, y, tips, pixels, index)
+    bench = {"wavelength": pixels.wavelength, "pixel_pitch": pixels.pixel_pitch}
+    if previous is not None:
+        _, reference = _sampled_jacobian(x, y, tips, pixels, previous)
+        ambiguity = np.zeros(2)
+    else:
+        picked = np.linspace(0, x.size - 1, min(x.size, STAGE_BOUND_SAMPLES)).astype(int)
+        xs, ys = x[picked], y[picked]
+        reference = np.zeros((3, 6))
+        for row, (dx, dy) in ((1, (0.5, 0.0)), (2, (0.0, 0.5))):
+            reference[row] = (tip_jacobian(xs + dx, ys + dy, *tips, **bench)
+                              - tip_jacobian(xs - dx, ys - dy, *tips, **bench)).mean(axis=0) * 1e-3
+        phase, gx, gy = two_source_phase(xs, ys, *tips, **bench)
+        best = np.linalg.lstsq(affine_basis(xs, ys).T, phase, rcond=None)[0][1:]
+        ambiguity = np.abs(best - [gx.mean(), gy.mean()])
+    gain = reference[1:] - slopes[1:]  # (2, 6): rad/pixel per mm of tip
+    return 3 * np.sqrt(np.einsum("ai,ij,aj->a", gain, covariance, gain)) + ambiguity
 
 
 def _refine_in_stages(pixels, k_plane, *, nominal, prior, max_iterations, fibers, label):
     """The tips refined over discs of ``pixels`` about their centroid, from the centre out (:func:`fit_two_source`):
     each stage the largest disc on which the tips' uncertainty (the prior's, then the last stage's posterior)
-    puts at most ``STAGE_PHASE_LIMIT`` at 3 sigma, or the next disc out; each from the last stage's tips,
-    constant and plane, continuous across the disc's edge. Sets ``pixels.sign``; returns the tips, constant,
-    plane and the iterations of every stage."""
+    puts at most ``STAGE_PHASE_LIMIT`` at 3 sigma beyond the affine part, or the next disc out; each from the
+    last stage's tips, and from the constant and plane the disc's periodogram peaks at within the plane's
+    3-sigma error (:func:`_plane_error`, :func:`_searched_plane`), the first stage's then fitted to the disc's
+    wrapped residual (:func:`_unwrapped_plane`) as where every pixel is refined at once.
+    Sets ``pixels.sign``; returns the tips, constant, plane and the iterations of every stage."""
     x, y, n = pixels.x, pixels.y, pixels.x.size
     gradient = np.zeros(2)  # the nominal surface's mean gradient over every pixel, the pixels of k_plane
     for s in pixel_blocks(n, pixels.block):
@@ -524,24 +621,29 @@ def _refine_in_stages(pixels, k_plane, *, nominal, prior, max_iterations, fibers
             log.warning("%s: no disc of %d pixels or more keeps the tips' uncertainty within %g rad at 3 sigma "
                         "(%.2f rad on the disc of %.0f pixels refined next); the refinement may not converge",
                         label, STAGE_MIN_PIXELS, STAGE_PHASE_LIMIT, bounds[-1], radii[disc])
-        if disc == 0:
-            stage = pixels
-        else:
-            index = np.flatnonzero(distance <= radii[disc])
-            stage = _PhasePixels(pixels.theta[index], x[index], y[index], pixels.wavelength, pixels.pixel_pitch,
-                                 pixels.block, sign=pixels.sign)
-            del index
+        inside = np.flatnonzero(distance <= radii[disc])
+        # the plane the stage starts from, searched for within its 3-sigma error (_searched_plane): on sparse
+        # pixels, whose first disc spans hundreds of pixels, it can be radians off at the disc's edge
+        error = _plane_error(x, y, tips, covariance, pixels, inside,
+                             None if stages == 0 else np.flatnonzero(distance <= radii[outer]))
+        stage = pixels if disc == 0 else _PhasePixels(pixels.theta[inside], x[inside], y[inside], pixels.wavelength,
+                                                      pixels.pixel_pitch, pixels.block, sign=pixels.sign)
+        del inside
         if stages == 0:
             pixels.sign, constant, plane = _unwrapped_start(
                 stage.theta, stage.x, stage.y, lambda s: stage.surface(nominal, s), k_plane, pixels.block,
-                gradient=gradient)
+                gradient=gradient, search=error)
             stage.sign = pixels.sign
+        else:  # the search only: a Gauss-Newton step fits the plane with the tips, from a plane this close
+            constant, plane = _searched_plane(stage.theta, stage.x, stage.y,
+                                              lambda p: stage.sign * stage.surface(tips, p)[0], constant, plane, error)
         where = f" over the {stage.x.size} pixels within {radii[disc]:.0f} pixels of the centre (stage {stages + 1})"
         tips, constant, plane, done, normal = _refine_tips(stage, tips, constant, plane, where=where, **refine)
         covariance = np.linalg.inv(normal)
         stages, iterations, outer = stages + 1, iterations + done, disc
         log.info("%s: tips refined over the %d pixels within %.0f pixels of the centre (stage %d, %d "
-                 "iteration(s))", label, stage.x.size, radii[disc], stages, done)
+                 "iteration(s)), from a plane searched for within %.2f rad at its edge (3 sigma)", label,
+                 stage.x.size, radii[disc], stages, done, float(np.hypot(*error)) * radii[disc])
     return tips, constant, plane, iterations
 
 
@@ -552,7 +654,8 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
 
     The tips are refined over every pixel at once where the prior leaves their surface within
     ``STAGE_PHASE_LIMIT`` of the truth beyond the affine part (3 sigma); otherwise in stages over discs about
-    the pixels' centroid, each the largest the previous stage's posterior allows, until every pixel.
+    the pixels' centroid, each the largest the previous stage's posterior allows, until every pixel, each from
+    the plane its wrapped residual's periodogram peaks at within the plane's 3-sigma error.
     ``max_iterations`` bounds each stage; ``TwoSourceFit.iterations`` counts them all.
 
     Parameters
