@@ -29,6 +29,50 @@ def test_requests_cover_the_paper_scale_measurements(step, frames, max_rss_mb, s
     assert asked["runtime"] * 60 >= seconds
 
 
+@pytest.mark.parametrize("pixels, workers, tree_pss_mb, tree_rss_mb", [
+    # BENCHMARKS.md, "The Allan job's inputs, workers and time" (library, benchmarks/allan_memory.py, 2000
+    # frames in two files, 47 batches): the peak of the job's process tree's summed PSS (its forked workers
+    # share its pages) and of their summed RSS (each shared page counted in each process)
+    (512 * 512, 1, 220, 259),
+    (512 * 512, 2, 405, 738),
+    (1024 * 1024, 1, 587, 627),
+    (1024 * 1024, 2, 1176, 1806),
+])
+def test_the_allan_request_covers_its_worker_processes(pixels, workers, tree_pss_mb, tree_rss_mb):
+    """The Allan job's request covers its process tree's memory, its workers' with it; without the workers'
+    share it would not cover the two workers' jobs (by the PSS at 1024x1024, by the RSS at both sizes)."""
+    asked = job_resources("allan_deviation", pixels=pixels, frames=2000, workers=workers)
+    assert asked["mem_mb"] - resources.EXECUTOR_MB >= tree_rss_mb
+    assert asked["mem_mb"] <= 4 * tree_pss_mb + resources.EXECUTOR_MB
+    alone = job_resources("allan_deviation", pixels=pixels, frames=2000)
+    if workers == 1:
+        assert asked == alone
+    else:
+        assert alone["mem_mb"] - resources.EXECUTOR_MB < tree_rss_mb
+        cost = resources.step_cost("allan_deviation")
+        share = workers * (cost.worker_mb + cost.worker_mb_per_mpixel * pixels / 1e6)
+        assert asked["mem_mb"] - alone["mem_mb"] == pytest.approx(resources.MEMORY_MARGIN * share, abs=1)
+
+
+def test_a_baselines_jobs_ask_for_the_workers_their_threads_run():
+    """job_data gives the fit and Allan jobs the workers reading_workers gives their rules' threads: two for a
+    large baseline in two files, one for a small one; no workers for the other steps."""
+    from types import SimpleNamespace
+
+    from dice_core.manifest import Detector
+
+    frames_of = {"a": 2000, "b": 2000, "big1": 200000, "big2": 200000}.get
+    detector = Detector(shape=(80, 84), science_rows=(0, 80), science_cols=(0, 84), gain=2.5, saturation=6e4)
+    manifest = SimpleNamespace(detector=detector, positions=[], baselines={
+        "small": SimpleNamespace(files=["a", "b"]), "large": SimpleNamespace(files=["big1", "big2"])})
+    for step in ("allan_deviation", "fit_fringes"):
+        small = resources.job_data(step, {"baseline": "small"}, manifest=manifest, frames_of=frames_of, parts=2)
+        large = resources.job_data(step, {"baseline": "large"}, manifest=manifest, frames_of=frames_of, parts=2)
+        assert (small, large) == ({"frames": 4000, "workers": 1}, {"frames": 400000, "workers": 2}), step
+    assert "workers" not in resources.job_data("fit_finish", {"baseline": "large"}, manifest=manifest,
+                                               frames_of=frames_of, parts=2)
+
+
 def test_memory_follows_pixels_and_time_follows_samples():
     small = job_resources("fit_fringes", pixels=PAPER_PIXELS, frames=200_000)
     more_frames = job_resources("fit_fringes", pixels=PAPER_PIXELS, frames=2_000_000)
@@ -62,7 +106,7 @@ def test_every_benchmarked_rule_has_a_measured_cost():
 
 
 @pytest.mark.parametrize("kwargs", [{"pixels": 0}, {"pixels": 10, "frames": -1}, {"pixels": 10, "positions": -2},
-                                    {"pixels": 10, "attempt": 0}])
+                                    {"pixels": 10, "attempt": 0}, {"pixels": 10, "workers": 0}])
 def test_bad_sizes_are_refused(kwargs):
     with pytest.raises(ValueError, match="job_resources"):
         job_resources("fit_fringes", **kwargs)
