@@ -9,6 +9,7 @@ Each step's cost is a linear model of those,
                    + mb_per_gsample * pixels * frames / 1e9
     time (s)     = start_s + s_per_mpixel * pixels / 1e6 + s_per_gsample * pixels * frames / 1e9
                    + s_per_position * positions
+                   + s_per_gstatistic * pixels * batches * group sizes / 1e9   (the Allan statistics)
 
 whose coefficients come from the workflow's own ``benchmark:`` files (max_rss
 and wall time of each job) on the ``ci`` preset, on the ``ci`` preset with a
@@ -39,7 +40,7 @@ from pathlib import Path
 
 __all__ = ["StepCost", "COSTS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
            "step_cost", "job_data", "part_files", "sample_groups", "position_groups", "simulation_groups",
-           "group_files", "FileFrames"]
+           "group_files", "FileFrames", "ALLAN_BATCH_FRAMES", "allan_statistics_size", "allan_batches"]
 
 #: Factor on the modelled memory: the spread of repeated runs (383-419 MB for one fit) and of library versions.
 MEMORY_MARGIN = 1.5
@@ -80,6 +81,10 @@ class StepCost:
         s per 1e9 samples read or written.
     s_per_position : float
         s per star position.
+    s_per_gstatistic : float
+        s per 1e9 pixel x batch x group size of the Allan statistics
+        (:func:`allan_statistics_size`: the groups' fits sum every batch
+        of every group of every size, over every pixel).
     """
 
     base_mb: float
@@ -92,6 +97,42 @@ class StepCost:
     s_per_mpixel: float = 0.0
     s_per_gsample: float = 0.0
     s_per_position: float = 0.0
+    s_per_gstatistic: float = 0.0
+
+
+#: Frames of the shortest batch the Allan job's requests are sized for. A batch is the shortest run of frames
+#: that sweeps a fringe period (dice_core.allan.fringe_batches), known once the fit has run, not when the job is
+#: planned; a faster sweep makes shorter batches, so more of them, and the statistics' time grows with them
+#: (:func:`allan_statistics_size`). The benchmarks' fastest sweep made batches of 42 frames; the presets' 71
+#: (ci) to about 700 (paper). A baseline of shorter batches may outrun its request (its retry asks for twice).
+ALLAN_BATCH_FRAMES = 40
+
+
+def allan_statistics_size(frames: int, batches: int | None = None) -> int:
+    """Batches x group sizes (:func:`dice_core.allan.group_sizes`) of an Allan job: the statistics' work per
+    pixel. ``batches`` where known (:func:`allan_batches`), else ``frames`` in batches of
+    :data:`ALLAN_BATCH_FRAMES`. 0 under two batches."""
+    from dice_core.allan import group_sizes  # here: the workflow's start-up does not import the Allan code
+
+    batches = int(frames) // ALLAN_BATCH_FRAMES if batches is None else int(batches)
+    return batches * len(group_sizes(batches)) if batches >= 2 else 0
+
+
+def allan_batches(metrology_path) -> int | None:
+    """The batches the Allan job of a baseline will make (:func:`dice_core.allan.fringe_batches` of the fringe
+    phase of its ``metrology`` product), or None where the product is not written yet or has too few frames
+    (the job says why). Snakemake evaluates a job's resources again when it is about to run, its inputs written:
+    the request then follows the baseline's own batches, not :data:`ALLAN_BATCH_FRAMES`."""
+    if not Path(metrology_path).is_file():
+        return None
+    from dice_core import allan, io
+
+    with io.open_product(metrology_path) as product:
+        phase = product["phase"].values
+    try:
+        return len(allan.fringe_batches(phase))
+    except allan.AllanError:
+        return None
 
 
 #: Cost of each step of :data:`dice_core.steps.STEPS` (BENCHMARKS.md, "Job resources"). Steps not listed here
@@ -137,8 +178,14 @@ COSTS: dict[str, StepCost] = {
     # the 247 bytes a pixel measured before between 256x256 and 512x512); with two workers 405 and 1176 MB,
     # each worker 25 MB and 257 MB a million pixels more (its own copy of the per-pixel arrays of the batches'
     # fit it is sent, a chunk, its batches' sums; the job itself pickles that fit for each).
+    # Time: the reading pass, 1-3.5 plain read passes (17 s per 1e9 samples, from the workflow's runs), then the
+    # statistics, which grow with pixels x batches x group sizes: 44-76 plain read passes' time per sample in
+    # five of six runs at 256x256 to 1024x1024 and 47 or 190 batches (pixels x groups fitted varied 178-446),
+    # 0.24-0.28 us in the two on the least loaded cores (load 4-8: BENCHMARKS.md, "The Allan job's inputs,
+    # workers and time"); before, the request grew with samples alone and missed them for short batches.
     "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=470.0, mb_per_gsample=0.5, worker_mb=25.0,
-                                worker_mb_per_mpixel=260.0, start_s=3.0, s_per_gsample=17.0),
+                                worker_mb_per_mpixel=260.0, start_s=3.0, s_per_gsample=17.0,
+                                s_per_gstatistic=250.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),
     "measure_centroids": StepCost(base_mb=170.0, start_s=5.0, s_per_position=0.1),
     # every wavelength's products read and its width maps made, one wavelength at a time: linear in the
@@ -164,7 +211,7 @@ def step_cost(step: str) -> StepCost:
 
 
 def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0, workers: int = 1,
-                  attempt: int = 1) -> dict:
+                  batches: int | None = None, attempt: int = 1) -> dict:
     """Memory and wall time to ask a scheduler for, for one job of a step.
 
     Parameters
@@ -180,6 +227,9 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
     workers : int
         Worker processes the job reads its frames in (its threads, :func:`reading_workers`); one: none, the
         job reads them itself.
+    batches : int, optional
+        The Allan job's batches where known (:func:`allan_batches`); None: ``frames`` in batches of
+        :data:`ALLAN_BATCH_FRAMES`.
     attempt : int
         Snakemake's attempt number, 1 for the first: a retried job asks for that many times more.
 
@@ -198,6 +248,8 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
               + (workers if workers > 1 else 0) * (cost.worker_mb + cost.worker_mb_per_mpixel * pixels / 1e6))
     seconds = (cost.start_s + cost.s_per_mpixel * pixels / 1e6 + cost.s_per_gsample * samples / 1e9
                + cost.s_per_position * positions)
+    if cost.s_per_gstatistic:
+        seconds += cost.s_per_gstatistic * pixels * allan_statistics_size(frames, batches) / 1e9
     mem_mb = math.ceil(MEMORY_MARGIN * memory + EXECUTOR_MB) * attempt
     runtime = max(MIN_RUNTIME, math.ceil(TIME_MARGIN * seconds / 60)) * attempt
     return {"mem_mb": int(mem_mb), "runtime": int(runtime)}
@@ -287,13 +339,14 @@ def group_files(manifest, group: tuple[str, int, int]) -> list:
     return [f for p in manifest.positions[indices.index(first):indices.index(last) + 1] for f in p.acquisition.files]
 
 
-def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1) -> dict:
+def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1, inputs=None) -> dict:
     """What one job of ``step`` reads (or writes, for the simulation), for :func:`job_resources`:
     ``frames`` over all its files and ``positions``.
 
     ``wildcards`` are the job's; ``frames_of(path)`` gives a raw file's frames (planned or from its header);
     ``parts`` the split fit's number of parts (``metrology.parts``, the parts a single fit reads in too). For a
-    baseline's fit and Allan jobs, also their ``workers`` (:func:`reading_workers`, as their rules' threads).
+    baseline's fit and Allan jobs, also their ``workers`` (:func:`reading_workers`, as their rules' threads);
+    for an Allan job whose ``inputs`` (name -> path) hold a written ``metrology`` product, its ``batches``.
     """
     def acquisition(acq):
         return sum(frames_of(f) for f in acq.files)
@@ -313,7 +366,11 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1)
         files = manifest.baselines[wildcards["baseline"]].files
         workers = reading_workers(files, frames_of, pixels=manifest.detector.shape[0] * manifest.detector.shape[1],
                                   parts=parts if step == "fit_fringes" else LANES)
-        return {"frames": acquisition(manifest.baselines[wildcards["baseline"]]), "workers": workers}
+        data = {"frames": acquisition(manifest.baselines[wildcards["baseline"]]), "workers": workers}
+        if step == "allan_deviation" and inputs and "metrology" in inputs:
+            if (batches := allan_batches(inputs["metrology"])) is not None:
+                data["batches"] = batches
+        return data
     if step in ("fit_reduce", "fit_finish"):
         return {"frames": acquisition(manifest.baselines[wildcards["baseline"]])}
     if step == "fit_part":  # its own files' frames only (none for a part beyond the groups of files)
