@@ -13,15 +13,26 @@ For a detector size and frame count given, in one run:
    (``allan.allan_of_baseline`` then ``io.write_product``; a tree whose ``allan_of_baseline`` takes
    ``scratch`` is given the product's folder, as the script does). Each reports its wall time, its peak RSS
    (``VmHWM``) and its RSS once its imports are done (``VmRSS``): their difference is the step's own memory.
+   This script samples the job's process tree every 20 ms (the job and the worker processes it forks when
+   ``--workers`` is 2 and the baseline has two files or more): the peak of the sum of their RSS (shared pages
+   counted in each process that maps them) and of their PSS (shared pages split between them: what the
+   processes take together), and each worker's peak RSS. The job also times its phases from its log: the
+   reading pass (the batches' fits) and what follows it (the groups' fits, the statistics, the write).
+
+``--unused-maps N`` gives the job a copy of the metrology product with N more float64 maps that the step does
+not use (a spherical-wave solution's product holds 10 more than a plane wave's: its modes, local
+wavevectors, plane-wave departure, PRNU-free offsets): a step that reads the product whole holds them.
 
 Printed: per tree, batches, time (and over the plain pass), peak RSS, the step's own memory and that per pixel
-and per pixel and batch; for each tree after the first, the largest difference of its product from the
+and per pixel and batch, the process tree's peaks and the phases' times; for each tree after the first, the largest difference of its product from the
 first tree's (every variable, coordinate and attribute compared). Every run's numbers are appended to
 ``<workdir>/allan_memory.json``, one line a run.
 
     git archive <base> dice_core | tar -x -C /tmp/dice-base
     python benchmarks/allan_memory.py --workdir /tmp/dice-allanmem --tree base=/tmp/dice-base --tree new=$PWD \\
         --size 512 --frames 8000
+    python benchmarks/allan_memory.py --workdir /tmp/dice-allanmem --tree new=$PWD --size 1024 --frames 2000 \\
+        --frames-per-file 1000 --workers 2
 """
 
 from __future__ import annotations
@@ -40,7 +51,7 @@ BASELINE = "H1H4"
 #: What the job's process runs (argv: tree, manifest, metrology, dark, baseline, output, workers, pixels per
 #: block or "default"): the workflow script's calls.
 JOB = r"""
-import inspect, json, sys, time
+import inspect, json, logging, sys, time
 tree, manifest, metrology, dark, baseline, output, workers, per_block = sys.argv[1:9]
 sys.path.insert(0, tree)
 from pathlib import Path
@@ -55,6 +66,13 @@ def status(key):
         if line.startswith(key):
             return int(line.split()[1]) / 1024
 
+class Times(logging.Handler):  # when each log line was written: the phases of the job
+    lines = []
+    def emit(self, record):
+        self.lines.append((time.perf_counter(), record.getMessage()))
+
+logging.getLogger().addHandler(Times())
+logging.getLogger().setLevel(logging.INFO)
 base = status("VmRSS")
 start = time.perf_counter()
 manifest = load_manifest(manifest)
@@ -64,21 +82,75 @@ if "scratch" in inspect.signature(allan.allan_of_baseline).parameters:
     extra["scratch"] = Path(output).parent
     if per_block != "default":
         extra["pixels_per_block"] = int(per_block)
-product = allan.allan_of_baseline(stream, io.read_product(metrology), dark=io.read_product(dark),
-                                  detector=manifest.detector, workers=int(workers), **extra)
+if hasattr(io, "open_product"):  # as the workflow's script: the products opened lazily
+    with io.open_product(metrology) as solution, io.open_product(dark) as dark_product:
+        product = allan.allan_of_baseline(stream, solution, dark=dark_product, detector=manifest.detector,
+                                          workers=int(workers), **extra)
+else:
+    product = allan.allan_of_baseline(stream, io.read_product(metrology), dark=io.read_product(dark),
+                                      detector=manifest.detector, workers=int(workers), **extra)
 io.write_product(product, output, title="allan", inputs=[])
-print(json.dumps({"seconds": time.perf_counter() - start, "peak_mb": status("VmHWM"), "base_mb": base,
-                  "batches": int(product.sizes["batch"]), "pixels": int(np.isfinite(product["deviation"][0]).sum())}))
+end = time.perf_counter()
+def at(text):
+    return next(t for t, line in Times.lines if text in line)
+pass_start = at("batch fits over")
+pass_end = next(t for t, line in Times.lines if t > pass_start and "batch fits over" not in line)
+print(json.dumps({"seconds": end - start, "peak_mb": status("VmHWM"), "base_mb": base,
+                  "batches": int(product.sizes["batch"]), "sizes": int(product.sizes["n_frames"]),
+                  "pixels": int(np.isfinite(product["deviation"][0]).sum()),
+                  "before_pass_s": pass_start - start, "pass_s": pass_end - pass_start,
+                  "groups_s": at("group sizes fitted") - pass_end, "after_groups_s": end - at("group sizes fitted")}))
 """
+
+
+def _tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (from /proc's children lists)."""
+    found, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        found.append(p)
+        try:
+            for task in os.listdir(f"/proc/{p}/task"):
+                with open(f"/proc/{p}/task/{task}/children") as f:
+                    todo += [int(c) for c in f.read().split()]
+        except OSError:
+            pass
+    return found
+
+
+def _memory(pid: int) -> tuple[float, float]:
+    """RSS and PSS of a process, MiB (0 if it has ended)."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            fields = {line.split(":")[0]: int(line.split()[1]) for line in f if line.split()[-1] == "kB"}
+        return fields["Rss"] / 1024, fields["Pss"] / 1024
+    except (OSError, KeyError, ValueError):
+        return 0.0, 0.0
 
 
 def run_job(tree, manifest, metrology, dark, baseline, output, *, workers=1, pixels_per_block="default") -> dict:
     """The Allan step of the code ``tree`` in a fresh process: its report (seconds, peak and base RSS in MiB,
     batches, pixels)."""
-    job = subprocess.run([sys.executable, "-c", JOB, str(Path(tree).resolve()), str(manifest), str(metrology),
-                          str(dark), baseline, str(output), str(workers), str(pixels_per_block)],
-                         check=True, capture_output=True, text=True)
-    return json.loads(job.stdout.strip().splitlines()[-1])
+    job = subprocess.Popen([sys.executable, "-c", JOB, str(Path(tree).resolve()), str(manifest), str(metrology),
+                            str(dark), baseline, str(output), str(workers), str(pixels_per_block)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    peak_rss = peak_pss = 0.0
+    workers_rss = {}
+    while job.poll() is None:  # the process tree's memory, sampled
+        tree_pids = _tree(job.pid)
+        sampled = {p: _memory(p) for p in tree_pids}
+        peak_rss = max(peak_rss, sum(r for r, _ in sampled.values()))
+        peak_pss = max(peak_pss, sum(q for _, q in sampled.values()))
+        for p in tree_pids[1:]:
+            workers_rss[p] = max(workers_rss.get(p, 0.0), sampled[p][0])
+        time.sleep(0.02)
+    out, err = job.communicate()
+    if job.returncode:
+        raise RuntimeError(f"the job failed ({job.returncode}): {err[-3000:]}")
+    report = json.loads(out.strip().splitlines()[-1])
+    report.update(tree_peak_rss_mb=peak_rss, tree_peak_pss_mb=peak_pss,
+                  worker_peak_rss_mb=sorted(workers_rss.values(), reverse=True))
+    return report
 
 
 PLAIN = r"""
@@ -96,7 +168,7 @@ print(time.perf_counter() - start)
 """
 
 
-def prepare(size: int, frames: int, sweep_frames: int, folder: Path) -> None:
+def prepare(size: int, frames: int, sweep_frames: int, folder: Path, frames_per_file: int = 2000) -> None:
     """Simulate, fit and write the metrology product and dark of the bench (once per folder)."""
     import xarray as xr
 
@@ -106,7 +178,7 @@ def prepare(size: int, frames: int, sweep_frames: int, folder: Path) -> None:
     if (folder / "metrology.nc").exists():
         return
     cfg = simulation.SimulationConfig.from_dict({
-        "name": "allan-memory", "frames_per_file": 2000,
+        "name": "allan-memory", "frames_per_file": frames_per_file,
         "detector": {"shape": [size, size], "science_rows": [0, size], "science_cols": [0, size]},
         "dark": {"frames": 2}, "flats": {"frames": 2},
         "stars": {"positions": 1, "frames": 1, "pattern_centre": [size / 2, size / 2], "pattern_side": 16.0},
@@ -121,6 +193,18 @@ def prepare(size: int, frames: int, sweep_frames: int, folder: Path) -> None:
     dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values, {"units": "adu"}),
                        "noise": (("row", "col"), truth["read_noise"].values, {"units": "adu"})})
     io.write_product(dark, folder / "dark.nc", title="dark")
+
+
+def add_unused_maps(source: Path, target: Path, n: int) -> None:
+    """A copy of a metrology product with ``n`` float64 maps more, as a (unused, row, col) variable."""
+    import numpy as np
+
+    from dice_core import io
+
+    product = io.read_product(source)
+    shape = (n, product.sizes["row"], product.sizes["col"])
+    product["unused_maps"] = (("unused", "row", "col"), np.random.default_rng(0).normal(size=shape), {"units": "1"})
+    io.write_product(product, target, title="metrology product with unused maps")
 
 
 def differences(one: Path, two: Path) -> dict:
@@ -153,16 +237,27 @@ def main(argv=None):
     parser.add_argument("--size", type=int, default=512, help="detector side, pixel")
     parser.add_argument("--frames", type=int, default=8000)
     parser.add_argument("--sweep-frames", type=int, default=60)
+    parser.add_argument("--frames-per-file", type=int, default=2000,
+                        help="the baseline's files (two workers need two files at least)")
+    parser.add_argument("--unused-maps", type=int, default=0,
+                        help="float64 maps added to the metrology product that the step does not use")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--pixels-per-block", default="default",
                         help="the Allan step's bands of pixels (a tree that has them; default: its own choice)")
     args = parser.parse_args(argv)
-    folder = (args.workdir / f"s{args.size}_f{args.frames}_w{args.sweep_frames}").resolve()
+    per_file = "" if args.frames_per_file == 2000 else f"_p{args.frames_per_file}"
+    folder = (args.workdir / f"s{args.size}_f{args.frames}_w{args.sweep_frames}{per_file}").resolve()
     folder.mkdir(parents=True, exist_ok=True)
-    prepare(args.size, args.frames, args.sweep_frames, folder)
+    prepare(args.size, args.frames, args.sweep_frames, folder, args.frames_per_file)
+    metrology = folder / "metrology.nc"
+    if args.unused_maps:
+        metrology = folder / f"metrology-unused{args.unused_maps}.nc"
+        if not metrology.exists():
+            add_unused_maps(folder / "metrology.nc", metrology, args.unused_maps)
     results = {"machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                "load": os.getloadavg(), "size": args.size, "frames": args.frames, "workers": args.workers,
-               "pixels_per_block": args.pixels_per_block}
+               "pixels_per_block": args.pixels_per_block, "unused_maps": args.unused_maps,
+               "metrology_mb": metrology.stat().st_size / 2**20}
     plain = subprocess.run([sys.executable, "-c", PLAIN, str(REPO), str(folder / "raw" / "dataset.yaml")],
                            check=True, capture_output=True, text=True)
     results["plain_pass_s"] = float(plain.stdout)
@@ -170,7 +265,7 @@ def main(argv=None):
     for spec in args.tree:
         name, tree = spec.split("=", 1)
         output = folder / f"allan-{name}-{args.pixels_per_block}.nc"
-        run = run_job(tree, folder / "raw" / "dataset.yaml", folder / "metrology.nc", folder / "dark.nc", BASELINE,
+        run = run_job(tree, folder / "raw" / "dataset.yaml", metrology, folder / "dark.nc", BASELINE,
                       output, workers=args.workers, pixels_per_block=args.pixels_per_block)
         own = run["peak_mb"] - run["base_mb"]
         run.update(own_mb=own, bytes_per_pixel=own * 2**20 / args.size**2,

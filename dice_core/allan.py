@@ -324,7 +324,7 @@ def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, kept, la
 @one_blas_thread
 def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows, cols, *,
                   pixel_factors=None, reference=None, workers: int = 1, return_sums: bool = False,
-                  scratch=None, label="baseline"):
+                  scratch=None, label="baseline", finite=None):
     """Projected offsets of every pixel in every batch, in one pass over the frames.
 
     For each batch b, with the frame factors F_t = (B, A cos phi, A sin phi)(t)
@@ -382,6 +382,10 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
         lane's batches being summed). None: the offsets and sums returned in
         memory (the sums still pass through a file of a temporary folder of
         the system's, which the lanes write into).
+    finite : bool ndarray (pixel,), optional
+        Set False, in place, at each pixel whose offset is not finite in some
+        batch: which pixels have an offset in every batch, found as the batches
+        are fitted (no second read of the offsets).
 
     Returns
     -------
@@ -405,15 +409,16 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
         kept = ScratchArray(folder, (len(batches), 3, idx.size), np.float32, name="sums")
         out = (ScratchArray(folder, (len(batches), idx.size), np.float64, name="offsets") if scratch is not None
                else np.full((len(batches), idx.size), np.nan))
-        _fit_batches(chunks, batches, frame_factors, fit, kept, out, workers, label)
+        _fit_batches(chunks, batches, frame_factors, fit, kept, out, workers, label, finite)
         if scratch is None:  # in memory, the files go with their folder
             kept = kept[...] if return_sums else None
     return (out, kept) if return_sums else out
 
 
-def _fit_batches(chunks, batches, frame_factors, fit, kept, out, workers, label):
+def _fit_batches(chunks, batches, frame_factors, fit, kept, out, workers, label, finite=None):
     """:func:`batch_offsets`' pass: each batch's F'I written to ``kept`` (batch, 3, pixel), its offsets to
-    ``out`` (batch, pixel), one batch in memory at a time besides the lanes' own."""
+    ``out`` (batch, pixel), one batch in memory at a time besides the lanes' own; ``finite`` (pixel,), if
+    given, set False where a batch's offset is not."""
     lanes = chunks.split(LANES) if hasattr(chunks, "split") else [chunks]
     with lane_executor(workers, len(lanes)) as executor:
         log.info("%s: %d batch fits over %d part(s) of the frames, in %d process(es)", label, len(batches),
@@ -426,7 +431,10 @@ def _fit_batches(chunks, batches, frame_factors, fit, kept, out, workers, label)
     def finish(b, FtI):
         start, stop = batches[b]
         F = frame_factors[start:stop]
-        out[b], fitted[b] = fit.offsets_of_sums(F.T @ F, FtI.astype(np.float64)), True
+        out[b] = offsets = fit.offsets_of_sums(F.T @ F, FtI.astype(np.float64))
+        fitted[b] = True
+        if finite is not None:
+            np.logical_and(finite, np.isfinite(offsets), out=finite)
 
     for done, sums, _ in results:  # in lane order, so that a batch cut between parts sums the same way always
         for b in done:
@@ -854,6 +862,36 @@ class AllanStatistics:
     photon_limit_pixel_global: np.ndarray | None = None
 
 
+#: Bytes of an input product's (row, col) map read at a time (:func:`_at_pixels`).
+MAP_BAND_BYTES = 2**24
+
+
+def _map_bands(variable):
+    """Consecutive slices of the rows of a (row, col) variable, about :data:`MAP_BAND_BYTES` of it each."""
+    n_rows, n_cols = variable.shape
+    step = max(1, MAP_BAND_BYTES // max(1, n_cols * variable.dtype.itemsize))
+    return [slice(lo, min(lo + step, n_rows)) for lo in range(0, n_rows, step)]
+
+
+def _finite_pixels(variable):
+    """``rows, cols`` (pixel,) where a (row, col) variable is finite, in row order (as np.nonzero gives
+    them), read a band of rows at a time."""
+    found = [(band.start, np.nonzero(np.isfinite(variable[band].values))) for band in _map_bands(variable)]
+    return (np.concatenate([start + r for start, (r, _) in found] or [np.zeros(0, int)]),
+            np.concatenate([c for _, (_, c) in found] or [np.zeros(0, int)]))
+
+
+def _at_pixels(variable, rows, cols):
+    """A (row, col) variable's values at ``rows``, ``cols`` (in row order), read a band of rows at a time:
+    of a lazily opened product, no more than a band is held beside the values."""
+    out = np.empty(rows.size, variable.dtype)
+    for band in _map_bands(variable):
+        lo, hi = np.searchsorted(rows, [band.start, band.stop])
+        if hi > lo:
+            out[lo:hi] = variable[band].values[rows[lo:hi] - band.start, cols[lo:hi]]
+    return out
+
+
 def _plain_bands(n, pixels_per_block):
     """Consecutive slices of ``n`` pixels, ``pixels_per_block`` long (one of all if None)."""
     step = n if pixels_per_block is None else max(1, int(pixels_per_block))
@@ -920,7 +958,8 @@ def _block_sweep(offsets, floors, white, weights, good, sizes, pixels_per_block,
 
 def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, amplitude, iota, alpha, read_noise, k,
                      block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None,
-                     first_frame=None, global_floor=None, pixels_per_block=None, scratch=None) -> AllanStatistics:
+                     first_frame=None, global_floor=None, pixels_per_block=None, scratch=None,
+                     weights=None) -> AllanStatistics:
     """Deviations, their white-noise references and photon-noise limits from the batch offsets (arrays only).
 
     Parameters are those of :func:`allan_dataset`, with the detector's
@@ -931,6 +970,8 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
     blocks are formed; None: all at once), the white-noise cube goes to
     ``scratch`` if given, and so do the per-pixel deviations (size, pixel)
     that are not ``groups``'. The same values whatever the bands, to rounding.
+    ``weights``: the :func:`block_weights` of the pixels with an offset in
+    every batch, if the caller has them (made here if None).
 
     Returns
     -------
@@ -943,7 +984,8 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
     # groups as means of their batch fits (kept per pixel only if they are the product's curves)
     good, scatter, (mean_batch_means, mean_allan_batch_means), kept = _batch_mean_sweep(
         offsets, sizes, pixels_per_block, groups is None, scratch)
-    weights = block_weights(rows, cols, good=good, block=block)
+    if weights is None:
+        weights = block_weights(rows, cols, good=good, block=block)
     # white noise of the same per-pixel (and per-block) scatter as the data at one batch per group
     rng = np.random.default_rng(seed)
     white = _white_noise(rng, scatter, n_batches, scratch)
@@ -1015,7 +1057,8 @@ def allan_statistics(offsets, floors, batches, rows, cols, *, gain, level, ampli
 
 def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, amplitude, iota, alpha, read_noise,
                   k, block: int = 10, seed: int = 0, n_sample_pixels: int = 40, groups=None,
-                  first_frame=None, global_floor=None, pixels_per_block=None, scratch=None) -> xr.Dataset:
+                  first_frame=None, global_floor=None, pixels_per_block=None, scratch=None,
+                  weights=None) -> xr.Dataset:
     """The ``allan/<baseline>.nc`` product from the batch offsets.
 
     The statistics are :func:`allan_statistics`'s; this adds the maps, units
@@ -1065,6 +1108,10 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
     scratch : path, optional
         A folder for the (batch, pixel) and (size, pixel) arrays the
         statistics make (None: in memory).
+    weights : scipy.sparse array (pixel, block), optional
+        :func:`block_weights` of the pixels with an offset in every batch
+        (``block`` a side), if already made (:func:`group_fits` takes them
+        too); None: made from the offsets.
 
     Returns
     -------
@@ -1088,7 +1135,7 @@ def allan_dataset(offsets, floors, batches, rows, cols, detector, *, level, ampl
                                   amplitude=amplitude, iota=iota, alpha=alpha, read_noise=read_noise, k=k,
                                   block=block, seed=seed, n_sample_pixels=n_sample_pixels, groups=groups,
                                   first_frame=first_frame, global_floor=global_floor,
-                                  pixels_per_block=pixels_per_block, scratch=scratch)
+                                  pixels_per_block=pixels_per_block, scratch=scratch, weights=weights)
     return statistics_dataset(statistics, rows, cols, detector.shape, block=block)
 
 
@@ -1218,9 +1265,13 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
         frame so that the float32 products stay exact).
     metrology : xarray.Dataset
         The baseline's ``metrology/<baseline>.nc`` product: phase, level and
-        amplitude per frame; projected_offset, iota, alpha, kx, ky.
+        amplitude per frame; kx, ky; the maps projected_offset, iota, alpha,
+        pixel_phase and photon_noise_floor, read at the fitted pixels a band
+        of rows at a time (no other variable is read): opened lazily
+        (:func:`dice_core.io.open_product`), it is never held whole.
     dark : xarray.Dataset
-        ``calibration/dark.nc``: dark and noise (read noise), adu.
+        ``calibration/dark.nc``: dark and noise (read noise), adu; the dark
+        map read whole, the noise at the pixels (lazily opened, as ``metrology``).
     detector : Detector
     block : int
         Side of the pixel blocks, pixel.
@@ -1261,39 +1312,40 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
              phase.size - batches[-1, 1])
     if too_few := few_batches(len(batches), batches[0, 1] - batches[0, 0]):  # the figure says it too, in its title
         log.warning("%s: %s", label, too_few)
-    offsets_map = metrology["projected_offset"].values
-    rows, cols = np.nonzero(np.isfinite(offsets_map))
+    # the input products' maps are read at the pixels only, a band of rows at a time: a lazily opened product
+    # (io.open_product) is never held whole, nor its variables this step does not use
+    rows, cols = _finite_pixels(metrology["projected_offset"])
     k = np.array([float(metrology["kx"]), float(metrology["ky"])])
     if "pixel_phase" in metrology:  # the fitted pixel phases, whatever the shape of the fringes
-        reference_phase = metrology["pixel_phase"].values[rows, cols]
+        reference_phase = _at_pixels(metrology["pixel_phase"], rows, cols)
     else:  # a product from before pixel_phase (plane waves): the same up to a constant
-        reference_phase = k[0] * cols + k[1] * rows + np.hypot(*k) * offsets_map[rows, cols]
+        reference_phase = (k[0] * cols + k[1] * rows
+                           + np.hypot(*k) * _at_pixels(metrology["projected_offset"], rows, cols))
     level, amplitude = metrology["level"].values, metrology["amplitude"].values
     frame_factors = np.column_stack([level, amplitude * np.cos(phase), amplitude * np.sin(phase)])
+    dark_map = np.nan_to_num(dark["dark"].values)  # whole: the pass subtracts it (one map of the detector)
     head = first_chunk(stream)
     reference = head.frames.mean(axis=0)
-    first_frame = (head.frames[0].astype(np.float64) - np.nan_to_num(dark["dark"].values))[rows, cols]
+    first_frame = head.frames[0][rows, cols].astype(np.float64) - dark_map[rows, cols]
     del head
-    iota, alpha = metrology["iota"].values[rows, cols], metrology["alpha"].values[rows, cols]
+    iota, alpha = _at_pixels(metrology["iota"], rows, cols), _at_pixels(metrology["alpha"], rows, cols)
     pixel_factors = np.column_stack([iota, alpha * np.sin(reference_phase), alpha * np.cos(reference_phase)])
-    read_noise = np.nan_to_num(dark["noise"].values[rows, cols])
+    read_noise = np.nan_to_num(_at_pixels(dark["noise"], rows, cols))
     sizes = group_sizes(len(batches))
     band = max(1, BAND_NUMBERS // len(batches)) if pixels_per_block is None else pixels_per_block
     global_floor = None
     if "photon_noise_floor" in metrology:  # the whole acquisition's floor, for the curves' reference
-        global_floor = (metrology["photon_noise_floor"].values[rows, cols], phase.size)
+        global_floor = (_at_pixels(metrology["photon_noise_floor"], rows, cols), phase.size)
     with scratch_directory(scratch) as folder:
-        offsets, sums = batch_offsets(stream.centred(reference), batches, frame_factors,
-                                      np.nan_to_num(dark["dark"].values), reference_phase, k, rows, cols,
-                                      pixel_factors=pixel_factors, reference=reference, workers=workers,
-                                      return_sums=True, scratch=folder, label=label)
-        good = np.ones(rows.size, bool)
-        for pixels in _plain_bands(rows.size, band):
-            good[pixels] = np.isfinite(offsets[:, pixels]).all(axis=0)
+        good = np.ones(rows.size, bool)  # the pixels with an offset in every batch, found by the pass
+        offsets, sums = batch_offsets(stream.centred(reference), batches, frame_factors, dark_map, reference_phase,
+                                      k, rows, cols, pixel_factors=pixel_factors, reference=reference,
+                                      workers=workers, return_sums=True, scratch=folder, label=label, finite=good)
+        del dark_map
+        weights = block_weights(rows, cols, good=good, block=block)
         groups = group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes,
                             pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise, good=good,
-                            weights=block_weights(rows, cols, good=good, block=block), pixels_per_block=band,
-                            scratch=folder)
+                            weights=weights, pixels_per_block=band, scratch=folder)
         del sums  # its file's space freed: the groups are reduced
         floors = _BatchFloors(frame_factors, batches, pixel_factors=pixel_factors, gain=detector.gain,
                               read_noise=read_noise, k_norm=np.hypot(*k))  # made a band at a time
@@ -1302,4 +1354,4 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
         return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),
                              amplitude=float(np.mean(amplitude)), iota=iota, alpha=alpha, read_noise=read_noise,
                              k=k, block=block, groups=groups, first_frame=first_frame, global_floor=global_floor,
-                             pixels_per_block=band, scratch=folder)
+                             pixels_per_block=band, scratch=folder, weights=weights)

@@ -61,6 +61,7 @@ __all__ = [
     "known_digests",
     "remember_digests",
     "read_product",
+    "open_product",
     "product_attrs",
     "first_chunk",
     "CHUNK_BYTES",
@@ -939,6 +940,13 @@ def _existing_product(path) -> Path:
 def read_product(path) -> xr.Dataset:
     """Load a netCDF product fully into memory (and close the file)."""
     return xr.load_dataset(_existing_product(path), engine="netcdf4")
+
+
+def open_product(path) -> xr.Dataset:
+    """A netCDF product opened lazily: nothing read until a variable (or a slice of one) is, and nothing kept
+    once read (no cache), so that a step reads the variables it needs, and those a band at a time if it
+    likes. A context manager: ``with open_product(path) as ds:`` closes the file."""
+    return xr.open_dataset(_existing_product(path), engine="netcdf4", cache=False)
 
 
 def product_attrs(path) -> dict:

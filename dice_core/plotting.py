@@ -14,6 +14,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.legend_handler  # noqa: E402
 import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -283,7 +284,8 @@ def allan_figure(ds, *, title):
     ``photon_limit_pixel_first_frame``, the paper's red line: the pixels'
     limit from the noise measured on the first frame
     (:func:`dice_core.allan.first_frame_limit`). Curves that coincide within
-    3% are drawn once with one legend entry naming them all.
+    3% are drawn once with one legend entry naming them all, the drawn curve's
+    name first, beside its key (:func:`_first_line_keys`).
     """
     fig, ax = plt.subplots(figsize=(8, 7.5), layout="constrained")
     n = ds["n_frames"].values
@@ -346,9 +348,50 @@ def allan_figure(ds, *, title):
                  fontsize=11 if too_few else 9, color="firebrick" if too_few else "black")
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
     # off the curves; one column when the labels are long (no slope to give, said in two of them)
-    fig.legend(*_drawn_entries(ax), loc="outside lower center", fontsize=7, ncol=1 if too_few else 2)
+    handles, labels = _drawn_entries(ax)
+    fig.legend(handles, labels, loc="outside lower center", fontsize=7, ncol=1 if too_few else 2,
+               handler_map=_first_line_keys(handles, labels))
     fig.suptitle(title, fontsize=11)
     return fig
+
+
+def _first_line_keys(handles, labels) -> dict:
+    """A legend's handler map drawing the key of each entry of several lines (a curve's name, then those of
+    the curves merged into it: :func:`_also_names`) beside its first line. Matplotlib centres a key on its
+    text: a six-line entry had its key beside a merged name, three lines down, and its own name, with no key,
+    read as the end of the entry above it."""
+    keys = {}
+    for handle, label in zip(handles, labels):
+        if "\n" in label:
+            kind = (_FirstLineErrorbar if isinstance(handle, matplotlib.container.ErrorbarContainer)
+                    else _FirstLineLine2D)
+            keys[handle] = kind(label.count("\n"))
+    return keys
+
+
+#: Line spacing of a legend's texts, in font sizes (matplotlib's default).
+LEGEND_LINESPACING = 1.2
+
+
+class _FirstLine:
+    """A legend handler's mixin: the key raised by half the ``lines`` lines of text below the first, from the
+    middle of the entry's text (where the legend centres it) to its first line."""
+
+    def __init__(self, lines: int, **kwargs):
+        super().__init__(**kwargs)
+        self.lines = lines
+
+    def create_artists(self, legend, orig_handle, xdescent, ydescent, width, height, fontsize, trans):
+        up = matplotlib.transforms.Affine2D().translate(0, self.lines * LEGEND_LINESPACING * fontsize / 2)
+        return super().create_artists(legend, orig_handle, xdescent, ydescent, width, height, fontsize, up + trans)
+
+
+class _FirstLineLine2D(_FirstLine, matplotlib.legend_handler.HandlerLine2D):
+    pass
+
+
+class _FirstLineErrorbar(_FirstLine, matplotlib.legend_handler.HandlerErrorbar):
+    pass
 
 
 #: The marker of a limit drawn at one group size, by the line style it has at several (solid, dashed, dotted,

@@ -9,6 +9,7 @@ Each step's cost is a linear model of those,
                    + mb_per_gsample * pixels * frames / 1e9
     time (s)     = start_s + s_per_mpixel * pixels / 1e6 + s_per_gsample * pixels * frames / 1e9
                    + s_per_position * positions
+                   + s_per_gstatistic * pixels * batches * group sizes / 1e9   (the Allan statistics)
 
 whose coefficients come from the workflow's own ``benchmark:`` files (max_rss
 and wall time of each job) on the ``ci`` preset, on the ``ci`` preset with a
@@ -19,7 +20,8 @@ streaming steps (the cubes are read in chunks) but for per-frame series (the
 fit's frame factors: tens of bytes a frame); it grows with pixels (the
 per-pixel maps and accumulators) and, for the Allan deviations, with the
 number of batches times the pixels (each batch's offset map), so with pixels
-x frames.
+x frames. A job that reads its frames in worker processes (its threads) adds
+each worker's memory, ``worker_mb`` and ``worker_mb_per_mpixel`` a worker.
 
 The request adds margins to the measured cost, because a job that runs out
 of memory or time on a cluster is killed: :data:`MEMORY_MARGIN` on memory,
@@ -38,7 +40,7 @@ from pathlib import Path
 
 __all__ = ["StepCost", "COSTS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
            "step_cost", "job_data", "part_files", "sample_groups", "position_groups", "simulation_groups",
-           "group_files", "FileFrames"]
+           "group_files", "FileFrames", "ALLAN_BATCH_FRAMES", "allan_statistics_size", "allan_batches"]
 
 #: Factor on the modelled memory: the spread of repeated runs (383-419 MB for one fit) and of library versions.
 MEMORY_MARGIN = 1.5
@@ -66,6 +68,11 @@ class StepCost:
         MB per million frames, whatever the pixels (per-frame series).
     mb_per_gsample : float
         MB per 1e9 samples read (pixels x frames): per-pixel maps kept for each part of the frames.
+    worker_mb, worker_mb_per_mpixel : float
+        MB that each worker process adds, and MB per million pixels, for a job
+        that reads its frames in worker processes (``workers`` > 1: they are
+        forked, what they share with the job counted once): its own copy of
+        the per-pixel arrays it is sent, its chunk and its batches' sums.
     start_s : float
         Wall time, s, of the step on a vanishing dataset.
     s_per_mpixel : float
@@ -74,16 +81,58 @@ class StepCost:
         s per 1e9 samples read or written.
     s_per_position : float
         s per star position.
+    s_per_gstatistic : float
+        s per 1e9 pixel x batch x group size of the Allan statistics
+        (:func:`allan_statistics_size`: the groups' fits sum every batch
+        of every group of every size, over every pixel).
     """
 
     base_mb: float
     mb_per_mpixel: float = 0.0
     mb_per_mframe: float = 0.0
     mb_per_gsample: float = 0.0
+    worker_mb: float = 0.0
+    worker_mb_per_mpixel: float = 0.0
     start_s: float = 5.0
     s_per_mpixel: float = 0.0
     s_per_gsample: float = 0.0
     s_per_position: float = 0.0
+    s_per_gstatistic: float = 0.0
+
+
+#: Frames of the shortest batch the Allan job's requests are sized for. A batch is the shortest run of frames
+#: that sweeps a fringe period (dice_core.allan.fringe_batches), known once the fit has run, not when the job is
+#: planned; a faster sweep makes shorter batches, so more of them, and the statistics' time grows with them
+#: (:func:`allan_statistics_size`). The benchmarks' fastest sweep made batches of 42 frames; the presets' 71
+#: (ci) to about 700 (paper). A baseline of shorter batches may outrun its request (its retry asks for twice).
+ALLAN_BATCH_FRAMES = 40
+
+
+def allan_statistics_size(frames: int, batches: int | None = None) -> int:
+    """Batches x group sizes (:func:`dice_core.allan.group_sizes`) of an Allan job: the statistics' work per
+    pixel. ``batches`` where known (:func:`allan_batches`), else ``frames`` in batches of
+    :data:`ALLAN_BATCH_FRAMES`. 0 under two batches."""
+    from dice_core.allan import group_sizes  # here: the workflow's start-up does not import the Allan code
+
+    batches = int(frames) // ALLAN_BATCH_FRAMES if batches is None else int(batches)
+    return batches * len(group_sizes(batches)) if batches >= 2 else 0
+
+
+def allan_batches(metrology_path) -> int | None:
+    """The batches the Allan job of a baseline will make (:func:`dice_core.allan.fringe_batches` of the fringe
+    phase of its ``metrology`` product), or None where the product is not written yet or has too few frames
+    (the job says why). Snakemake evaluates a job's resources again when it is about to run, its inputs written:
+    the request then follows the baseline's own batches, not :data:`ALLAN_BATCH_FRAMES`."""
+    if not Path(metrology_path).is_file():
+        return None
+    from dice_core import allan, io
+
+    with io.open_product(metrology_path) as product:
+        phase = product["phase"].values
+    try:
+        return len(allan.fringe_batches(phase))
+    except allan.AllanError:
+        return None
 
 
 #: Cost of each step of :data:`dice_core.steps.STEPS` (BENCHMARKS.md, "Job resources"). Steps not listed here
@@ -94,9 +143,9 @@ COSTS: dict[str, StepCost] = {
     "simulate_file": StepCost(base_mb=230.0, mb_per_mpixel=2200.0, start_s=3.0, s_per_gsample=60.0),
     "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
     "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
-    # Through the workflow (Snakemake's benchmark files: the job with its two reading workers), 481 and 727 MB
-    # at 256x256 and 512x512 x 4000 frames (BENCHMARKS.md, "The single fit's memory through the workflow"):
-    # 1250 bytes a pixel above about 400 MB, asked as 1400. 1961 MB and 180 s for 1024x1024 x 5000 frames
+    # Through the workflow (Snakemake's benchmark files: the RSS of the job and its two reading workers summed,
+    # so its worker_mb is 0), 481 and 727 MB at 256x256 and 512x512 x 4000 frames (BENCHMARKS.md, "The single
+    # fit's memory through the workflow"): 1250 bytes a pixel above about 400 MB, asked as 1400. 1961 MB and 180 s for 1024x1024 x 5000 frames
     # with older code (three passes and the cubes' checksums in reads of their own).
     "fit_fringes": StepCost(base_mb=400.0, mb_per_mpixel=1400.0, mb_per_mframe=170.0, start_s=3.0,
                             s_per_gsample=35.0, s_per_mpixel=80.0),
@@ -120,16 +169,23 @@ COSTS: dict[str, StepCost] = {
     "fit_finish": StepCost(base_mb=400.0, mb_per_mpixel=500.0, mb_per_mframe=170.0, start_s=3.0,
                            s_per_mpixel=80.0),  # reads the state and the parts' digests, no cube
     # what grows with pixels times batches on disk (docs/metrology.md, "The Allan job, on disk and in bands of
-    # pixels"): measured (library, benchmarks/allan_memory.py, one worker) 118 and 164 MB above the interpreter
-    # (108 MB) at 256x256 and 512x512 with 190
-    # batches of 42 frames, 247 bytes a pixel (the inputs' maps, the fit's per-pixel arrays, a chunk), and
-    # about 8 bytes a batch-pixel number of a band of pixels (BENCHMARKS.md, "The Allan job on disk"). A band is
-    # at least one row of 10x10-pixel blocks: 10 x 4096 pixels x 160 batches at 4096x4096 (50 MB), which the
-    # per-sample term covers for batches of 40 frames or more (0.5 MB per 1e9 samples). About 4.4 GB at
-    # 4096x4096 x 160 batches (113-126 GB before, 42-47 bytes a pixel and batch). Not measured: the memory of
-    # the two worker processes the job has for a large baseline.
-    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=300.0, mb_per_gsample=0.5, start_s=3.0,
-                                s_per_gsample=17.0),
+    # pixels"); each band of pixels about 8 bytes a batch-pixel number, at least one row of 10x10-pixel blocks:
+    # 10 x 4096 pixels x 160 batches at 4096x4096 (50 MB), which the per-sample term covers for batches of 40
+    # frames or more (0.5 MB per 1e9 samples). Measured (library, benchmarks/allan_memory.py, 47 batches of 42
+    # frames; BENCHMARKS.md, "The Allan job's inputs, workers and time"): the job's process tree, the peak of
+    # its processes' summed PSS (what they take together; their forked workers share the job's pages), 220 and
+    # 587 MB at 512x512 and 1024x1024 with one worker (peak RSS 258 and 627: 469 MB a million pixels, above
+    # the 247 bytes a pixel measured before between 256x256 and 512x512); with two workers 405 and 1176 MB,
+    # each worker 25 MB and 257 MB a million pixels more (its own copy of the per-pixel arrays of the batches'
+    # fit it is sent, a chunk, its batches' sums; the job itself pickles that fit for each).
+    # Time: the reading pass, 1-3.5 plain read passes (17 s per 1e9 samples, from the workflow's runs), then the
+    # statistics, which grow with pixels x batches x group sizes: 44-76 plain read passes' time per sample in
+    # five of six runs at 256x256 to 1024x1024 and 47 or 190 batches (pixels x groups fitted varied 178-446),
+    # 0.24-0.28 us in the two on the least loaded cores (load 4-8: BENCHMARKS.md, "The Allan job's inputs,
+    # workers and time"); before, the request grew with samples alone and missed them for short batches.
+    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=470.0, mb_per_gsample=0.5, worker_mb=25.0,
+                                worker_mb_per_mpixel=260.0, start_s=3.0, s_per_gsample=17.0,
+                                s_per_gstatistic=250.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),
     "measure_centroids": StepCost(base_mb=170.0, start_s=5.0, s_per_position=0.1),
     # every wavelength's products read and its width maps made, one wavelength at a time: linear in the
@@ -154,7 +210,8 @@ def step_cost(step: str) -> StepCost:
     return COSTS.get(step, LIGHT)
 
 
-def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0, attempt: int = 1) -> dict:
+def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0, workers: int = 1,
+                  batches: int | None = None, attempt: int = 1) -> dict:
     """Memory and wall time to ask a scheduler for, for one job of a step.
 
     Parameters
@@ -167,6 +224,12 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
         Frames the job reads (or writes, for a simulation), over all its files.
     positions : int
         Star positions the job handles.
+    workers : int
+        Worker processes the job reads its frames in (its threads, :func:`reading_workers`); one: none, the
+        job reads them itself.
+    batches : int, optional
+        The Allan job's batches where known (:func:`allan_batches`); None: ``frames`` in batches of
+        :data:`ALLAN_BATCH_FRAMES`.
     attempt : int
         Snakemake's attempt number, 1 for the first: a retried job asks for that many times more.
 
@@ -175,15 +238,18 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
     dict
         ``mem_mb`` (int, MB) and ``runtime`` (int, minutes), Snakemake's standard resource names.
     """
-    if pixels <= 0 or frames < 0 or positions < 0 or attempt < 1:
+    if pixels <= 0 or frames < 0 or positions < 0 or attempt < 1 or workers < 1:
         raise ValueError(f"job_resources({step!r}): pixels {pixels} must be positive, frames {frames} and "
-                         f"positions {positions} non-negative, attempt {attempt} at least 1")
+                         f"positions {positions} non-negative, workers {workers} and attempt {attempt} at least 1")
     cost = step_cost(step)
     samples = float(pixels) * float(frames)
     memory = (cost.base_mb + cost.mb_per_mpixel * pixels / 1e6 + cost.mb_per_mframe * frames / 1e6
-              + cost.mb_per_gsample * samples / 1e9)
+              + cost.mb_per_gsample * samples / 1e9
+              + (workers if workers > 1 else 0) * (cost.worker_mb + cost.worker_mb_per_mpixel * pixels / 1e6))
     seconds = (cost.start_s + cost.s_per_mpixel * pixels / 1e6 + cost.s_per_gsample * samples / 1e9
                + cost.s_per_position * positions)
+    if cost.s_per_gstatistic:
+        seconds += cost.s_per_gstatistic * pixels * allan_statistics_size(frames, batches) / 1e9
     mem_mb = math.ceil(MEMORY_MARGIN * memory + EXECUTOR_MB) * attempt
     runtime = max(MIN_RUNTIME, math.ceil(TIME_MARGIN * seconds / 60)) * attempt
     return {"mem_mb": int(mem_mb), "runtime": int(runtime)}
@@ -274,12 +340,14 @@ def group_files(manifest, group: tuple[str, int, int]) -> list:
     return [f for p in manifest.positions[indices.index(first):indices.index(last) + 1] for f in p.acquisition.files]
 
 
-def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1) -> dict:
+def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1, inputs=None) -> dict:
     """What one job of ``step`` reads (or writes, for the simulation), for :func:`job_resources`:
     ``frames`` over all its files and ``positions``.
 
     ``wildcards`` are the job's; ``frames_of(path)`` gives a raw file's frames (planned or from its header);
-    ``parts`` the split fit's number of parts.
+    ``parts`` the split fit's number of parts (``metrology.parts``, the parts a single fit reads in too). For a
+    baseline's fit and Allan jobs, also their ``workers`` (:func:`reading_workers`, as their rules' threads);
+    for an Allan job whose ``inputs`` (name -> path) hold a written ``metrology`` product, its ``batches``.
     """
     def acquisition(acq):
         return sum(frames_of(f) for f in acq.files)
@@ -293,7 +361,18 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1)
         return {"frames": acquisition(manifest.dark) if manifest.dark else 0}
     if step == "measure_prnu":
         return {"frames": acquisition(manifest.flats[wildcards["flat"]])}
-    if step in ("fit_fringes", "allan_deviation", "fit_reduce", "fit_finish"):
+    if step in ("fit_fringes", "allan_deviation"):  # their worker processes too, the rules' threads
+        from dice_core.parallel import LANES
+
+        files = manifest.baselines[wildcards["baseline"]].files
+        workers = reading_workers(files, frames_of, pixels=manifest.detector.shape[0] * manifest.detector.shape[1],
+                                  parts=parts if step == "fit_fringes" else LANES)
+        data = {"frames": acquisition(manifest.baselines[wildcards["baseline"]]), "workers": workers}
+        if step == "allan_deviation" and inputs and "metrology" in inputs:
+            if (batches := allan_batches(inputs["metrology"])) is not None:
+                data["batches"] = batches
+        return data
+    if step in ("fit_reduce", "fit_finish"):
         return {"frames": acquisition(manifest.baselines[wildcards["baseline"]])}
     if step == "fit_part":  # its own files' frames only (none for a part beyond the groups of files)
         files = manifest.baselines[wildcards["baseline"]].files

@@ -656,6 +656,62 @@ def test_the_product_written_a_slice_at_a_time_is_the_one_built_in_memory(tmp_pa
         np.testing.assert_allclose(written[name].values, variable.values, rtol=1e-9, atol=1e-12, err_msg=name)
 
 
+def test_maps_read_at_the_pixels_a_band_of_rows_at_a_time_are_the_whole_maps_indexed(rng, monkeypatch):
+    """_finite_pixels and _at_pixels, in bands of 1 to 23 rows of a 23x17 map with NaN (a whole row of them,
+    the first and last rows' ends): np.nonzero(np.isfinite(map)) and map[rows, cols], the same bits and dtype."""
+    values = rng.normal(size=(23, 17)).astype(np.float32)
+    values[rng.random(values.shape) < 0.2] = np.nan
+    values[7], values[0, :3], values[-1, -2:] = np.nan, np.nan, np.nan
+    variable = xr.DataArray(values, dims=("row", "col"))
+    for rows_a_band in (1, 2, 5, 23):
+        monkeypatch.setattr(allan, "MAP_BAND_BYTES", rows_a_band * 17 * 4)
+        assert len(allan._map_bands(variable)) == -(-23 // rows_a_band)
+        rows, cols = allan._finite_pixels(variable)
+        expected = np.nonzero(np.isfinite(values))
+        np.testing.assert_array_equal(rows, expected[0]) and np.testing.assert_array_equal(cols, expected[1])
+        picked = allan._at_pixels(variable, rows, cols)
+        assert picked.dtype == np.float32
+        np.testing.assert_array_equal(picked, values[rows, cols])
+
+
+def test_the_allan_step_reads_its_products_lazily_at_its_pixels(tmp_path, monkeypatch):
+    """allan_of_baseline on the metrology product and dark opened lazily (io.open_product, as the workflow's
+    script does), their maps read in bands of 3 rows: the product of the same products read whole, bit for
+    bit; and its traced peak memory does not grow with variables of the products it does not use (an unused
+    (mode, row, col) variable of 400 maps, 5.6 MB, beside the metrology product's: within 0.5 MB)."""
+    import tracemalloc
+
+    from dice_core import io
+
+    manifest, truth = four_file_baseline(tmp_path, "allan-lazy")
+    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
+    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
+                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
+    metrology = fringes.solution_dataset(solution, manifest.detector)
+    dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values, {"units": "adu"}),
+                       "noise": (("row", "col"), truth["read_noise"].values, {"units": "adu"}),
+                       "saturated_count": (("row", "col"), np.zeros(manifest.detector.shape, np.int32),
+                                           {"units": "1"})})
+    io.write_product(metrology, tmp_path / "metrology.nc", title="fit")
+    io.write_product(dark, tmp_path / "dark.nc", title="dark")
+    fat = metrology.assign(unused=(("mode", "row", "col"), np.ones((400, *manifest.detector.shape)), {"units": "1"}))
+    io.write_product(fat, tmp_path / "fat.nc", title="fit and more")
+    whole = allan.allan_of_baseline(stream, io.read_product(tmp_path / "metrology.nc"),
+                                    dark=io.read_product(tmp_path / "dark.nc"), detector=manifest.detector).load()
+    monkeypatch.setattr(allan, "MAP_BAND_BYTES", 3 * 44 * 8)
+    peaks = {}
+    for name in ("metrology", "fat"):
+        with io.open_product(tmp_path / f"{name}.nc") as opened, io.open_product(tmp_path / "dark.nc") as dark:
+            tracemalloc.start()
+            try:
+                lazy = allan.allan_of_baseline(stream, opened, dark=dark, detector=manifest.detector).load()
+                peaks[name] = tracemalloc.get_traced_memory()[1]
+            finally:
+                tracemalloc.stop()
+        xr.testing.assert_identical(lazy, whole)
+    assert abs(peaks["fat"] - peaks["metrology"]) < 0.5e6, peaks
+
+
 def test_the_allan_step_never_holds_a_map_of_every_batch(tmp_path):
     """allan_of_baseline's peak of traced memory on a baseline of about 200 batches stays under one float64
     (batch, pixel) array: what grows with pixels times batches is on disk, the statistics read a band of pixels

@@ -852,6 +852,39 @@ def test_allan_figure_draws_every_entry_and_single_pixels_only_over_enough_group
     plotting.save(fig, None)
 
 
+def key_offsets_from_first_lines(legend, renderer):
+    """(label, offset) of each entry of ``legend``: the height of its key's middle (its line, or its markers'
+    line for error bars) above the middle of its text's first line, in lines of text."""
+    out = []
+    for column in legend._legend_handle_box.get_children():
+        for entry in column.get_children():
+            key, text = entry.get_children()
+            lines = [a for a in key.get_children() if isinstance(a, matplotlib.lines.Line2D)]
+            if not lines:  # a patch: one line of text
+                continue
+            box = text._text.get_window_extent(renderer)
+            n = text._text.get_text().count("\n") + 1
+            line_height = box.height / n
+            # the mean of its lines' middles: error bars' caps lie either side of their markers
+            middle = np.mean([(e.y0 + e.y1) / 2 for e in (a.get_window_extent(renderer) for a in lines)])
+            out.append((text._text.get_text(), (middle - (box.y1 - line_height / 2)) / line_height))
+    return out
+
+
+def test_a_merged_allan_entry_has_its_key_beside_its_own_name(rng):
+    """An entry naming the curves merged into it (several lines: the curve's own name, then '= ...' for each)
+    has its key beside its first line, as every one-line entry has: the key centred on six lines sat beside a
+    merged name, 2.5 lines down (on the default preset's figure), and the entry's own name, without a key, read
+    as the end of the entry above."""
+    fig = plotting.allan_figure(allan_product(rng), title="test")
+    fig.canvas.draw()
+    offsets = key_offsets_from_first_lines(fig.legends[0], fig.canvas.get_renderer())
+    assert any(label.count("\n") >= 2 for label, _ in offsets)  # the red entry, two limits merged into it
+    for label, offset in offsets:
+        assert abs(offset) < 0.35, (label, offset)
+    plotting.save(fig, None)
+
+
 def shared_range(axes):
     """Whether the axes all show one y range."""
     return len({tuple(np.round(ax.get_ylim(), 15)) for ax in axes}) == 1

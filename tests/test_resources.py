@@ -33,6 +33,113 @@ def test_requests_cover_the_paper_scale_measurements(step, frames, max_rss_mb, s
     assert asked["runtime"] * 60 >= seconds
 
 
+@pytest.mark.parametrize("pixels, workers, tree_pss_mb, tree_rss_mb", [
+    # BENCHMARKS.md, "The Allan job's inputs, workers and time" (library, benchmarks/allan_memory.py, 2000
+    # frames in two files, 47 batches): the peak of the job's process tree's summed PSS (its forked workers
+    # share its pages) and of their summed RSS (each shared page counted in each process)
+    (512 * 512, 1, 220, 259),
+    (512 * 512, 2, 405, 738),
+    (1024 * 1024, 1, 587, 627),
+    (1024 * 1024, 2, 1176, 1806),
+])
+def test_the_allan_request_covers_its_worker_processes(pixels, workers, tree_pss_mb, tree_rss_mb):
+    """The Allan job's request covers its process tree's memory, its workers' with it; without the workers'
+    share it would not cover the two workers' jobs (by the PSS at 1024x1024, by the RSS at both sizes)."""
+    asked = job_resources("allan_deviation", pixels=pixels, frames=2000, workers=workers)
+    assert asked["mem_mb"] - resources.EXECUTOR_MB >= tree_rss_mb
+    assert asked["mem_mb"] <= 4 * tree_pss_mb + resources.EXECUTOR_MB
+    alone = job_resources("allan_deviation", pixels=pixels, frames=2000)
+    if workers == 1:
+        assert asked == alone
+    else:
+        assert alone["mem_mb"] - resources.EXECUTOR_MB < tree_rss_mb
+        cost = resources.step_cost("allan_deviation")
+        share = workers * (cost.worker_mb + cost.worker_mb_per_mpixel * pixels / 1e6)
+        assert asked["mem_mb"] - alone["mem_mb"] == pytest.approx(resources.MEMORY_MARGIN * share, abs=1)
+
+
+def test_a_baselines_jobs_ask_for_the_workers_their_threads_run():
+    """job_data gives the fit and Allan jobs the workers reading_workers gives their rules' threads: two for a
+    large baseline in two files, one for a small one; no workers for the other steps."""
+    from types import SimpleNamespace
+
+    from dice_core.manifest import Detector
+
+    frames_of = {"a": 2000, "b": 2000, "big1": 200000, "big2": 200000}.get
+    detector = Detector(shape=(80, 84), science_rows=(0, 80), science_cols=(0, 84), gain=2.5, saturation=6e4)
+    manifest = SimpleNamespace(detector=detector, positions=[], baselines={
+        "small": SimpleNamespace(files=["a", "b"]), "large": SimpleNamespace(files=["big1", "big2"])})
+    for step in ("allan_deviation", "fit_fringes"):
+        small = resources.job_data(step, {"baseline": "small"}, manifest=manifest, frames_of=frames_of, parts=2)
+        large = resources.job_data(step, {"baseline": "large"}, manifest=manifest, frames_of=frames_of, parts=2)
+        assert (small, large) == ({"frames": 4000, "workers": 1}, {"frames": 400000, "workers": 2}), step
+    assert "workers" not in resources.job_data("fit_finish", {"baseline": "large"}, manifest=manifest,
+                                               frames_of=frames_of, parts=2)
+
+
+@pytest.mark.parametrize("pixels, frames, batches, seconds", [
+    # BENCHMARKS.md, "The Allan job's inputs, workers and time" (library, benchmarks/allan_memory.py, batches of
+    # 42 frames, load 4-13): the step's wall time (the reading pass, then the statistics: 86-93% of it)
+    (512 * 512, 2000, 47, 148.6),
+    (1024 * 1024, 2000, 47, 311.4),
+    (256 * 256, 8000, 190, 55.4),
+])
+def test_the_allan_runtime_covers_its_statistics(pixels, frames, batches, seconds):
+    """The Allan job's runtime request covers the measured jobs, with their batches known (from the metrology
+    product, when the job is about to run) and from its frames alone (batches of ALLAN_BATCH_FRAMES, when the
+    workflow is planned: more batches than these, so at least as long). By samples alone (the request before)
+    the 1024x1024 job's 311 s were not covered: 5 minutes."""
+    known = job_resources("allan_deviation", pixels=pixels, frames=frames, batches=batches)
+    planned = job_resources("allan_deviation", pixels=pixels, frames=frames)
+    assert known["runtime"] * 60 >= seconds and planned["runtime"] >= known["runtime"]
+    assert resources.allan_statistics_size(frames) >= resources.allan_statistics_size(frames, batches)
+    cost = resources.step_cost("allan_deviation")
+    by_samples = cost.start_s + cost.s_per_gsample * pixels * frames / 1e9
+    statistics = cost.s_per_gstatistic * pixels * resources.allan_statistics_size(frames, batches) / 1e9
+    assert statistics > by_samples  # the statistics, not the reading, set the time of short batches
+
+
+def test_the_allan_statistics_grow_with_pixels_batches_and_group_sizes():
+    """The statistics' term is pixels x batches x group sizes: 4x the pixels, 4x the term; 4x the batches at the
+    same frames (a faster sweep), 4x the batches times their group sizes' ratio."""
+    from dice_core.allan import group_sizes
+
+    cost = resources.step_cost("allan_deviation")
+
+    def term(pixels, batches):
+        return cost.s_per_gstatistic * pixels * resources.allan_statistics_size(8000, batches) / 1e9
+
+    assert term(4 * 512 * 512, 47) == pytest.approx(4 * term(512 * 512, 47))
+    assert term(512 * 512, 188) == pytest.approx(4 * term(512 * 512, 47) * len(group_sizes(188)) / len(group_sizes(47)))
+    assert resources.allan_statistics_size(8000, 1) == 0 and resources.allan_statistics_size(79) == 0
+
+
+def test_an_allan_job_reads_its_batches_from_its_metrology_product(tmp_path):
+    """job_data gives an Allan job the batches of its written metrology product (allan.fringe_batches of its
+    phase), none before it is written; the request follows them."""
+    import numpy as np
+    import xarray as xr
+    from types import SimpleNamespace
+
+    from dice_core import allan, io
+    from dice_core.manifest import Detector
+
+    phase = np.cumsum(np.full(6000, 2 * np.pi / 90))  # a fringe period every 90 frames: batches of 91
+    io.write_product(xr.Dataset({"phase": ("frame", phase, {"units": "rad"})}), tmp_path / "metrology.nc", title="t")
+    detector = Detector(shape=(512, 512), science_rows=(0, 512), science_cols=(0, 512), gain=2.5, saturation=6e4)
+    manifest = SimpleNamespace(detector=detector, positions=[], baselines={"b": SimpleNamespace(files=["a"])})
+    frames_of = {"a": 6000}.get
+    written = resources.job_data("allan_deviation", {"baseline": "b"}, manifest=manifest, frames_of=frames_of,
+                                 inputs={"metrology": str(tmp_path / "metrology.nc")})
+    assert written == {"frames": 6000, "workers": 1, "batches": len(allan.fringe_batches(phase))}
+    assert 60 <= written["batches"] <= 70
+    planned = resources.job_data("allan_deviation", {"baseline": "b"}, manifest=manifest, frames_of=frames_of,
+                                 inputs={"metrology": str(tmp_path / "missing.nc")})
+    assert planned == {"frames": 6000, "workers": 1}
+    assert (job_resources("allan_deviation", pixels=512 * 512, **written)["runtime"]
+            < job_resources("allan_deviation", pixels=512 * 512, **planned)["runtime"])
+
+
 def test_memory_follows_pixels_and_time_follows_samples():
     small = job_resources("fit_fringes", pixels=PAPER_PIXELS, frames=200_000)
     more_frames = job_resources("fit_fringes", pixels=PAPER_PIXELS, frames=2_000_000)
@@ -66,7 +173,7 @@ def test_every_benchmarked_rule_has_a_measured_cost():
 
 
 @pytest.mark.parametrize("kwargs", [{"pixels": 0}, {"pixels": 10, "frames": -1}, {"pixels": 10, "positions": -2},
-                                    {"pixels": 10, "attempt": 0}])
+                                    {"pixels": 10, "attempt": 0}, {"pixels": 10, "workers": 0}])
 def test_bad_sizes_are_refused(kwargs):
     with pytest.raises(ValueError, match="job_resources"):
         job_resources("fit_fringes", **kwargs)

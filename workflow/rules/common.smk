@@ -271,17 +271,20 @@ def step_resources(step, **fixed):
     of each job from its step's measured cost and the job's data, times the attempt on a retry. ``fixed``: what
     the job's wildcards would say of a rule without them (a group's ``positions`` or ``files``)."""
 
-    def needs(wildcards, attempt):
+    def needs(wildcards, input, attempt):
         data = dice_resources.job_data(
             step,
             {**dict(wildcards.items()), **fixed},
             manifest=MANIFEST,
             frames_of=file_frames,
             parts=config["metrology"]["parts"],
+            inputs=dict(input.items()),
         )
         return dice_resources.job_resources(step, pixels=PIXELS, **data, attempt=attempt)
 
+    # with input: Snakemake evaluates a job's resources again when it is about to run, its inputs written (the
+    # Allan job's batches from its metrology product)
     return {
-        "mem_mb": lambda wildcards, attempt: needs(wildcards, attempt)["mem_mb"],
-        "runtime": lambda wildcards, attempt: needs(wildcards, attempt)["runtime"],
+        "mem_mb": lambda wildcards, input, attempt: needs(wildcards, input, attempt)["mem_mb"],
+        "runtime": lambda wildcards, input, attempt: needs(wildcards, input, attempt)["runtime"],
     }

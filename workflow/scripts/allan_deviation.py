@@ -13,10 +13,12 @@ def allan_deviation(manifest_path, metrology_path, dark_path, baseline, output, 
     manifest = load_manifest(manifest_path)
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
                             purpose="Allan deviations", dtype="float32")
+    # the products opened lazily: the step reads the maps it needs, at its pixels (not the whole solution);
     # what grows with pixels times batches goes to a scratch folder beside the product (the results' disk)
-    product = allan.allan_of_baseline(stream, io.read_product(metrology_path), dark=io.read_product(dark_path),
-                                      detector=manifest.detector, workers=workers,
-                                      label=f"baseline {baseline}", scratch=Path(output).parent)
+    with io.open_product(metrology_path) as metrology, io.open_product(dark_path) as dark:
+        product = allan.allan_of_baseline(stream, metrology, dark=dark, detector=manifest.detector,
+                                          workers=workers, label=f"baseline {baseline}",
+                                          scratch=Path(output).parent)
     last = product.isel(n_frames=-1)
     log.info("baseline %s: slope %.3f; at %.0f frames per group, %.2e pixel (photon limit %.2e) for pixels, "
              "%.2e (limit %.2e) for blocks", baseline, float(product["slope"]), float(last["n_frames"]),
