@@ -6,7 +6,7 @@ reads: its pixels, its frames and, for the pseudo-star steps, its positions.
 Each step's cost is a linear model of those,
 
     memory (MB)  = base_mb + mb_per_mpixel * pixels / 1e6 + mb_per_mframe * frames / 1e6
-                   + mb_per_gsample * pixels * frames / 1e9
+                   + mb_per_gsample * pixels * frames / 1e9 + mb_per_mchunk * pixels * chunk / 1e6
     time (s)     = start_s + s_per_mpixel * pixels / 1e6 + s_per_gsample * pixels * frames / 1e9
                    + s_per_position * positions
 
@@ -19,7 +19,9 @@ streaming steps (the cubes are read in chunks) but for per-frame series (the
 fit's frame factors: tens of bytes a frame); it grows with pixels (the
 per-pixel maps and accumulators) and, for the Allan deviations, with the
 number of batches times the pixels (each batch's offset map), so with pixels
-x frames.
+x frames; and, for the calibration steps, with the samples of a chunk (``chunk``: its frames, the
+configuration's ``chunk_frames`` or the reader's automatic choice, at most the job's frames), which they hold
+as read and converted while they work on it a band of rows at a time.
 
 The request adds margins to the measured cost, because a job that runs out
 of memory or time on a cluster is killed: :data:`MEMORY_MARGIN` on memory,
@@ -37,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = ["StepCost", "COSTS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
+           "chunk_frames_of",
            "step_cost", "job_data", "part_files", "sample_groups", "position_groups", "simulation_groups",
            "group_files", "FileFrames"]
 
@@ -66,6 +69,8 @@ class StepCost:
         MB per million frames, whatever the pixels (per-frame series).
     mb_per_gsample : float
         MB per 1e9 samples read (pixels x frames): per-pixel maps kept for each part of the frames.
+    mb_per_mchunk : float
+        MB per million samples of a chunk (its frames x pixels): the chunk as read and converted.
     start_s : float
         Wall time, s, of the step on a vanishing dataset.
     s_per_mpixel : float
@@ -80,6 +85,7 @@ class StepCost:
     mb_per_mpixel: float = 0.0
     mb_per_mframe: float = 0.0
     mb_per_gsample: float = 0.0
+    mb_per_mchunk: float = 0.0
     start_s: float = 5.0
     s_per_mpixel: float = 0.0
     s_per_gsample: float = 0.0
@@ -92,8 +98,16 @@ COSTS: dict[str, StepCost] = {
     # 2.3-2.4 GB for a metrology file of 1024x1024 pixels (its truth maps and the spherical fringes'
     # per-pixel response); 48-66 s per 1e9 samples at every size (BENCHMARKS.md, "A large detector")
     "simulate_file": StepCost(base_mb=230.0, mb_per_mpixel=2200.0, start_s=3.0, s_per_gsample=60.0),
-    "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
-    "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
+    # the interpreter (210 MB through the workflow), then measured above it (library, benchmarks/
+    # calibration_memory.py, 1024x1024 to 4096x4096, chunks of 4 and 12 frames; BENCHMARKS.md, "The calibration
+    # jobs at 4096x4096"): the maps, 88 and 128 bytes a pixel, and the chunk as read and converted, 7 bytes a
+    # sample of it, its arithmetic a band of rows at a time (1965 and 2605 MiB at 4096x4096 in 4-frame chunks;
+    # before the bands 94 and 136 bytes a pixel and 31 and 37 a chunk's sample). 65-85 s at 4096x4096 x 12
+    # frames on shared cores (load 9-13), most of it the per-pixel finish and the product's write.
+    "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=90.0, mb_per_mchunk=7.0, start_s=3.0, s_per_mpixel=4.0,
+                             s_per_gsample=10.0),
+    "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=130.0, mb_per_mchunk=7.0, start_s=3.0, s_per_mpixel=5.0,
+                             s_per_gsample=10.0),
     # 1961 MB and 180 s for 1024x1024 x 5000 frames: three passes and the cubes' checksums. An upper bound
     # since the gauge works in pixel blocks (907 MB for the whole fit at 1024x1024 x 400 frames, library, not
     # yet measured through the workflow: "Memory of a split fit's reduction and product")
@@ -153,7 +167,18 @@ def step_cost(step: str) -> StepCost:
     return COSTS.get(step, LIGHT)
 
 
-def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0, attempt: int = 1) -> dict:
+def chunk_frames_of(setting, *, pixels: int, frames: int) -> int:
+    """Frames of the largest chunk a job reads: the configuration's ``chunk_frames`` (an integer, or "auto"
+    or None for :func:`dice_core.io.auto_chunk_frames` of frames of ``pixels`` pixels), at most the job's
+    ``frames`` (a chunk never spans two files: an upper bound)."""
+    from dice_core.io import auto_chunk_frames
+
+    per_chunk = auto_chunk_frames((1, pixels)) if setting in (None, "auto") else int(setting)
+    return min(per_chunk, frames)
+
+
+def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0, chunk_frames="auto",
+                  attempt: int = 1) -> dict:
     """Memory and wall time to ask a scheduler for, for one job of a step.
 
     Parameters
@@ -166,6 +191,8 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
         Frames the job reads (or writes, for a simulation), over all its files.
     positions : int
         Star positions the job handles.
+    chunk_frames : int or "auto"
+        The configuration's ``chunk_frames``, for a step whose memory grows with a chunk's samples.
     attempt : int
         Snakemake's attempt number, 1 for the first: a retried job asks for that many times more.
 
@@ -179,8 +206,9 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
                          f"positions {positions} non-negative, attempt {attempt} at least 1")
     cost = step_cost(step)
     samples = float(pixels) * float(frames)
+    chunk = chunk_frames_of(chunk_frames, pixels=pixels, frames=frames) if cost.mb_per_mchunk else 0
     memory = (cost.base_mb + cost.mb_per_mpixel * pixels / 1e6 + cost.mb_per_mframe * frames / 1e6
-              + cost.mb_per_gsample * samples / 1e9)
+              + cost.mb_per_gsample * samples / 1e9 + cost.mb_per_mchunk * pixels * chunk / 1e6)
     seconds = (cost.start_s + cost.s_per_mpixel * pixels / 1e6 + cost.s_per_gsample * samples / 1e9
                + cost.s_per_position * positions)
     mem_mb = math.ceil(MEMORY_MARGIN * memory + EXECUTOR_MB) * attempt

@@ -279,7 +279,13 @@ def step_resources(step, **fixed):
             frames_of=file_frames,
             parts=config["metrology"]["parts"],
         )
-        return dice_resources.job_resources(step, pixels=PIXELS, **data, attempt=attempt)
+        return dice_resources.job_resources(
+            step,
+            pixels=PIXELS,
+            **data,
+            chunk_frames=config["chunk_frames"],
+            attempt=attempt,
+        )
 
     return {
         "mem_mb": lambda wildcards, attempt: needs(wildcards, attempt)["mem_mb"],
