@@ -183,9 +183,9 @@ def dark_maps(chunks: Iterable[Chunk], detector: Detector, *, n_frames: int | No
         for rows in row_bands(chunk.frames.shape[0], chunk.frames.shape[1:]):
             stats.update_rows(rows, chunk.frames[:, rows], _valid(chunk, rows))
         _progress("dark", chunk, n_frames)
+        del chunk  # let go of its samples before the stream reads the next chunk: one chunk held, not two
     if stats is None:
         raise ValueError("no dark frames")
-    del chunk  # the last chunk's samples, not the maps' business
     n = int(stats.count.max())
     if stats.masked.any():
         log.warning("dark: %d saturated samples masked in %d pixels",
@@ -350,10 +350,11 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, *, dark_noise: np.ndarra
             stats.update_rows(rows, frames * scale, valid)
             raw_sum[rows] += (frames if valid is None else np.where(valid, frames, 0.0)).sum(axis=0)
         _progress(label, chunk, n_frames)
+        del chunk, frames, valid  # let go of its samples before the stream reads the next: one chunk held
     if stats is None:
         raise ValueError(f"{label}: no frames")
 
-    del chunk, dark_filled  # the last chunk's samples; the maps below are formed in place where they can be
+    del dark_filled  # the maps below are formed in place where they can be
     if stats.masked.any():
         log.warning("%s: %d saturated samples masked in %d pixels", label,
                     stats.masked.sum(), np.count_nonzero(stats.masked))
