@@ -99,15 +99,17 @@ COSTS: dict[str, StepCost] = {
     # per-pixel response); 48-66 s per 1e9 samples at every size (BENCHMARKS.md, "A large detector")
     "simulate_file": StepCost(base_mb=230.0, mb_per_mpixel=2200.0, start_s=3.0, s_per_gsample=60.0),
     # the interpreter (210 MB through the workflow), then measured above it (library, benchmarks/
-    # calibration_memory.py, 1024x1024 to 4096x4096, chunks of 4 and 12 frames; BENCHMARKS.md, "The calibration
-    # jobs at 4096x4096"): the maps, 88 and 128 bytes a pixel, and the chunk as read and converted, 7 bytes a
-    # sample of it, its arithmetic a band of rows at a time (1965 and 2605 MiB at 4096x4096 in 4-frame chunks;
-    # before the bands 94 and 136 bytes a pixel and 31 and 37 a chunk's sample). 65-85 s at 4096x4096 x 12
-    # frames on shared cores (load 9-13), most of it the per-pixel finish and the product's write.
-    "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=90.0, mb_per_mchunk=7.0, start_s=3.0, s_per_mpixel=4.0,
+    # calibration_memory.py, 1024x1024 to 4096x4096, chunks of 4 to 48 frames; BENCHMARKS.md, "The calibration
+    # jobs at 4096x4096"): the maps, 36 (dark) and 112 (PRNU: its illumination fit's design) bytes a pixel,
+    # and one chunk as read and converted, 11 bytes a sample of it (its arithmetic a band of rows at a time):
+    # the sum overstates a little, the PRNU's peak being the larger of its pass and its finish. 1389 and 2427
+    # MiB at 4096x4096 in 4-frame chunks (before the bands, 3581 and 4687: 94 and 136 bytes a pixel and 31
+    # and 37 a chunk's sample). 9-85 s at 4096x4096 x 12 frames on shared cores (load 3-13), most of it the
+    # per-pixel finish and the product's write.
+    "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=40.0, mb_per_mchunk=11.0, start_s=3.0, s_per_mpixel=4.0,
                              s_per_gsample=10.0),
-    "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=130.0, mb_per_mchunk=7.0, start_s=3.0, s_per_mpixel=5.0,
-                             s_per_gsample=10.0),
+    "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=115.0, mb_per_mchunk=11.0, start_s=3.0,
+                             s_per_mpixel=5.0, s_per_gsample=10.0),
     # 1961 MB and 180 s for 1024x1024 x 5000 frames: three passes and the cubes' checksums. An upper bound
     # since the gauge works in pixel blocks (907 MB for the whole fit at 1024x1024 x 400 frames, library, not
     # yet measured through the workflow: "Memory of a split fit's reduction and product")
