@@ -9,7 +9,9 @@ files). Every
 pixels, the frames it read (its files' NAXIS3) and the positions. For each step the script prints
 
 - the non-negative least-squares fit of memory on (1, Mpixels, Mframes, Gsamples) and of time on (1,
-  Mpixels, Gsamples, positions), the coefficients of dice_core.resources.StepCost;
+  Mpixels, Gsamples, positions), the coefficients of dice_core.resources.StepCost (not the calibration
+  steps' per-chunk term, mb_per_mchunk: the runs' chunks are "auto"; benchmarks/calibration_memory.py
+  varies them);
 - each job's measurement beside dice_core.resources' model and its request (mem_mb, runtime), and the
   largest measured / requested ratio, which must stay below 1.
 
@@ -120,8 +122,9 @@ def main(argv=None):
         print(f"  {'pixels':>8} {'frames':>7} {'pos':>4} {'max_rss':>8} {'model':>7} {'mem_mb':>7} "
               f"{'wall s':>7} {'model':>7} {'runtime s':>9}")
         for p, f, q, r, w in zip(pixels, n, k, rss, wall):
+            chunk = resources.chunk_frames_of("auto", pixels=int(p), frames=int(f)) if cost.mb_per_mchunk else 0
             model_mb = (cost.base_mb + cost.mb_per_mpixel * p / 1e6 + cost.mb_per_mframe * f / 1e6
-                        + cost.mb_per_gsample * p * f / 1e9)
+                        + cost.mb_per_gsample * p * f / 1e9 + cost.mb_per_mchunk * p * chunk / 1e6)
             model_s = (cost.start_s + cost.s_per_mpixel * p / 1e6 + cost.s_per_gsample * p * f / 1e9
                        + cost.s_per_position * q)
             asked = resources.job_resources(step, pixels=int(p), frames=int(f), positions=int(q))

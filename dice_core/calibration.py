@@ -19,7 +19,7 @@ import numpy as np
 
 from dice_core import lazy
 from dice_core.io import Chunk
-from dice_core.polynomials import polynomial_design
+from dice_core.polynomials import polynomial_design, polynomial_scaling, polynomial_terms
 from dice_core.manifest import Detector
 
 xr = lazy.module("xarray")
@@ -39,13 +39,31 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
+#: Samples (frames x pixels) of a chunk that :class:`TemporalStatistics` and :func:`prnu_map` take at a time:
+#: a chunk is worked on in bands of whole rows of about this many samples (a row at least), so that each
+#: float64 temporary of the arithmetic is about 8 MiB whatever the chunk (4 frames of 4096x4096 are 64
+#: times more). Each pixel's sums run over the same frames in the same order whatever the bands: the
+#: maps do not depend on them, bit for bit.
+BAND_SAMPLES = 1 << 20
+
+
+def row_bands(frames: int, shape, *, samples: int | None = None) -> list[slice]:
+    """Consecutive slices of the rows of ``shape`` (rows, cols), each about ``samples`` samples
+    (:data:`BAND_SAMPLES` if None) of a chunk of ``frames`` frames (a row at least), covering every row once."""
+    rows, cols = shape
+    samples = BAND_SAMPLES if samples is None else samples
+    step = max(1, samples // max(1, frames * cols))
+    return [slice(first, min(first + step, rows)) for first in range(0, rows, step)]
+
+
 class TemporalStatistics:
     """Per-pixel mean and variance over frames, accumulated chunk by chunk.
 
     Uses the pairwise update of Chan, Golub & LeVeque (1979) in float64, so
     the result does not depend on chunking beyond rounding, and memory is a few
     maps whatever the number of frames. Masked samples (``valid`` False) are
-    left out and counted.
+    left out and counted. A chunk is taken in bands of rows
+    (:data:`BAND_SAMPLES`): its temporaries stay a few MiB.
     """
 
     def __init__(self, shape):
@@ -54,8 +72,14 @@ class TemporalStatistics:
         self._m2 = np.zeros(shape)
         self.masked = np.zeros(shape, dtype=np.int64)
 
-    def update(self, frames: np.ndarray, valid: np.ndarray | None = None):
-        """Add frames (frame, row, col); ``valid`` marks the samples to use."""
+    def update(self, frames: np.ndarray, valid: np.ndarray | None = None, *, band_samples: int | None = None):
+        """Add frames (frame, row, col); ``valid`` marks the samples to use; in bands of rows of
+        ``band_samples`` samples (:data:`BAND_SAMPLES` if None), which do not change the result."""
+        for rows in row_bands(frames.shape[0], frames.shape[1:], samples=band_samples):
+            self.update_rows(rows, frames[:, rows], None if valid is None else valid[:, rows])
+
+    def update_rows(self, rows: slice, frames: np.ndarray, valid: np.ndarray | None = None):
+        """Add frames (frame, row, col) of the rows ``rows`` only; ``valid`` marks the samples to use."""
         if valid is None:
             n_b = np.full(frames.shape[1:], frames.shape[0], dtype=np.int64)
             chunk_sum = frames.sum(axis=0)
@@ -63,21 +87,21 @@ class TemporalStatistics:
             n_b = valid.sum(axis=0)
             frames = np.where(valid, frames, 0.0)
             chunk_sum = frames.sum(axis=0)
-            self.masked += frames.shape[0] - n_b
+            self.masked[rows] += frames.shape[0] - n_b
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_b = np.where(n_b > 0, chunk_sum / np.maximum(n_b, 1), 0.0)
         dev = frames - mean_b
         if valid is not None:
             dev = np.where(valid, dev, 0.0)
         m2_b = np.einsum("tij,tij->ij", dev, dev)
-        n_a = self.count
+        n_a = self.count[rows]
         n = n_a + n_b
-        delta = mean_b - self.mean
+        delta = mean_b - self.mean[rows]
         with np.errstate(invalid="ignore", divide="ignore"):
             frac = np.where(n > 0, n_b / np.maximum(n, 1), 0.0)
-        self.mean = self.mean + delta * frac
-        self._m2 = self._m2 + m2_b + delta**2 * n_a * frac
-        self.count = n
+        self.mean[rows] = self.mean[rows] + delta * frac
+        self._m2[rows] = self._m2[rows] + m2_b + delta**2 * n_a * frac
+        self.count[rows] = n
 
     @property
     def variance(self) -> np.ndarray:
@@ -85,16 +109,45 @@ class TemporalStatistics:
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(self.count > 1, self._m2 / np.maximum(self.count - 1, 1), np.nan)
 
+    def pop_variance(self) -> np.ndarray:
+        """:attr:`variance`, formed in the accumulator's own memory (a map less at a step's peak): the
+        statistics cannot be updated, nor their variance taken, after."""
+        m2, self._m2 = self._m2, None
+        with np.errstate(invalid="ignore", divide="ignore"):
+            np.divide(m2, np.maximum(self.count - 1, 1), out=m2)
+        m2[self.count <= 1] = np.nan
+        return m2
+
 
 def _science_only(values: np.ndarray, detector: Detector) -> np.ndarray:
-    out = np.full(detector.shape, np.nan)
-    sl = detector.science_slices
-    out[sl] = values[sl]
-    return out
+    """``values`` (a float map the caller gives up) with NaN outside the science area, in place."""
+    values[~detector.science_mask()] = np.nan
+    return values
 
 
 def _coords(detector: Detector):
     return {"row": np.arange(detector.shape[0]), "col": np.arange(detector.shape[1])}
+
+
+def _valid(chunk: Chunk, rows: slice) -> np.ndarray | None:
+    """The unsaturated samples of a chunk's rows ``rows`` (frame, row, col); None where none saturates."""
+    return ~chunk.saturated[:, rows] if chunk.any_saturated else None
+
+
+def _science_levels(chunk: Chunk, dark: np.ndarray, science: tuple[slice, slice]) -> np.ndarray:
+    """Mean of each frame of a chunk less ``dark`` over the ``science`` slices (adu), its unsaturated samples
+    only: a frame at a time, so that a frame's temporaries are all it holds (the same sums, bit for bit, as
+    over the chunk at once)."""
+    rows, cols = science
+    levels = np.empty(chunk.frames.shape[0])
+    for k, frame in enumerate(chunk.frames):
+        signal = frame[rows, cols] - dark[rows, cols]
+        if chunk.any_saturated:
+            valid = ~chunk.saturated[k, rows, cols]
+            levels[k] = np.where(valid, signal, 0.0).sum() / max(int(valid.sum()), 1)
+        else:
+            levels[k] = signal.sum() / max(signal.size, 1)
+    return levels
 
 
 def _progress(label, chunk: Chunk, n_frames: int | None, every: int = 10_000):
@@ -127,8 +180,10 @@ def dark_maps(chunks: Iterable[Chunk], detector: Detector, *, n_frames: int | No
     for chunk in chunks:
         if stats is None:
             stats = TemporalStatistics(chunk.frames.shape[1:])
-        stats.update(chunk.frames, ~chunk.saturated)
+        for rows in row_bands(chunk.frames.shape[0], chunk.frames.shape[1:]):
+            stats.update_rows(rows, chunk.frames[:, rows], _valid(chunk, rows))
         _progress("dark", chunk, n_frames)
+        del chunk  # let go of its samples before the stream reads the next chunk: one chunk held, not two
     if stats is None:
         raise ValueError("no dark frames")
     n = int(stats.count.max())
@@ -136,7 +191,8 @@ def dark_maps(chunks: Iterable[Chunk], detector: Detector, *, n_frames: int | No
         log.warning("dark: %d saturated samples masked in %d pixels",
                     stats.masked.sum(), np.count_nonzero(stats.masked))
     dark = _science_only(stats.mean, detector)
-    noise = _science_only(np.sqrt(stats.variance), detector)
+    variance = stats.pop_variance()
+    noise = _science_only(np.sqrt(variance, out=variance), detector)
     ds = xr.Dataset(
         {
             "dark": (("row", "col"), dark, {"units": "adu", "long_name": "temporal mean of the dark frames"}),
@@ -173,16 +229,41 @@ def remove_gradient(image: np.ndarray, mask: np.ndarray, *, degree: int = 1):
     -----
     The PRNU is multiplicative, so the illumination surface is divided out
     rather than subtracted; a flat image times a polynomial of ``degree`` is
-    returned exactly flat.
+    returned exactly flat. Memory: the design of the pixels used (8 bytes a
+    term and pixel) and the least-squares solver's copy of it, then that of
+    every pixel for the surface, never both; the bits of a fit of the whole
+    map's design.
     """
     if degree < 0:
         raise ValueError(f"degree must be >= 0, got {degree}")
-    use = mask & np.isfinite(image)
-    rows, cols = np.indices(image.shape)
-    design = polynomial_design(cols.ravel(), rows.ravel(), degree=degree)  # scaled on the whole map
-    coef, *_ = np.linalg.lstsq(design[use.ravel()], image[use], rcond=None)
-    surface = (design @ coef).reshape(image.shape)
+    use = np.flatnonzero(mask & np.isfinite(image))
+    # scaled on the whole map; the design of the pixels used only, then of every pixel for the surface
+    scaling = polynomial_scaling(np.array([0, image.shape[1] - 1]), np.array([0, image.shape[0] - 1]))
+    design = _design(image.shape, degree, scaling, use)
+    values = image.ravel()[use]
+    del use
+    coef, *_ = np.linalg.lstsq(design, values, rcond=None)
+    del design, values
+    surface = (_design(image.shape, degree, scaling) @ coef).reshape(image.shape)
     return image / surface, surface
+
+
+#: Pixels whose polynomial terms :func:`_design` forms at a time.
+DESIGN_PIXELS = 1 << 16
+
+
+def _design(shape, degree: int, scaling, pixels: np.ndarray | None = None) -> np.ndarray:
+    """Design matrix (pixel, term) of a map of ``shape`` (rows, cols) for the pixels of C-order indices
+    ``pixels`` (all if None), their columns as x and rows as y scaled by ``scaling``: the rows of the whole
+    map's design, bit for bit (:func:`dice_core.polynomials.polynomial_design`), formed a block of
+    :data:`DESIGN_PIXELS` at a time so that only the design itself is a full-size array."""
+    n = shape[0] * shape[1] if pixels is None else pixels.size
+    design = np.empty((n, polynomial_terms(degree)))
+    for first in range(0, n, DESIGN_PIXELS):
+        last = min(first + DESIGN_PIXELS, n)
+        rows, cols = np.divmod(np.arange(first, last) if pixels is None else pixels[first:last], shape[1])
+        design[first:last] = polynomial_design(cols, rows, degree=degree, scaling=scaling)
+    return design
 
 
 def area_rms(image: np.ndarray, detector: Detector) -> float:
@@ -252,57 +333,41 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, *, dark_noise: np.ndarra
     levels = []
     reference_level = None
     for chunk in chunks:
-        frames = chunk.frames - dark_filled
-        valid = ~chunk.saturated
         if stats is None:
-            stats = TemporalStatistics(frames.shape[1:])
-            raw_sum = np.zeros(frames.shape[1:])
+            stats = TemporalStatistics(chunk.frames.shape[1:])
+            raw_sum = np.zeros(chunk.frames.shape[1:])
         # Step 2: scale each frame to the first frame's mean level over the science area.
-        v = valid[:, sl[0], sl[1]]
-        f = frames[:, sl[0], sl[1]]
-        level = np.where(v, f, 0.0).sum(axis=(1, 2)) / np.maximum(v.sum(axis=(1, 2)), 1)
+        level = _science_levels(chunk, dark_filled, sl)
         if np.any(level <= 0):
             raise ValueError(f"{label}: frame {chunk.start + int(np.argmin(level))} has no positive signal "
                              "after dark subtraction")
         if reference_level is None:
             reference_level = level[0]
         levels.append(level)
-        stats.update(frames * (reference_level / level)[:, None, None], valid)
-        raw_sum += np.where(valid, frames, 0.0).sum(axis=0)
+        scale = (reference_level / level)[:, None, None]
+        for rows in row_bands(chunk.frames.shape[0], chunk.frames.shape[1:]):
+            frames, valid = chunk.frames[:, rows] - dark_filled[rows], _valid(chunk, rows)
+            stats.update_rows(rows, frames * scale, valid)
+            raw_sum[rows] += (frames if valid is None else np.where(valid, frames, 0.0)).sum(axis=0)
         _progress(label, chunk, n_frames)
+        del chunk, frames, valid  # let go of its samples before the stream reads the next: one chunk held
     if stats is None:
         raise ValueError(f"{label}: no frames")
 
-    mean = stats.mean  # step 3
+    del dark_filled  # the maps below are formed in place where they can be
     if stats.masked.any():
         log.warning("%s: %d saturated samples masked in %d pixels", label,
                     stats.masked.sum(), np.count_nonzero(stats.masked))
-    # Step 4: divide out the smooth illumination; step 5: mean 1 over the science area. A dead pixel
-    # or column would pull both (a dead column of 78 pixels shifts the mean by 1.4e-2 on 80x84), so
-    # the pixels below half the light, judged once the illumination of a first fit is divided out
-    # (vignetting must not make a dim, healthy pixel dead), are left out of both.
-    measured = science & (stats.count > 0)
-    first, _ = remove_gradient(np.where(measured, mean, np.nan), measured, degree=gradient_degree)
-    with np.errstate(invalid="ignore"):
-        responding = measured & (first > DEAD_BELOW * np.nanmedian(np.where(measured, first, np.nan)))
-    not_responding = measured & ~responding
-    if not_responding.any():
-        rows, cols = np.nonzero(not_responding)
-        shown = ", ".join(f"(row {r}, col {c})" for r, c in list(zip(rows, cols))[:5])
-        log.warning("%s: %d pixel(s) respond to less than %.0f%% of the median level, left out of the "
-                    "illumination fit and the normalisation: %s%s", label, rows.size, 100 * DEAD_BELOW, shown,
-                    ", ..." if rows.size > 5 else "")
-    fit_mask = responding
-    flattened, surface = remove_gradient(np.where(measured, mean, np.nan), fit_mask, degree=gradient_degree)
-    prnu = flattened / np.nanmean(np.where(fit_mask, flattened, np.nan)[sl])
-
+    # steps 3 (the temporal mean), 4 and 5
+    prnu, relative_surface, responding, not_responding = _normalised_response(
+        stats.mean, science & (stats.count > 0), sl, degree=gradient_degree, label=label)
     with np.errstate(invalid="ignore", divide="ignore"):
-        signal = raw_sum / stats.count  # mean before normalisation: the photon count
-        variance_expected = signal / detector.gain + dark_noise**2
-        limit = prnu * np.sqrt(variance_expected / stats.count) / signal
-        measured = prnu * np.sqrt(stats.variance / stats.count) / mean
+        signal = np.divide(raw_sum, stats.count, out=raw_sum)  # mean before normalisation: the photon count
+        variance_expected = signal / detector.gain
+        variance_expected += dark_noise**2
+        limit = _relative_error(prnu, variance_expected, stats.count, signal)
+        measured = _relative_error(prnu, stats.pop_variance(), stats.count, stats.mean)
     frame_level = np.concatenate(levels)
-    relative_surface = surface / np.nanmean(surface[sl])
     ds = xr.Dataset(
         {
             "prnu": (("row", "col"), _science_only(prnu, detector),
@@ -334,6 +399,44 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, *, dark_noise: np.ndarra
     ds.attrs["normalisation"] = (f"mean 1 over the responding pixels of the science area (those above "
                                  f"{DEAD_BELOW:g} of the median level once the illumination is divided out)")
     return ds
+
+
+def _normalised_response(mean: np.ndarray, measured: np.ndarray, sl, *, degree: int, label: str):
+    """Steps 4 and 5 of :func:`prnu_map` on the temporal ``mean`` (row, col, adu) of the ``measured`` pixels:
+    (PRNU, the removed surface relative to its science-area mean, the responding pixels, the measured ones that
+    do not respond).
+
+    A dead pixel or column would pull both the surface and the normalisation (a dead column of 78 pixels
+    shifts the mean by 1.4e-2 on 80x84), so the pixels below :data:`DEAD_BELOW` of the light, judged once the
+    illumination of a first fit is divided out (vignetting must not make a dim, healthy pixel dead), are
+    left out of both.
+    """
+    image = np.where(measured, mean, np.nan)
+    first, _ = remove_gradient(image, measured, degree=degree)
+    with np.errstate(invalid="ignore"):
+        responding = measured & (first > DEAD_BELOW * np.nanmedian(np.where(measured, first, np.nan)))
+    del first
+    not_responding = measured & ~responding
+    if not_responding.any():
+        rows, cols = np.nonzero(not_responding)
+        shown = ", ".join(f"(row {r}, col {c})" for r, c in list(zip(rows, cols))[:5])
+        log.warning("%s: %d pixel(s) respond to less than %.0f%% of the median level, left out of the "
+                    "illumination fit and the normalisation: %s%s", label, rows.size, 100 * DEAD_BELOW, shown,
+                    ", ..." if rows.size > 5 else "")
+    prnu, surface = remove_gradient(image, responding, degree=degree)
+    del image
+    prnu /= np.nanmean(np.where(responding, prnu, np.nan)[sl])
+    surface /= np.nanmean(surface[sl])
+    return prnu, surface, responding, not_responding
+
+
+def _relative_error(prnu: np.ndarray, variance: np.ndarray, count: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """``prnu * sqrt(variance / count) / level``, the PRNU's 1-sigma error from a sample ``variance`` (adu²)
+    of ``count`` samples about the mean ``level`` (adu), formed in ``variance``'s memory."""
+    np.divide(variance, count, out=variance)
+    np.sqrt(variance, out=variance)
+    np.multiply(prnu, variance, out=variance)
+    return np.divide(variance, level, out=variance)
 
 
 def prnu_difference(reference: xr.Dataset, other: xr.Dataset, *, detector: Detector) -> xr.Dataset:

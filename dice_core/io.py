@@ -404,6 +404,9 @@ class FrameStream:
                     if cube.disk_dtype.kind == "f" and not (np.isfinite(frames.max()) and np.isfinite(frames.min())):
                         raise DatasetError(cube.path, _non_finite_report(cube))
                     yield Chunk(start, frames, saturated, any_saturated)
+                    # the chunk is the consumer's now: while the next one is read, no name of ours keeps it
+                    # (a consumer that lets go of it too holds one chunk at a time, not two)
+                    del frames, saturated
                     start += n
                 if digest is not None:
                     digest.finish(f)

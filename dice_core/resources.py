@@ -6,7 +6,7 @@ reads: its pixels, its frames and, for the pseudo-star steps, its positions.
 Each step's cost is a linear model of those,
 
     memory (MB)  = base_mb + mb_per_mpixel * pixels / 1e6 + mb_per_mframe * frames / 1e6
-                   + mb_per_gsample * pixels * frames / 1e9
+                   + mb_per_gsample * pixels * frames / 1e9 + mb_per_mchunk * pixels * chunk / 1e6
     time (s)     = start_s + s_per_mpixel * pixels / 1e6 + s_per_gsample * pixels * frames / 1e9
                    + s_per_position * positions
                    + s_per_gstatistic * pixels * batches * group sizes / 1e9   (the Allan statistics)
@@ -20,8 +20,10 @@ streaming steps (the cubes are read in chunks) but for per-frame series (the
 fit's frame factors: tens of bytes a frame); it grows with pixels (the
 per-pixel maps and accumulators) and, for the Allan deviations, with the
 number of batches times the pixels (each batch's offset map), so with pixels
-x frames. A job that reads its frames in worker processes (its threads) adds
-each worker's memory, ``worker_mb`` and ``worker_mb_per_mpixel`` a worker.
+x frames; and, for the calibration steps, with the samples of a chunk (``chunk``: its frames, the
+configuration's ``chunk_frames`` or the reader's automatic choice, at most the job's frames), which they hold
+as read and converted while they work on it a band of rows at a time. A job that reads its frames in worker
+processes (its threads) adds each worker's memory, ``worker_mb`` and ``worker_mb_per_mpixel`` a worker.
 
 The request adds margins to the measured cost, because a job that runs out
 of memory or time on a cluster is killed: :data:`MEMORY_MARGIN` on memory,
@@ -39,6 +41,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = ["StepCost", "COSTS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
+           "chunk_frames_of",
            "step_cost", "job_data", "part_files", "sample_groups", "position_groups", "simulation_groups",
            "group_files", "FileFrames", "ALLAN_BATCH_FRAMES", "allan_statistics_size", "allan_batches"]
 
@@ -73,6 +76,8 @@ class StepCost:
         that reads its frames in worker processes (``workers`` > 1: they are
         forked, what they share with the job counted once): its own copy of
         the per-pixel arrays it is sent, its chunk and its batches' sums.
+    mb_per_mchunk : float
+        MB per million samples of a chunk (its frames x pixels): the chunk as read and converted.
     start_s : float
         Wall time, s, of the step on a vanishing dataset.
     s_per_mpixel : float
@@ -93,6 +98,7 @@ class StepCost:
     mb_per_gsample: float = 0.0
     worker_mb: float = 0.0
     worker_mb_per_mpixel: float = 0.0
+    mb_per_mchunk: float = 0.0
     start_s: float = 5.0
     s_per_mpixel: float = 0.0
     s_per_gsample: float = 0.0
@@ -141,12 +147,22 @@ COSTS: dict[str, StepCost] = {
     # 2.3-2.4 GB for a metrology file of 1024x1024 pixels (its truth maps and the spherical fringes'
     # per-pixel response); 48-66 s per 1e9 samples at every size (BENCHMARKS.md, "A large detector")
     "simulate_file": StepCost(base_mb=230.0, mb_per_mpixel=2200.0, start_s=3.0, s_per_gsample=60.0),
-    "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
-    "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=10.0),
+    # the interpreter (210 MB through the workflow), then measured above it (library, benchmarks/
+    # calibration_memory.py, 1024x1024 to 4096x4096, chunks of 4 to 48 frames; BENCHMARKS.md, "The calibration
+    # jobs at 4096x4096"): the maps, 36 (dark) and 112 (PRNU: its illumination fit's design) bytes a pixel,
+    # and one chunk as read and converted, 11 bytes a sample of it (its arithmetic a band of rows at a time):
+    # the sum overstates a little, the PRNU's peak being the larger of its pass and its finish. 1389 and 2427
+    # MiB at 4096x4096 in 4-frame chunks (before the bands, 3581 and 4687: 94 and 136 bytes a pixel and 31
+    # and 37 a chunk's sample). 9-85 s at 4096x4096 x 12 frames on shared cores (load 3-13), most of it the
+    # per-pixel finish and the product's write.
+    "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=40.0, mb_per_mchunk=11.0, start_s=3.0, s_per_mpixel=4.0,
+                             s_per_gsample=10.0),
+    "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=115.0, mb_per_mchunk=11.0, start_s=3.0,
+                             s_per_mpixel=5.0, s_per_gsample=10.0),
     # Through the workflow (Snakemake's benchmark files: the RSS of the job and its two reading workers summed,
     # so its worker_mb is 0), 481 and 727 MB at 256x256 and 512x512 x 4000 frames (BENCHMARKS.md, "The single
-    # fit's memory through the workflow"): 1250 bytes a pixel above about 400 MB, asked as 1400. 1961 MB and 180 s for 1024x1024 x 5000 frames
-    # with older code (three passes and the cubes' checksums in reads of their own).
+    # fit's memory through the workflow"): 1250 bytes a pixel above about 400 MB, asked as 1400. 1961 MB and
+    # 180 s for 1024x1024 x 5000 frames with older code (three passes and the cubes' checksums in reads of their own).
     "fit_fringes": StepCost(base_mb=400.0, mb_per_mpixel=1400.0, mb_per_mframe=170.0, start_s=3.0,
                             s_per_gsample=35.0, s_per_mpixel=80.0),
     # A split fit's jobs (docs/metrology.md), measured on 256x256 to 1024x1024 detectors (BENCHMARKS.md, "A
@@ -210,8 +226,18 @@ def step_cost(step: str) -> StepCost:
     return COSTS.get(step, LIGHT)
 
 
-def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0, workers: int = 1,
-                  batches: int | None = None, attempt: int = 1) -> dict:
+def chunk_frames_of(setting, *, pixels: int, frames: int) -> int:
+    """Frames of the largest chunk a job reads: the configuration's ``chunk_frames`` (an integer, or "auto"
+    or None for :func:`dice_core.io.auto_chunk_frames` of frames of ``pixels`` pixels), at most the job's
+    ``frames`` (a chunk never spans two files: an upper bound)."""
+    from dice_core.io import auto_chunk_frames
+
+    per_chunk = auto_chunk_frames((1, pixels)) if setting in (None, "auto") else int(setting)
+    return min(per_chunk, frames)
+
+
+def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0, chunk_frames="auto",
+                  workers: int = 1, batches: int | None = None, attempt: int = 1) -> dict:
     """Memory and wall time to ask a scheduler for, for one job of a step.
 
     Parameters
@@ -224,6 +250,8 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
         Frames the job reads (or writes, for a simulation), over all its files.
     positions : int
         Star positions the job handles.
+    chunk_frames : int or "auto"
+        The configuration's ``chunk_frames``, for a step whose memory grows with a chunk's samples.
     workers : int
         Worker processes the job reads its frames in (its threads, :func:`reading_workers`); one: none, the
         job reads them itself.
@@ -243,8 +271,9 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
                          f"positions {positions} non-negative, workers {workers} and attempt {attempt} at least 1")
     cost = step_cost(step)
     samples = float(pixels) * float(frames)
+    chunk = chunk_frames_of(chunk_frames, pixels=pixels, frames=frames) if cost.mb_per_mchunk else 0
     memory = (cost.base_mb + cost.mb_per_mpixel * pixels / 1e6 + cost.mb_per_mframe * frames / 1e6
-              + cost.mb_per_gsample * samples / 1e9
+              + cost.mb_per_gsample * samples / 1e9 + cost.mb_per_mchunk * pixels * chunk / 1e6
               + (workers if workers > 1 else 0) * (cost.worker_mb + cost.worker_mb_per_mpixel * pixels / 1e6))
     seconds = (cost.start_s + cost.s_per_mpixel * pixels / 1e6 + cost.s_per_gsample * samples / 1e9
                + cost.s_per_position * positions)

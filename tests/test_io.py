@@ -43,6 +43,31 @@ def test_write_then_stream_round_trip(tmp_path, rng, dtype):
     assert [c.start for c in chunks] == [0, 5, 10, 15, 20]
 
 
+def test_a_stream_keeps_no_chunk_it_has_given(tmp_path, rng):
+    """A consumer that lets go of each chunk holds one chunk at a time: the stream keeps no name on the chunk
+    it gave while it reads the next (six chunks of 16 frames of 128x128, 2 MiB of float64 each; traced peak
+    measured 2.5 MiB, 4.5 before: two chunks, the one given and the one being read)."""
+    import tracemalloc
+
+    detector = Detector(shape=(128, 128), science_rows=(0, 128), science_cols=(0, 128), gain=2.0,
+                        saturation=60000.0)
+    data = rng.integers(100, 50000, size=(96, 128, 128)).astype(float)
+    write_cube(tmp_path / "c.fits", [data], shape=(128, 128), n_frames=96)
+    frames = FrameStream(Acquisition("test acquisition", (tmp_path / "c.fits",)), detector, chunk_frames=16)
+    chunk_bytes = 16 * 128 * 128 * 8
+    tracemalloc.start()
+    try:
+        total = 0.0
+        for chunk in frames:
+            total += float(chunk.frames[0, 0, 0])
+            del chunk
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert total == data[::16, 0, 0].sum()
+    assert peak < 1.5 * chunk_bytes, peak / chunk_bytes
+
+
 def test_files_concatenate_in_order_and_chunks_do_not_span_files(tmp_path, rng):
     a, b = cube(7, rng), cube(4, rng)
     write_cube(tmp_path / "a.fits", [a], shape=(6, 7), n_frames=7)

@@ -140,6 +140,37 @@ def test_an_allan_job_reads_its_batches_from_its_metrology_product(tmp_path):
             < job_resources("allan_deviation", pixels=512 * 512, **planned)["runtime"])
 
 
+@pytest.mark.parametrize("step, side, chunk_frames, max_rss_mb, seconds, frames", [
+    # BENCHMARKS.md, "The calibration jobs at 4096x4096" (library: the workflow scripts' calls in a fresh process,
+    # not through Snakemake; a dark and flats of 12 frames, 48 in the last rows; peak RSS, VmHWM, of 109 MiB of
+    # interpreter and the step, in MB), a chunk's arithmetic in bands of rows, one chunk held; shared cores
+    ("measure_dark", 1024, "auto", 315, 2.2, 12), ("measure_prnu", 1024, "auto", 370, 11.2, 12),
+    ("measure_dark", 1024, 4, 233, 6.1, 12), ("measure_prnu", 1024, 4, 295, 9.5, 12),
+    ("measure_dark", 2048, "auto", 828, 16.6, 12), ("measure_prnu", 2048, "auto", 1003, 41.7, 12),
+    ("measure_dark", 2048, 4, 472, 9.6, 12), ("measure_prnu", 2048, 4, 757, 34.5, 12),
+    ("measure_dark", 4096, "auto", 1456, 85.0, 12), ("measure_prnu", 4096, "auto", 2545, 85.0, 12),
+    ("measure_dark", 1024, 48, 727, 27.4, 48), ("measure_prnu", 1024, 48, 784, 33.6, 48),
+])
+def test_calibration_requests_cover_the_measured_jobs(step, side, chunk_frames, max_rss_mb, seconds, frames):
+    asked = job_resources(step, pixels=side * side, frames=frames, chunk_frames=chunk_frames)
+    assert asked["mem_mb"] - resources.EXECUTOR_MB >= max_rss_mb
+    assert asked["mem_mb"] <= 4 * max_rss_mb + resources.EXECUTOR_MB
+    assert asked["runtime"] * 60 >= seconds
+
+
+def test_calibration_memory_follows_the_chunk_setting():
+    """The calibration steps hold a chunk as read: 300-frame chunks of 4096x4096 pixels (5e9 samples) ask for
+    far more than the automatic 4 frames; a chunk never holds more than the job's frames."""
+    pixels = 4096 * 4096
+    auto = job_resources("measure_prnu", pixels=pixels, frames=1000)
+    large = job_resources("measure_prnu", pixels=pixels, frames=1000, chunk_frames=300)
+    assert large["mem_mb"] > auto["mem_mb"] + 1.5 * 11 * pixels * 296 / 1e6 * 0.99
+    assert job_resources("measure_dark", pixels=pixels, frames=12, chunk_frames=300) == job_resources(
+        "measure_dark", pixels=pixels, frames=12, chunk_frames=12)
+    assert resources.chunk_frames_of("auto", pixels=pixels, frames=1000) == 4
+    assert resources.chunk_frames_of(None, pixels=80 * 84, frames=20) == 20
+
+
 def test_memory_follows_pixels_and_time_follows_samples():
     small = job_resources("fit_fringes", pixels=PAPER_PIXELS, frames=200_000)
     more_frames = job_resources("fit_fringes", pixels=PAPER_PIXELS, frames=2_000_000)

@@ -280,7 +280,13 @@ def step_resources(step, **fixed):
             parts=config["metrology"]["parts"],
             inputs=dict(input.items()),
         )
-        return dice_resources.job_resources(step, pixels=PIXELS, **data, attempt=attempt)
+        return dice_resources.job_resources(
+            step,
+            pixels=PIXELS,
+            **data,
+            chunk_frames=config["chunk_frames"],
+            attempt=attempt,
+        )
 
     # with input: Snakemake evaluates a job's resources again when it is about to run, its inputs written (the
     # Allan job's batches from its metrology product)
