@@ -485,15 +485,27 @@ def unusable_pixels(flags) -> np.ndarray:
     return (np.asarray(flags).astype(np.int64) & UNUSABLE) != 0
 
 
-def _local_median(image, size=5):
-    """Median of the valid (finite) pixels of each pixel's size x size neighbourhood (NaN: left out)."""
+def _local_median(image, size=5, *, band_samples: int | None = None):
+    """Median of the valid (finite) pixels of each pixel's size x size neighbourhood (NaN: left out; NaN where
+    none is valid, as for windows wholly outside the science area).
+
+    Vectorised over bands of rows (:func:`row_bands`, a window's ``size``**2 samples a pixel), the same numbers
+    as ``scipy.ndimage.generic_filter(image, np.nanmedian, size, mode="constant", cval=nan)`` (tested), which
+    calls Python once a pixel: 25 minutes for the two maps of a 4096x4096 detector.
+    """
     import warnings
 
-    from scipy.ndimage import generic_filter
+    from numpy.lib.stride_tricks import sliding_window_view
 
-    with warnings.catch_warnings():  # windows wholly outside the science area: NaN, as wanted
+    half = size // 2
+    windows = sliding_window_view(np.pad(np.asarray(image, float), half, constant_values=np.nan), (size, size))
+    out = np.empty(np.shape(image))
+    with warnings.catch_warnings():  # an all-NaN window: NaN, as wanted
         warnings.simplefilter("ignore", RuntimeWarning)
-        return generic_filter(image, np.nanmedian, size=size, mode="constant", cval=np.nan)
+        for band in row_bands(size * size, out.shape, samples=band_samples):
+            block = windows[band]
+            out[band] = np.nanmedian(block.reshape(block.shape[:2] + (size * size,)), axis=-1)
+    return out
 
 
 def bad_pixel_mask(dark: xr.Dataset, prnu: np.ndarray, *, detector: Detector, dead_below: float = 0.5,

@@ -300,3 +300,26 @@ def test_impossible_defects_are_refused(defects, expected):
 
     with pytest.raises(ValueError, match=expected):
         small_config(detector=defects)
+
+
+@pytest.mark.parametrize("size, band_samples", [(5, None), (5, 7 * 25 * 53), (3, 1)])
+def test_the_local_median_is_scipys_nan_median_filter(size, band_samples):
+    """The bad-pixel mask's local median, vectorised in bands of rows, equals scipy.ndimage.generic_filter with
+    np.nanmedian (a Python call a pixel) bit for bit: NaN pixels left out, NaN where a window holds none, even
+    counts of valid pixels (the mean of the middle two) and ties."""
+    import warnings
+
+    from scipy.ndimage import generic_filter
+
+    rng = np.random.default_rng(7)
+    image = rng.normal(1.0, 0.01, (37, 53))
+    image[rng.random(image.shape) < 0.15] = np.nan
+    image[:4] = np.nan  # windows wholly outside the valid pixels
+    image[:, -3:] = np.nan
+    image[10:20, 10:20] = np.round(image[10:20, 10:20], 2)  # ties
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        expected = generic_filter(image, np.nanmedian, size=size, mode="constant", cval=np.nan)
+    got = calibration._local_median(image, size, band_samples=band_samples)
+    assert np.isnan(got[0, 0]) and np.isfinite(got[20, 20])
+    np.testing.assert_array_equal(got, expected)
