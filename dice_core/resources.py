@@ -127,17 +127,19 @@ def allan_statistics_size(frames: int, batches: int | None = None) -> int:
 def allan_batches(metrology_path) -> int | None:
     """The batches the Allan job of a baseline will make (:func:`dice_core.allan.fringe_batches` of the fringe
     phase of its ``metrology`` product), or None where the product is not written yet or has too few frames
-    (the job says why). Snakemake evaluates a job's resources again when it is about to run, its inputs written:
-    the request then follows the baseline's own batches, not :data:`ALLAN_BATCH_FRAMES`."""
+    (the job says why), or where it cannot be read (a file that is not a product, or one without ``phase``:
+    the job, not the workflow's planning, then fails with a one-line error naming it). Snakemake evaluates a
+    job's resources again when it is about to run, its inputs written: the request then follows the baseline's
+    own batches, not :data:`ALLAN_BATCH_FRAMES`."""
     if not Path(metrology_path).is_file():
         return None
     from dice_core import allan, io
 
-    with io.open_product(metrology_path) as product:
-        phase = product["phase"].values
     try:
+        with io.open_product(metrology_path) as product:
+            phase = product["phase"].values
         return len(allan.fringe_batches(phase))
-    except allan.AllanError:
+    except (OSError, KeyError, ValueError, allan.AllanError):  # netCDF's errors are OSError; a bad phase ValueError
         return None
 
 

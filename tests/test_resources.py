@@ -140,6 +140,23 @@ def test_an_allan_job_reads_its_batches_from_its_metrology_product(tmp_path):
             < job_resources("allan_deviation", pixels=512 * 512, **planned)["runtime"])
 
 
+
+@pytest.mark.parametrize("content", [b"not a netCDF file", "no phase"])
+def test_an_unreadable_metrology_product_leaves_the_allan_request_to_its_frames(tmp_path, content):
+    """A metrology product that is not one (garbage bytes, or a product without ``phase``) gives no batches:
+    the request falls back on the frames, and the workflow's planning does not fail on it (the job reports
+    the bad input with its own one-line error)."""
+    import xarray as xr
+
+    from dice_core import io
+
+    path = tmp_path / "metrology.nc"
+    if isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        io.write_product(xr.Dataset({"other": ("frame", [1.0, 2.0], {"units": "1"})}), path, title="t")
+    assert resources.allan_batches(path) is None
+
 @pytest.mark.parametrize("step, side, chunk_frames, max_rss_mb, seconds, frames", [
     # BENCHMARKS.md, "The calibration jobs at 4096x4096" (library: the workflow scripts' calls in a fresh process,
     # not through Snakemake; a dark and flats of 12 frames, 48 in the last rows; peak RSS, VmHWM, of 109 MiB of
