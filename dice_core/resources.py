@@ -199,8 +199,10 @@ COSTS: dict[str, StepCost] = {
     # Time: the reading pass, 1-3.5 plain read passes (17 s per 1e9 samples, from the workflow's runs), then the
     # statistics, which grow with pixels x batches x group sizes: 44-76 plain read passes' time per sample in
     # five of six runs at 256x256 to 1024x1024 and 47 or 190 batches (pixels x groups fitted varied 178-446),
-    # 0.24-0.28 us in the two on the least loaded cores (load 4-8: BENCHMARKS.md, "The Allan job's inputs,
-    # workers and time"); before, the request grew with samples alone and missed them for short batches.
+    # 0.24-0.97 us a pixel x batch x group size on shared cores (load 4-13: BENCHMARKS.md, "The Allan job's
+    # inputs, workers and time"); asked as the two fastest runs' 0.25 us, TIME_MARGIN (6) covering the slowest
+    # (request over measured 2.0-7.6 in those runs); before, the request grew with samples alone and missed
+    # them for short batches.
     "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=470.0, mb_per_gsample=0.5, worker_mb=25.0,
                                 worker_mb_per_mpixel=260.0, start_s=3.0, s_per_gsample=17.0,
                                 s_per_gstatistic=250.0),
