@@ -368,6 +368,9 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, *, dark_noise: np.ndarra
         limit = _relative_error(prnu, variance_expected, stats.count, signal)
         measured = _relative_error(prnu, stats.pop_variance(), stats.count, stats.mean)
     frame_level = np.concatenate(levels)
+    # the scalars first: _science_only below writes NaN into the maps it is given, in place
+    prnu_rms = area_rms(np.where(responding, prnu, np.nan), detector)
+    limit_rms = float(np.sqrt(np.nanmean(np.where(responding, limit, np.nan)[sl] ** 2)))
     ds = xr.Dataset(
         {
             "prnu": (("row", "col"), _science_only(prnu, detector),
@@ -383,12 +386,12 @@ def prnu_map(chunks: Iterable[Chunk], dark: np.ndarray, *, dark_noise: np.ndarra
             "frame_level": (("frame",), frame_level,
                             {"units": "adu", "long_name": "mean science-area level of each dark-subtracted frame"}),
             "n_frames": ((), int(frame_level.size), {"units": "1", "long_name": "frames in the flat acquisition"}),
-            "prnu_rms": ((), area_rms(np.where(responding, prnu, np.nan), detector),
+            "prnu_rms": ((), prnu_rms,
                          {"units": "1", "long_name": "PRNU rms over the responding pixels of the science area"}),
             "n_not_responding": ((), int(not_responding.sum()),
                                  {"units": "1", "long_name": f"science pixels below {DEAD_BELOW:g} of the median "
                                                              "level, left out of the normalisation"}),
-            "photon_noise_limit_rms": ((), float(np.sqrt(np.nanmean(np.where(responding, limit, np.nan)[sl] ** 2))),
+            "photon_noise_limit_rms": ((), limit_rms,
                                        {"units": "1", "long_name": "rms photon-noise limit over the responding "
                                                                    "pixels of the science area"}),
             "saturated_samples": ((), int(stats.masked.sum()), {"units": "1", "long_name": "saturated samples left out"}),
