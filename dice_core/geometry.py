@@ -642,8 +642,8 @@ def _refine_in_stages(pixels, k_plane, *, nominal, prior, max_iterations, fibers
         covariance = np.linalg.inv(normal)
         stages, iterations, outer = stages + 1, iterations + done, disc
         log.info("%s: tips refined over the %d pixels within %.0f pixels of the centre (stage %d, %d "
-                 "iteration(s)); its start plane's 3-sigma error %.2f rad at its edge (searched over where "
-                 "it passes half a grid step)", label,
+                 "iteration(s)); its start plane's 3-sigma error %.2f rad at its edge (searched for where that "
+                 "exceeds half a step of the search's grid)", label,
                  stage.x.size, radii[disc], stages, done, float(np.hypot(*error)) * radii[disc])
     return tips, constant, plane, iterations
 
