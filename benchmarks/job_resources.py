@@ -118,15 +118,11 @@ def main(argv=None):
         print(f"\n{step}: {len(rows)} jobs; fit: base_mb={memory[0]:.0f}, mb_per_mpixel={memory[1]:.0f}, "
               f"mb_per_mframe={memory[2]:.0f}, mb_per_gsample={memory[3]:.0f}; start_s={times[0]:.1f}, s_per_mpixel={times[1]:.1f}, "
               f"s_per_gsample={times[2]:.1f}, s_per_position={times[3]:.3f}")
-        cost = resources.step_cost(step)
         print(f"  {'pixels':>8} {'frames':>7} {'pos':>4} {'max_rss':>8} {'model':>7} {'mem_mb':>7} "
               f"{'wall s':>7} {'model':>7} {'runtime s':>9}")
         for p, f, q, r, w in zip(pixels, n, k, rss, wall):
-            chunk = resources.chunk_frames_of("auto", pixels=int(p), frames=int(f)) if cost.mb_per_mchunk else 0
-            model_mb = (cost.base_mb + cost.mb_per_mpixel * p / 1e6 + cost.mb_per_mframe * f / 1e6
-                        + cost.mb_per_gsample * p * f / 1e9 + cost.mb_per_mchunk * p * chunk / 1e6)
-            model_s = (cost.start_s + cost.s_per_mpixel * p / 1e6 + cost.s_per_gsample * p * f / 1e9
-                       + cost.s_per_position * q)
+            # the model as the workflow asks it (one worker, planned batches: what these records hold)
+            model_mb, model_s = resources.modelled_cost(step, pixels=int(p), frames=int(f), positions=int(q))
             asked = resources.job_resources(step, pixels=int(p), frames=int(f), positions=int(q))
             worst = max(worst, r / (asked["mem_mb"] - resources.EXECUTOR_MB), w / (60 * asked["runtime"]))
             print(f"  {p:8d} {f:7d} {q:4d} {r:8.0f} {model_mb:7.0f} {asked['mem_mb']:7d} {w:7.1f} {model_s:7.1f} "

@@ -7,6 +7,7 @@ Each step's cost is a linear model of those,
 
     memory (MB)  = base_mb + mb_per_mpixel * pixels / 1e6 + mb_per_mframe * frames / 1e6
                    + mb_per_gsample * pixels * frames / 1e9 + mb_per_mchunk * pixels * chunk / 1e6
+                   + workers * (worker_mb + worker_mb_per_mpixel * pixels / 1e6)   (workers > 1)
     time (s)     = start_s + s_per_mpixel * pixels / 1e6 + s_per_gsample * pixels * frames / 1e9
                    + s_per_position * positions
                    + s_per_gstatistic * pixels * batches * group sizes / 1e9   (the Allan statistics)
@@ -41,7 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 __all__ = ["StepCost", "COSTS", "MEMORY_MARGIN", "EXECUTOR_MB", "TIME_MARGIN", "MIN_RUNTIME", "job_resources",
-           "chunk_frames_of",
+           "modelled_cost", "chunk_frames_of",
            "step_cost", "job_data", "part_files", "sample_groups", "position_groups", "simulation_groups",
            "group_files", "FileFrames", "ALLAN_BATCH_FRAMES", "allan_statistics_size", "allan_batches"]
 
@@ -237,6 +238,8 @@ def chunk_frames_of(setting, *, pixels: int, frames: int) -> int:
     from dice_core.io import auto_chunk_frames
 
     per_chunk = auto_chunk_frames((1, pixels)) if setting in (None, "auto") else int(setting)
+    if per_chunk < 1:
+        raise ValueError(f'chunk_frames must be "auto" or an integer >= 1, got {setting!r}')
     return min(per_chunk, frames)
 
 
@@ -270,9 +273,22 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
     dict
         ``mem_mb`` (int, MB) and ``runtime`` (int, minutes), Snakemake's standard resource names.
     """
-    if pixels <= 0 or frames < 0 or positions < 0 or attempt < 1 or workers < 1:
+    if attempt < 1:
+        raise ValueError(f"job_resources({step!r}): attempt {attempt} must be at least 1")
+    memory, seconds = modelled_cost(step, pixels=pixels, frames=frames, positions=positions,
+                                    chunk_frames=chunk_frames, workers=workers, batches=batches)
+    mem_mb = math.ceil(MEMORY_MARGIN * memory + EXECUTOR_MB) * attempt
+    runtime = max(MIN_RUNTIME, math.ceil(TIME_MARGIN * seconds / 60)) * attempt
+    return {"mem_mb": int(mem_mb), "runtime": int(runtime)}
+
+
+def modelled_cost(step: str, *, pixels: int, frames: int = 0, positions: int = 0, chunk_frames="auto",
+                  workers: int = 1, batches: int | None = None) -> tuple[float, float]:
+    """The module's linear model of one job of ``step``: its memory (MB) and wall time (s), before the margins
+    and the executor's memory that :func:`job_resources` adds. Parameters as there."""
+    if pixels <= 0 or frames < 0 or positions < 0 or workers < 1:
         raise ValueError(f"job_resources({step!r}): pixels {pixels} must be positive, frames {frames} and "
-                         f"positions {positions} non-negative, workers {workers} and attempt {attempt} at least 1")
+                         f"positions {positions} non-negative, workers {workers} at least 1")
     cost = step_cost(step)
     samples = float(pixels) * float(frames)
     chunk = chunk_frames_of(chunk_frames, pixels=pixels, frames=frames) if cost.mb_per_mchunk else 0
@@ -283,9 +299,7 @@ def job_resources(step: str, *, pixels: int, frames: int = 0, positions: int = 0
                + cost.s_per_position * positions)
     if cost.s_per_gstatistic:
         seconds += cost.s_per_gstatistic * pixels * allan_statistics_size(frames, batches) / 1e9
-    mem_mb = math.ceil(MEMORY_MARGIN * memory + EXECUTOR_MB) * attempt
-    runtime = max(MIN_RUNTIME, math.ceil(TIME_MARGIN * seconds / 60)) * attempt
-    return {"mem_mb": int(mem_mb), "runtime": int(runtime)}
+    return memory, seconds
 
 
 def part_files(files, frames_of, *, parts: int, part: int) -> list:
