@@ -12,10 +12,10 @@ from dice_core.manifest import Detector, load_manifest
 def test_temporal_statistics_match_numpy_whatever_the_chunking(rng):
     frames = rng.normal(1000.0, 5.0, size=(101, 4, 5))
     valid = rng.random(frames.shape) > 0.1
-    for chunk in (1, 7, 101):
-        stats = TemporalStatistics((4, 5))
+    for chunk, band_samples in [(1, None), (7, None), (101, None), (7, 1), (7, 7 * 5 * 2 + 3), (101, 101 * 5)]:
+        stats = TemporalStatistics((4, 5))  # bands of 1 row, of 2 rows and a remainder, of 1 row of 101 frames
         for start in range(0, 101, chunk):
-            stats.update(frames[start:start + chunk], valid[start:start + chunk])
+            stats.update(frames[start:start + chunk], valid[start:start + chunk], band_samples=band_samples)
         masked = np.ma.masked_array(frames, ~valid)
         np.testing.assert_allclose(stats.mean, masked.mean(axis=0).data, rtol=1e-13)
         np.testing.assert_allclose(stats.variance, masked.var(axis=0, ddof=1).data, rtol=1e-10)
