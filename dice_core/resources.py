@@ -162,6 +162,14 @@ COSTS: dict[str, StepCost] = {
                              s_per_gsample=10.0),
     "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=115.0, mb_per_mchunk=11.0, start_s=3.0,
                              s_per_mpixel=5.0, s_per_gsample=10.0),
+    # The calibration steps that read maps only (library, benchmarks/calibration_memory.py --bad-pixels at
+    # 2048x2048 and 4096x4096; BENCHMARKS.md, "The calibration jobs at 4096x4096"): above the interpreter, 40
+    # (select_reference_prnu), 114 (compare_prnu) and 88 (find_bad_pixels) bytes a pixel; 752, 1933 and 1518
+    # MiB at 4096x4096, the bad pixels in 33.5 s (its local medians vectorised; 1502 s before). LIGHT's 300
+    # MB a million pixels asked more than 8 GB for each at that size.
+    "select_reference_prnu": StepCost(base_mb=210.0, mb_per_mpixel=45.0, start_s=3.0, s_per_mpixel=1.0),
+    "compare_prnu": StepCost(base_mb=210.0, mb_per_mpixel=120.0, start_s=3.0, s_per_mpixel=1.0),
+    "find_bad_pixels": StepCost(base_mb=210.0, mb_per_mpixel=95.0, start_s=3.0, s_per_mpixel=3.0),
     # Through the workflow (Snakemake's benchmark files: the RSS of the job and its two reading workers summed,
     # so its worker_mb is 0), 481 and 727 MB at 256x256 and 512x512 x 4000 frames (BENCHMARKS.md, "The single
     # fit's memory through the workflow"): 1250 bytes a pixel above about 400 MB, asked as 1400. 1961 MB and

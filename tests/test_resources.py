@@ -167,12 +167,19 @@ def test_an_unreadable_metrology_product_leaves_the_allan_request_to_its_frames(
     ("measure_dark", 2048, 4, 472, 9.6, 12), ("measure_prnu", 2048, 4, 757, 34.5, 12),
     ("measure_dark", 4096, "auto", 1456, 85.0, 12), ("measure_prnu", 4096, "auto", 2545, 85.0, 12),
     ("measure_dark", 1024, 48, 727, 27.4, 48), ("measure_prnu", 1024, 48, 784, 33.6, 48),
+    # the same, --bad-pixels, the steps that read maps only (MiB measured, in MB here), after the bad pixels'
+    # local medians were vectorised
+    ("select_reference_prnu", 2048, "auto", 285, 2.4, 12), ("select_reference_prnu", 4096, "auto", 789, 2.5, 12),
+    ("compare_prnu", 2048, "auto", 594, 3.1, 12), ("compare_prnu", 4096, "auto", 2027, 6.9, 12),
+    ("find_bad_pixels", 2048, "auto", 486, 8.1, 12), ("find_bad_pixels", 4096, "auto", 1592, 33.5, 12),
 ])
 def test_calibration_requests_cover_the_measured_jobs(step, side, chunk_frames, max_rss_mb, seconds, frames):
     asked = job_resources(step, pixels=side * side, frames=frames, chunk_frames=chunk_frames)
     assert asked["mem_mb"] - resources.EXECUTOR_MB >= max_rss_mb
     assert asked["mem_mb"] <= 4 * max_rss_mb + resources.EXECUTOR_MB
     assert asked["runtime"] * 60 >= seconds
+    if side == 4096:  # a cluster slot of 8 GB takes every calibration job of a Theia-class detector
+        assert asked["mem_mb"] <= 8000
 
 
 def test_calibration_memory_follows_the_chunk_setting():
