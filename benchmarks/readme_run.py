@@ -16,7 +16,8 @@ reduction together, no target), and the plain read follows it.
 The ratio of the reduction's wall time to the plain read (the mean of the two) is the one issue 28
 asks of the paper preset on shared cores: at most 6; its targets on idle cores are a simulation under 90 s
 and a reduction under 60 s, and the default preset's whole command under 60 s. The load average is
-printed before and after each phase, and each command's job seconds summed by rule.
+printed before and after each phase, each command's job seconds summed by rule, and each step's peak
+RSS from the jobs' benchmark files.
 
 Usage::
 
@@ -36,6 +37,7 @@ import sys
 import time
 from pathlib import Path
 
+import job_resources  # a benchmark script beside this one (its folder is first on sys.path)
 from user_path import job_seconds, machine, plain_read, snakemake
 
 
@@ -90,6 +92,11 @@ def main(argv=None):
     for name, seconds in by_rule.items():
         print(f"\n{name}, job seconds by rule (Snakemake's log, whole seconds, {sum(seconds.values()):.0f} in all): "
               + ", ".join(f"{rule} {value:.0f}" for rule, value in seconds.items()))
+    peaks = {}
+    for step, *_, rss, _, _ in job_resources.jobs(results / f"sim-{args.dataset}"):
+        peaks[step] = max(peaks.get(step, 0.0), rss)
+    print("\npeak RSS by step (MB, the benchmark files of the jobs that have one: a job's processes summed): "
+          + ", ".join(f"{step} {mb:.0f}" for step, mb in sorted(peaks.items(), key=lambda item: -item[1])))
 
 
 if __name__ == "__main__":
