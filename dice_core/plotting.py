@@ -90,7 +90,8 @@ def _show_map(ax, fig, image, detector, *, title, units, scale, symmetric, clip_
 def _science_note(shape, rows, cols):
     """The line under a map saying that it shows the science area alone, and where that lies on the detector:
     ``rows``, ``cols`` are (first, end) as the manifest gives them, ``shape`` (rows, cols)."""
-    return f"science area only: rows {rows[0]}-{rows[1] - 1}, cols {cols[0]}-{cols[1] - 1} of {shape[0]}x{shape[1]}"
+    return (f"science area only: rows {rows[0]}-{rows[1] - 1}, cols {cols[0]}-{cols[1] - 1} (inclusive) of "
+            f"{shape[0]}x{shape[1]}")
 
 
 def maps_figure(images, detector, *, titles, units, scale=1.0, suptitle=None):
@@ -345,8 +346,8 @@ def allan_figure(ds, *, title):
     _frame_ticks(ax.xaxis)
     ax.set_ylabel("deviation of projected offsets [pixel]")
     too_few = few_batches(ds.sizes["batch"], ds.attrs["frames_per_batch"])
-    ax.set_title(too_few or f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames (any that "
-                 f"many frames sweep a fringe period); each fits the pixels' phases alone",
+    ax.set_title(too_few or f"{ds.sizes['batch']} batches of {ds.attrs['frames_per_batch']:.0f} frames, each "
+                 f"sweeping a fringe period; each fits the pixels' phases alone",
                  fontsize=11 if too_few else 9, color="firebrick" if too_few else "black")
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
     # off the curves; one column when the labels are long (no slope to give, said in two of them)
@@ -519,7 +520,7 @@ def centroids_figure(ds, *, title, positions=None):
         image = ax.imshow(windows[s], origin="lower", cmap="magma", vmin=low, vmax=high, interpolation="nearest",
                           extent=(col - half - 0.5, col + half + 0.5, row - half - 0.5, row + half + 0.5))
         ax.set_title(f"star {s}" + (" (central)" if s == central else "") +
-                     f"\nx {x0[s]:.3f} pixel, y {y0[s]:.3f} pixel", fontsize=8)
+                     f"\nat position 1: x {x0[s]:.3f} pixel, y {y0[s]:.3f} pixel", fontsize=8)
         for axis, centre in ((ax.xaxis, col), (ax.yaxis, row)):
             axis.set_major_locator(matplotlib.ticker.FixedLocator([centre - half, centre, centre + half]))
             axis.set_tick_params(labelsize=7)
@@ -1269,10 +1270,10 @@ def stray_light_figure(ds, detector, *, title, prefix: str = ""):
                          textcoords="offset points", color="cyan", fontsize=8)
     excluded = ds[f"{p}excluded_frequency"].values if f"{p}excluded_frequency" in ds else np.empty((0, 2))
     # a frequency past Nyquist (0.5 cycles/pixel) is drawn where the pixels see it, folded back into the band
-    folded = " (those past 0.5 folded back)" if (np.abs(excluded) > 0.5).any() else ""
+    folded = " (those past 0.5 folded back)" if (np.abs(excluded) >= 0.5).any() else ""
     for j, f in enumerate(excluded):
         aliased = (np.outer([1, -1], f) + 0.5) % 1.0 - 0.5  # the fringes' own K and 2K, left out of the search
-        axes[0].plot(*aliased.T, "x", color="w", ms=9, mew=1.5, ls="none",
+        axes[0].plot(*aliased.T, "x", color="w", ms=9, mew=1.5, ls="none", clip_on=False,  # whole at the edge
                      label=f"left out: the fringes' K, 2K{folded}" if j == 0 else None)
     if f"{p}excluded_frequency" in ds and ds.sizes.get(f"{p}excluded", 0):
         axes[0].legend(fontsize=7, loc="lower left")
