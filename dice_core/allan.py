@@ -669,7 +669,7 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
                     centres[lo, hi] = centres.get((lo, hi), 0j) + turned.sum()  # its direction: the mean's
     variance_pixel, variance_block = np.zeros(len(sizes)), np.zeros(len(sizes))
     for band in bands:  # the next sweep: the affine parts and the limits (and the centres, where one band is all)
-        band_fit, band_sums = fit.band(band), sums[:, :, band]
+        band_fit, band_sums, band_factors = fit.band(band), sums[:, :, band], pixel_factors[band]
         weights_band = _band_weights(weights, band)[0]
         for i, size_groups in enumerate(groups):
             for lo, hi in size_groups:
@@ -678,7 +678,7 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
                 delta = _wrapped_about(turned, centres.setdefault((lo, hi), np.mean(turned)))
                 projections[lo, hi] = projections.get((lo, hi), 0.0) + band_fit.basis.T @ delta
                 variance = np.where(good[band], photon_floor(
-                    pixel_factors[band], FtF, third=cum_third[hi] - cum_third[lo], gain=gain,
+                    band_factors, FtF, third=cum_third[hi] - cum_third[lo], gain=gain,
                     read_noise=read_noise[band], k_norm=fit.k_norm, phase_only=phase_only), 0.0) ** 2
                 variance_pixel[i] += variance.sum()
                 variance_block[i] += (variance @ weights_band**2).sum()
