@@ -747,6 +747,28 @@ def test_the_allan_workers_get_the_batch_fit_through_their_fork_not_a_pickle(tmp
     assert max(sent) < frame_bytes + 8 * np.prod(manifest.detector.shape) + 30 * n_pixels, (max(sent), n_pixels)
 
 
+def fast_sweep_baseline(tmp_path, name, *, shape, science, frames, frames_per_file, chunk_frames):
+    """A baseline of ``frames`` frames swept fast (60 frames a sweep: batches of about 42 frames) on a detector
+    of ``shape`` whose science area is ``science`` (rows, cols), fitted in two passes: its stream (chunks of
+    ``chunk_frames``), metrology product, dark and pixels with an offset."""
+    cfg = simulation.SimulationConfig.from_dict({
+        "name": name, "frames_per_file": frames_per_file,
+        "detector": {"shape": list(shape), "science_rows": list(science[0]), "science_cols": list(science[1])},
+        "dark": {"frames": 2}, "flats": {"frames": 2},
+        "stars": {"positions": 1, "frames": 1, "pattern_centre": [23.0, 20.0], "pattern_side": 16.0},
+        "metrology": {"frames": frames, "sweep_frames": 60,
+                      "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
+    manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
+    truth = read_product(tmp_path / "truth.nc")
+    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32", chunk_frames=chunk_frames)
+    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector, max_passes=2,
+                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
+    metrology = fringes.solution_dataset(solution, manifest.detector)
+    dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
+                       "noise": (("row", "col"), truth["read_noise"].values)})
+    return stream, metrology, dark, int(np.isfinite(metrology["projected_offset"].values).sum())
+
+
 def test_the_allan_job_holds_fewer_per_pixel_arrays(tmp_path):
     """allan_of_baseline's peak of traced memory (one worker: the job reads the frames itself) on a 200x200
     detector, with small chunks (4 frames) and bands (two rows of 10x10 blocks), where its per-pixel arrays
@@ -756,25 +778,12 @@ def test_the_allan_job_holds_fewer_per_pixel_arrays(tmp_path):
     while it fitted the other batches (BENCHMARKS.md, "The Allan job's memory cut")."""
     import tracemalloc
 
-    cfg = simulation.SimulationConfig.from_dict({
-        "name": "allan-pixels", "frames_per_file": 500,
-        "detector": {"shape": [200, 200], "science_rows": [0, 200], "science_cols": [0, 200]},
-        "dark": {"frames": 2}, "flats": {"frames": 2},
-        "stars": {"positions": 1, "frames": 1, "pattern_centre": [100.0, 100.0], "pattern_side": 16.0},
-        "metrology": {"frames": 1000, "sweep_frames": 60,
-                      "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
-    manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
-    truth = read_product(tmp_path / "truth.nc")
-    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32", chunk_frames=4)
-    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector, max_passes=2,
-                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
-    metrology = fringes.solution_dataset(solution, manifest.detector)
-    dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
-                       "noise": (("row", "col"), truth["read_noise"].values)})
-    n_pixels = int(np.isfinite(metrology["projected_offset"].values).sum())
+    stream, metrology, dark, n_pixels = fast_sweep_baseline(
+        tmp_path, "allan-pixels", shape=(200, 200), science=((0, 200), (0, 200)), frames=1000,
+        frames_per_file=500, chunk_frames=4)
     tracemalloc.start()
     try:
-        allan.allan_of_baseline(stream, metrology, dark=dark, detector=manifest.detector, scratch=tmp_path,
+        allan.allan_of_baseline(stream, metrology, dark=dark, detector=stream.detector, scratch=tmp_path,
                                 pixels_per_block=4000)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
@@ -791,25 +800,12 @@ def test_the_allan_step_never_holds_a_map_of_every_batch(tmp_path):
     floors, white noise and maps."""
     import tracemalloc
 
-    cfg = simulation.SimulationConfig.from_dict({
-        "name": "allan-memory", "frames_per_file": 100000,
-        "detector": {"shape": [80, 44], "science_rows": [2, 79], "science_cols": [4, 43]},
-        "dark": {"frames": 2}, "flats": {"frames": 2},
-        "stars": {"positions": 1, "frames": 1, "pattern_centre": [23.0, 20.0], "pattern_side": 16.0},
-        "metrology": {"frames": 8000, "sweep_frames": 60,
-                      "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
-    manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
-    truth = read_product(tmp_path / "truth.nc")
-    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32", chunk_frames=20)
-    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector, max_passes=2,
-                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
-    metrology = fringes.solution_dataset(solution, manifest.detector)
-    dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
-                       "noise": (("row", "col"), truth["read_noise"].values)})
-    n_pixels = int(np.isfinite(metrology["projected_offset"].values).sum())
+    stream, metrology, dark, n_pixels = fast_sweep_baseline(
+        tmp_path, "allan-memory", shape=(80, 44), science=((2, 79), (4, 43)), frames=8000,
+        frames_per_file=100000, chunk_frames=20)
     tracemalloc.start()
     try:
-        product = allan.allan_of_baseline(stream, metrology, dark=dark, detector=manifest.detector, block=4,
+        product = allan.allan_of_baseline(stream, metrology, dark=dark, detector=stream.detector, block=4,
                                           scratch=tmp_path, pixels_per_block=150)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
