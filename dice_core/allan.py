@@ -40,15 +40,15 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
-from dataclasses import dataclass
+from dataclasses import InitVar, dataclass
 
 import numpy as np
 
 from dice_core import lazy
 from dice_core.fringes import frame_moments, photon_floor
 from dice_core.io import first_chunk
-from dice_core.parallel import (LANES, blas_threads, lane_executor, lane_workers, map_lanes, one_blas_thread,
-                                threads_report)
+from dice_core.parallel import (LANES, blas_threads, inherited, lane_executor, lane_workers, map_lanes,
+                                one_blas_thread, threads_report)
 from dice_core.polynomials import polynomial_design
 from dice_core.scratch import ScratchArray, scratch_directory
 
@@ -201,16 +201,17 @@ class _BatchFit:
     idx: np.ndarray  # flat indices of the fitted pixels
     level: np.ndarray  # (reference - dark) at those pixels, adu
     reference_phase: np.ndarray  # rad
-    design: np.ndarray  # affine design over the pixels
+    # affine design over the pixels: only its basis is kept (24 bytes a pixel less held through the job)
+    design: InitVar[np.ndarray]
     k_norm: float  # rad/pixel
     iota: np.ndarray = None  # (pixel,) relative intensity, held fixed: the phase-only fit
     alpha: np.ndarray = None  # (pixel,) relative fringe amplitude, held fixed
     basis: np.ndarray = None  # orthonormal columns spanning ``design``: the affine part removed by a projection
     rotation: np.ndarray = None  # exp(-i reference_phase)
 
-    def __post_init__(self):
+    def __post_init__(self, design):
         if self.basis is None:
-            object.__setattr__(self, "basis", np.linalg.qr(self.design)[0])
+            object.__setattr__(self, "basis", np.linalg.qr(design)[0])
         if self.rotation is None:
             object.__setattr__(self, "rotation", np.exp(-1j * self.reference_phase))
 
@@ -246,7 +247,7 @@ class _BatchFit:
         pixel, cut to them (not one of their own)."""
         held = {} if self.iota is None else {"iota": self.iota[pixels], "alpha": self.alpha[pixels]}
         return _BatchFit(idx=None, level=None, reference_phase=self.reference_phase[pixels],
-                         design=self.design[pixels], k_norm=self.k_norm, basis=self.basis[pixels],
+                         design=None, k_norm=self.k_norm, basis=self.basis[pixels],
                          rotation=self.rotation[pixels], **held)
 
 
@@ -399,7 +400,9 @@ def batch_offsets(chunks, batches, frame_factors, dark, reference_phase, k, rows
     n_cols = np.shape(dark)[1]
     idx = rows * n_cols + cols
     centre = np.zeros(np.size(dark)) if reference is None else np.ravel(reference).astype(np.float64)
-    fit = _BatchFit(idx=idx, level=(centre - np.ravel(dark))[idx],  # X - d = (X - r) + (r - d)
+    level = (centre - np.ravel(dark))[idx]  # X - d = (X - r) + (r - d)
+    del centre  # (not held through the pass)
+    fit = _BatchFit(idx=idx, level=level,
                     reference_phase=np.asarray(reference_phase, float),
                     design=polynomial_design(cols.astype(float), rows.astype(float), degree=1),
                     k_norm=float(np.hypot(*k)), **_held(pixel_factors))
@@ -420,10 +423,12 @@ def _fit_batches(chunks, batches, frame_factors, fit, kept, out, workers, label,
     ``out`` (batch, pixel), one batch in memory at a time besides the lanes' own; ``finite`` (pixel,), if
     given, set False where a batch's offset is not."""
     lanes = chunks.split(LANES) if hasattr(chunks, "split") else [chunks]
-    with lane_executor(workers, len(lanes)) as executor:
+    # the fit's per-pixel arrays (about 100 bytes a pixel) reach the workers through their fork, shared with
+    # this process, not as a pickled copy each (which held it twice in a worker while it was unpickled)
+    with inherited(fit) as shared_fit, lane_executor(workers, len(lanes)) as executor:
         log.info("%s: %d batch fits over %d part(s) of the frames, in %d process(es)", label, len(batches),
                  len(lanes), lane_workers(workers, len(lanes)))
-        results = map_lanes(executor, _lane_batch_offsets, lanes, batches, frame_factors, fit, kept, label)
+        results = map_lanes(executor, _lane_batch_offsets, lanes, batches, frame_factors, shared_fit, kept, label)
     log.info("%s: %s", label, threads_report(executor, [threads for _, _, threads in results]))
     fitted = np.zeros(len(batches), bool)
     partial, covered = {}, {}
@@ -436,18 +441,21 @@ def _fit_batches(chunks, batches, frame_factors, fit, kept, out, workers, label,
         if finite is not None:
             np.logical_and(finite, np.isfinite(offsets), out=finite)
 
-    for done, sums, _ in results:  # in lane order, so that a batch cut between parts sums the same way always
-        for b in done:
-            finish(b, kept[b])
+    for _, sums, _ in results:  # in lane order, so that a batch cut between parts sums the same way always
         for b, (part, n_frames) in sums.items():
             partial[b] = part if b not in partial else partial[b] + part
             covered[b] = covered.get(b, 0) + n_frames
-    for b, part in partial.items():
+        sums.clear()  # each lane's part dropped once summed: no more than one sum of a batch held
+    for b in list(partial):  # the batches cut between parts first, each dropped once fitted
         start, stop = batches[b]
         if covered[b] == stop - start:
             # every batch's sums rounded alike, wherever the lanes cut
-            kept[b] = FtI = np.asarray(fit.normal_sums(frame_factors[start:stop], part), np.float32)
+            kept[b] = FtI = np.asarray(fit.normal_sums(frame_factors[start:stop], partial.pop(b)), np.float32)
             finish(b, FtI)
+            del FtI
+    for done, _, _ in results:
+        for b in done:
+            finish(b, kept[b])
     if not fitted.all():
         raise AllanError(f"{label}: the frames ended in batch {np.flatnonzero(~fitted)[0]} of {len(batches)}")
 
@@ -457,7 +465,28 @@ def _held(pixel_factors):
     if pixel_factors is None:
         return {}
     pixel_factors = np.asarray(pixel_factors, float)
-    return {"iota": pixel_factors[:, 0], "alpha": np.hypot(pixel_factors[:, 1], pixel_factors[:, 2])}
+    # iota copied: a view would hold the whole (pixel, 3) array as long as the fit
+    return {"iota": pixel_factors[:, 0].copy(), "alpha": np.hypot(pixel_factors[:, 1], pixel_factors[:, 2])}
+
+
+class _PixelFactors:
+    """(iota, alpha sin phase, alpha cos phase) (pixel, 3) of the global solution, made when read: ``[pixels]``
+    (a slice) for those pixels, ``np.asarray`` for all; each the same numbers as that slice of
+    ``np.column_stack`` of the whole (elementwise), without 24 bytes a pixel held through the job."""
+
+    def __init__(self, iota, alpha, phase):
+        self.iota, self.alpha, self.phase = iota, alpha, phase
+        self.shape = (np.size(phase), 3)
+
+    def __getitem__(self, pixels):
+        if not isinstance(pixels, slice):
+            raise IndexError("_PixelFactors gives a slice of pixels")
+        alpha, phase = self.alpha[pixels], self.phase[pixels]
+        return np.column_stack([self.iota[pixels], alpha * np.sin(phase), alpha * np.cos(phase)])
+
+    def __array__(self, dtype=None, copy=None):
+        whole = self[:]
+        return whole if dtype is None else whole.astype(dtype, copy=False)
 
 
 def batch_floors(frame_factors, batches, *, pixel_factors, gain, read_noise, k_norm,
@@ -640,7 +669,7 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
                     centres[lo, hi] = centres.get((lo, hi), 0j) + turned.sum()  # its direction: the mean's
     variance_pixel, variance_block = np.zeros(len(sizes)), np.zeros(len(sizes))
     for band in bands:  # the next sweep: the affine parts and the limits (and the centres, where one band is all)
-        band_fit, band_sums = fit.band(band), sums[:, :, band]
+        band_fit, band_sums, band_factors = fit.band(band), sums[:, :, band], pixel_factors[band]
         weights_band = _band_weights(weights, band)[0]
         for i, size_groups in enumerate(groups):
             for lo, hi in size_groups:
@@ -649,7 +678,7 @@ def group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, siz
                 delta = _wrapped_about(turned, centres.setdefault((lo, hi), np.mean(turned)))
                 projections[lo, hi] = projections.get((lo, hi), 0.0) + band_fit.basis.T @ delta
                 variance = np.where(good[band], photon_floor(
-                    pixel_factors[band], FtF, third=cum_third[hi] - cum_third[lo], gain=gain,
+                    band_factors, FtF, third=cum_third[hi] - cum_third[lo], gain=gain,
                     read_noise=read_noise[band], k_norm=fit.k_norm, phase_only=phase_only), 0.0) ** 2
                 variance_pixel[i] += variance.sum()
                 variance_block[i] += (variance @ weights_band**2).sum()
@@ -1253,6 +1282,13 @@ def statistics_dataset(statistics: AllanStatistics, rows, cols, shape, *, block:
     )
 
 
+def _parked(values, folder, name):
+    """``values`` (an array) moved to a :class:`ScratchArray` in ``folder``: ``[...]`` gives them back."""
+    parked = ScratchArray(folder, values.shape, values.dtype, name=name)
+    parked[...] = values
+    return parked
+
+
 @one_blas_thread
 def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detector, block: int = 10,
                       workers: int = 1, label: str = "baseline", scratch=None, pixels_per_block=None) -> xr.Dataset:
@@ -1329,19 +1365,19 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
     first_frame = head.frames[0][rows, cols].astype(np.float64) - dark_map[rows, cols]
     del head
     iota, alpha = _at_pixels(metrology["iota"], rows, cols), _at_pixels(metrology["alpha"], rows, cols)
-    pixel_factors = np.column_stack([iota, alpha * np.sin(reference_phase), alpha * np.cos(reference_phase)])
+    pixel_factors = _PixelFactors(iota, alpha, reference_phase)  # made a band at a time where read
     read_noise = np.nan_to_num(_at_pixels(dark["noise"], rows, cols))
     sizes = group_sizes(len(batches))
     band = max(1, BAND_NUMBERS // len(batches)) if pixels_per_block is None else pixels_per_block
-    global_floor = None
-    if "photon_noise_floor" in metrology:  # the whole acquisition's floor, for the curves' reference
-        global_floor = (_at_pixels(metrology["photon_noise_floor"], rows, cols), phase.size)
     with scratch_directory(scratch) as folder:
+        # what only the product's last variables use waits on disk (read back at the end), not in memory
+        # through the pass and the groups' fits, where the job's memory peaks
+        first_frame = _parked(first_frame, folder, "first_frame")
         good = np.ones(rows.size, bool)  # the pixels with an offset in every batch, found by the pass
         offsets, sums = batch_offsets(stream.centred(reference), batches, frame_factors, dark_map, reference_phase,
                                       k, rows, cols, pixel_factors=pixel_factors, reference=reference,
                                       workers=workers, return_sums=True, scratch=folder, label=label, finite=good)
-        del dark_map
+        del dark_map, reference
         weights = block_weights(rows, cols, good=good, block=block)
         groups = group_fits(sums, batches, frame_factors, reference_phase, k, rows, cols, sizes,
                             pixel_factors=pixel_factors, gain=detector.gain, read_noise=read_noise, good=good,
@@ -1351,6 +1387,10 @@ def allan_of_baseline(stream, metrology: xr.Dataset, *, dark: xr.Dataset, detect
                               read_noise=read_noise, k_norm=np.hypot(*k))  # made a band at a time
         log.info("%s: %d group sizes fitted as a whole, from %d to %d batches", label, len(sizes), sizes[0],
                  sizes[-1])
+        global_floor = None
+        if "photon_noise_floor" in metrology:  # the whole acquisition's floor, for the curves' reference
+            global_floor = (_at_pixels(metrology["photon_noise_floor"], rows, cols), phase.size)
+        first_frame = first_frame[...]
         return allan_dataset(offsets, floors, batches, rows, cols, detector, level=float(np.mean(level)),
                              amplitude=float(np.mean(amplitude)), iota=iota, alpha=alpha, read_noise=read_noise,
                              k=k, block=block, groups=groups, first_frame=first_frame, global_floor=global_floor,

@@ -23,11 +23,12 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import functools
+import itertools
 import multiprocessing
 
 import threadpoolctl
 
-__all__ = ["LANES", "one_blas_thread", "blas_threads", "lane_executor", "lane_workers", "map_lanes",
+__all__ = ["LANES", "one_blas_thread", "blas_threads", "lane_executor", "lane_workers", "map_lanes", "inherited",
            "threads_report"]
 
 #: Consecutive parts a :class:`dice_core.io.FrameStream` is reduced in.
@@ -81,13 +82,53 @@ def lane_executor(workers: int, n_lanes: int):
     return contextlib.nullcontext(None)
 
 
+#: The values handed to forked workers through :func:`inherited`, by key: a worker forked while one is here
+#: has it in its own (copy-on-write) copy of this dictionary.
+_INHERITED: dict = {}
+_KEYS = itertools.count()
+
+
+class _Inherited:
+    """A key of :data:`_INHERITED`: what :func:`map_lanes` sends a worker in place of the value (a few bytes)."""
+
+    def __init__(self, key: int):
+        self.key = key
+
+
+def _resolved(value):
+    """``value``, or the value an :class:`_Inherited` handle stands for in this process."""
+    if not isinstance(value, _Inherited):
+        return value
+    try:
+        return _INHERITED[value.key]
+    except KeyError:
+        raise RuntimeError("a worker process was forked before the value it was handed through "
+                           "parallel.inherited(): make its executor inside that block") from None
+
+
+@contextlib.contextmanager
+def inherited(value):
+    """``value`` as an argument of :func:`map_lanes` that worker processes forked inside this block read from
+    their parent's memory (copy-on-write: shared pages, not one more copy a worker) instead of a pickled copy
+    each; yields the handle to pass. For large read-only values (per-pixel arrays); the executor must be made
+    (:func:`lane_executor`) inside the block, as its workers are forked when it is first used."""
+    key = next(_KEYS)
+    _INHERITED[key] = value
+    try:
+        yield _Inherited(key)
+    finally:
+        del _INHERITED[key]
+
+
 def map_lanes(executor, function, lanes, *shared):
     """``function(lane, *shared)`` for each lane, in lane order: in the executor's processes, or here if None.
+    A shared value may be an :func:`inherited` handle: the function gets the value.
 
     The files' SHA-256 a worker took while streaming its lane (:class:`dice_core.io.FrameStream`) come back
     to this process with the results, so that the products' provenance does not read the files again.
     """
     if executor is None:
+        shared = [_resolved(value) for value in shared]
         return [function(lane, *shared) for lane in lanes]
     from dice_core import io  # here: io's imports are not this module's to pay for
 
@@ -104,7 +145,7 @@ def _lane_with_digests(function, lane, *shared):
     """In a worker process: ``function(lane, *shared)`` and the files' digests the worker knows."""
     from dice_core import io
 
-    return function(lane, *shared), io.known_digests()
+    return function(lane, *[_resolved(value) for value in shared]), io.known_digests()
 
 
 def threads_report(executor, lane_threads) -> str:

@@ -7,7 +7,8 @@ Each step's cost is a linear model of those,
 
     memory (MB)  = base_mb + mb_per_mpixel * pixels / 1e6 + mb_per_mframe * frames / 1e6
                    + mb_per_gsample * pixels * frames / 1e9 + mb_per_mchunk * pixels * chunk / 1e6
-                   + workers * (worker_mb + worker_mb_per_mpixel * pixels / 1e6)   (workers > 1)
+                   + workers * (worker_mb + worker_mb_per_mpixel * pixels / 1e6
+                                + mb_per_mchunk * pixels * chunk / 1e6)                 (workers > 1)
     time (s)     = start_s + s_per_mpixel * pixels / 1e6 + s_per_gsample * pixels * frames / 1e9
                    + s_per_position * positions
                    + s_per_gstatistic * pixels * batches * group sizes / 1e9   (the Allan statistics)
@@ -24,7 +25,8 @@ number of batches times the pixels (each batch's offset map), so with pixels
 x frames; and, for the calibration steps, with the samples of a chunk (``chunk``: its frames, the
 configuration's ``chunk_frames`` or the reader's automatic choice, at most the job's frames), which they hold
 as read and converted while they work on it a band of rows at a time. A job that reads its frames in worker
-processes (its threads) adds each worker's memory, ``worker_mb`` and ``worker_mb_per_mpixel`` a worker.
+processes (its threads) adds each worker's memory, ``worker_mb`` and ``worker_mb_per_mpixel`` a worker, and
+a chunk's (``mb_per_mchunk``) a worker: each worker reads its chunks as the job would.
 
 The request adds margins to the measured cost, because a job that runs out
 of memory or time on a cluster is killed: :data:`MEMORY_MARGIN` on memory,
@@ -75,8 +77,8 @@ class StepCost:
     worker_mb, worker_mb_per_mpixel : float
         MB that each worker process adds, and MB per million pixels, for a job
         that reads its frames in worker processes (``workers`` > 1: they are
-        forked, what they share with the job counted once): its own copy of
-        the per-pixel arrays it is sent, its chunk and its batches' sums.
+        forked, what they share with the job counted once): what it makes of
+        its own (its batches' sums), its chunk counted apart (``mb_per_mchunk``).
     mb_per_mchunk : float
         MB per million samples of a chunk (its frames x pixels): the chunk as read and converted.
     start_s : float
@@ -199,12 +201,15 @@ COSTS: dict[str, StepCost] = {
     # pixels"); each band of pixels about 8 bytes a batch-pixel number, at least one row of 10x10-pixel blocks:
     # 10 x 4096 pixels x 160 batches at 4096x4096 (50 MB), which the per-sample term covers for batches of 40
     # frames or more (0.5 MB per 1e9 samples). Measured (library, benchmarks/allan_memory.py, 47 batches of 42
-    # frames; BENCHMARKS.md, "The Allan job's inputs, workers and time"): the job's process tree, the peak of
-    # its processes' summed PSS (what they take together; their forked workers share the job's pages), 220 and
-    # 587 MB at 512x512 and 1024x1024 with one worker (peak RSS 258 and 627: 469 MB a million pixels, above
-    # the 247 bytes a pixel measured before between 256x256 and 512x512); with two workers 405 and 1176 MB,
-    # each worker 25 MB and 257 MB a million pixels more (its own copy of the per-pixel arrays of the batches'
-    # fit it is sent, a chunk, its batches' sums; the job itself pickles that fit for each).
+    # frames; BENCHMARKS.md, "The Allan job's memory cut"), the job's process tree (the peak of its processes'
+    # summed PSS: what they take together, forked workers sharing the job's pages; and of their summed RSS):
+    # one worker, the job alone, peak RSS 247 and 527 MB at 512x512 and 1024x1024 (355 MB a million pixels,
+    # 469 before the cut), of which the chunks it reads: 16 frames at these sizes (io.auto_chunk_frames), two
+    # float32 chunks and a raw one held at once, 10 bytes a sample (tracemalloc), 4 frames at 4096x4096; the
+    # rest 195 MB a million pixels. With two workers the tree's PSS 329 and 775 MB: each worker its chunks and
+    # about 27 MB a million pixels more (its batches' sums); the batches' fit reaches it through the fork,
+    # shared (it was sent a pickled copy: 257 MB a million pixels a worker). The job's chunk is counted with
+    # workers too (it reads none then but the first): 6.8 GB at 4096x4096 with two workers, 4.4 with one.
     # Time: the reading pass, 1-3.5 plain read passes (17 s per 1e9 samples, from the workflow's runs), then the
     # statistics, which grow with pixels x batches x group sizes: 44-76 plain read passes' time per sample in
     # five of six runs at 256x256 to 1024x1024 and 47 or 190 batches (pixels x groups fitted varied 178-446),
@@ -212,8 +217,8 @@ COSTS: dict[str, StepCost] = {
     # inputs, workers and time"); asked as the two fastest runs' 0.25 us, TIME_MARGIN (6) covering the slowest
     # (request over measured 2.0-7.6 in those runs); before, the request grew with samples alone and missed
     # them for short batches.
-    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=470.0, mb_per_gsample=0.5, worker_mb=25.0,
-                                worker_mb_per_mpixel=260.0, start_s=3.0, s_per_gsample=17.0,
+    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=200.0, mb_per_gsample=0.5, mb_per_mchunk=10.0,
+                                worker_mb=25.0, worker_mb_per_mpixel=30.0, start_s=3.0, s_per_gsample=17.0,
                                 s_per_gstatistic=250.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),
     "measure_centroids": StepCost(base_mb=170.0, start_s=5.0, s_per_position=0.1),
@@ -302,7 +307,8 @@ def modelled_cost(step: str, *, pixels: int, frames: int = 0, positions: int = 0
     chunk = chunk_frames_of(chunk_frames, pixels=pixels, frames=frames) if cost.mb_per_mchunk else 0
     memory = (cost.base_mb + cost.mb_per_mpixel * pixels / 1e6 + cost.mb_per_mframe * frames / 1e6
               + cost.mb_per_gsample * samples / 1e9 + cost.mb_per_mchunk * pixels * chunk / 1e6
-              + (workers if workers > 1 else 0) * (cost.worker_mb + cost.worker_mb_per_mpixel * pixels / 1e6))
+              + (workers if workers > 1 else 0) * (cost.worker_mb + cost.worker_mb_per_mpixel * pixels / 1e6
+                                                   + cost.mb_per_mchunk * pixels * chunk / 1e6))
     seconds = (cost.start_s + cost.s_per_mpixel * pixels / 1e6 + cost.s_per_gsample * samples / 1e9
                + cost.s_per_position * positions)
     if cost.s_per_gstatistic:

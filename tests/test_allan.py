@@ -712,6 +712,86 @@ def test_the_allan_step_reads_its_products_lazily_at_its_pixels(tmp_path, monkey
     assert abs(peaks["fat"] - peaks["metrology"]) < 0.5e6, peaks
 
 
+def test_the_allan_workers_get_the_batch_fit_through_their_fork_not_a_pickle(tmp_path, monkeypatch):
+    """With two workers, what the Allan pass sends each worker (pickled into the pool's queue) holds no copy of
+    the batches' fit (its pixels' phases, affine basis, iota, alpha... about 100 bytes a pixel): the workers
+    read it from their parent's memory, forked (parallel.inherited). Sent: the lane (its float64 centre frame,
+    8 bytes a pixel of the detector), the frame factors and batches, a few kB; the product the same as one
+    worker's. Measured: 62 kB a call; 217 kB on the base commit, which pickled the fit for each worker."""
+    import multiprocessing.queues
+
+    manifest, truth = four_file_baseline(tmp_path, "allan-fork")
+    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32")
+    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector,
+                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
+    metrology = fringes.solution_dataset(solution, manifest.detector)
+    dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
+                       "noise": (("row", "col"), truth["read_noise"].values)})
+    sent = []
+
+    class Recording(multiprocessing.queues._ForkingPickler):
+        @classmethod
+        def dumps(cls, obj, protocol=None):
+            data = super().dumps(obj, protocol)
+            sent.append(len(data))
+            return data
+
+    monkeypatch.setattr(multiprocessing.queues, "_ForkingPickler", Recording)
+    two = allan.allan_of_baseline(stream, metrology, dark=dark, detector=manifest.detector, workers=2)
+    monkeypatch.undo()
+    one = allan.allan_of_baseline(stream, metrology, dark=dark, detector=manifest.detector, workers=1)
+    xr.testing.assert_identical(one, two)
+    n_pixels = int(np.isfinite(metrology["projected_offset"].values).sum())
+    frame_bytes = 3 * 8 * stream.n_frames  # the frame factors
+    assert len(sent) >= 2, sent  # a call a lane
+    assert max(sent) < frame_bytes + 8 * np.prod(manifest.detector.shape) + 30 * n_pixels, (max(sent), n_pixels)
+
+
+def fast_sweep_baseline(tmp_path, name, *, shape, science, frames, frames_per_file, chunk_frames):
+    """A baseline of ``frames`` frames swept fast (60 frames a sweep: batches of about 42 frames) on a detector
+    of ``shape`` whose science area is ``science`` (rows, cols), fitted in two passes: its stream (chunks of
+    ``chunk_frames``), metrology product, dark and pixels with an offset."""
+    cfg = simulation.SimulationConfig.from_dict({
+        "name": name, "frames_per_file": frames_per_file,
+        "detector": {"shape": list(shape), "science_rows": list(science[0]), "science_cols": list(science[1])},
+        "dark": {"frames": 2}, "flats": {"frames": 2},
+        "stars": {"positions": 1, "frames": 1, "pattern_centre": [23.0, 20.0], "pattern_side": 16.0},
+        "metrology": {"frames": frames, "sweep_frames": 60,
+                      "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
+    manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
+    truth = read_product(tmp_path / "truth.nc")
+    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32", chunk_frames=chunk_frames)
+    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector, max_passes=2,
+                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
+    metrology = fringes.solution_dataset(solution, manifest.detector)
+    dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
+                       "noise": (("row", "col"), truth["read_noise"].values)})
+    return stream, metrology, dark, int(np.isfinite(metrology["projected_offset"].values).sum())
+
+
+def test_the_allan_job_holds_fewer_per_pixel_arrays(tmp_path):
+    """allan_of_baseline's peak of traced memory (one worker: the job reads the frames itself) on a 200x200
+    detector, with small chunks (4 frames) and bands (two rows of 10x10 blocks), where its per-pixel arrays
+    make most of it: under 420 bytes a pixel. Measured: 371 bytes a pixel; 482 on the base commit, which held
+    the affine design beside its basis in each batch fit, a (pixel, 3) array of pixel factors through the job,
+    the first frame and the global floor from start to end, and both lanes' sums of a batch cut between them
+    while it fitted the other batches (BENCHMARKS.md, "The Allan job's memory cut")."""
+    import tracemalloc
+
+    stream, metrology, dark, n_pixels = fast_sweep_baseline(
+        tmp_path, "allan-pixels", shape=(200, 200), science=((0, 200), (0, 200)), frames=1000,
+        frames_per_file=500, chunk_frames=4)
+    tracemalloc.start()
+    try:
+        allan.allan_of_baseline(stream, metrology, dark=dark, detector=stream.detector, scratch=tmp_path,
+                                pixels_per_block=4000)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert n_pixels > 30_000, n_pixels
+    assert peak < 420 * n_pixels, (peak / n_pixels, n_pixels)
+
+
 def test_the_allan_step_never_holds_a_map_of_every_batch(tmp_path):
     """allan_of_baseline's peak of traced memory on a baseline of about 200 batches stays under one float64
     (batch, pixel) array: what grows with pixels times batches is on disk, the statistics read a band of pixels
@@ -720,25 +800,12 @@ def test_the_allan_step_never_holds_a_map_of_every_batch(tmp_path):
     floors, white noise and maps."""
     import tracemalloc
 
-    cfg = simulation.SimulationConfig.from_dict({
-        "name": "allan-memory", "frames_per_file": 100000,
-        "detector": {"shape": [80, 44], "science_rows": [2, 79], "science_cols": [4, 43]},
-        "dark": {"frames": 2}, "flats": {"frames": 2},
-        "stars": {"positions": 1, "frames": 1, "pattern_centre": [23.0, 20.0], "pattern_side": 16.0},
-        "metrology": {"frames": 8000, "sweep_frames": 60,
-                      "baselines": {"H1H4": {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
-    manifest = load_manifest(simulation.simulate_dataset(cfg, tmp_path))
-    truth = read_product(tmp_path / "truth.nc")
-    stream = FrameStream(manifest.baselines["H1H4"], manifest.detector, dtype="float32", chunk_frames=20)
-    solution = fringe_fit.fit_baseline(stream, truth["bias"].values, detector=manifest.detector, max_passes=2,
-                                       flat=truth["sensitivity"].values, read_noise=truth["read_noise"].values)
-    metrology = fringes.solution_dataset(solution, manifest.detector)
-    dark = xr.Dataset({"dark": (("row", "col"), truth["bias"].values),
-                       "noise": (("row", "col"), truth["read_noise"].values)})
-    n_pixels = int(np.isfinite(metrology["projected_offset"].values).sum())
+    stream, metrology, dark, n_pixels = fast_sweep_baseline(
+        tmp_path, "allan-memory", shape=(80, 44), science=((2, 79), (4, 43)), frames=8000,
+        frames_per_file=100000, chunk_frames=20)
     tracemalloc.start()
     try:
-        product = allan.allan_of_baseline(stream, metrology, dark=dark, detector=manifest.detector, block=4,
+        product = allan.allan_of_baseline(stream, metrology, dark=dark, detector=stream.detector, block=4,
                                           scratch=tmp_path, pixels_per_block=150)
         peak = tracemalloc.get_traced_memory()[1]
     finally:

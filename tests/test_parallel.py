@@ -1,9 +1,11 @@
 """BLAS threads and worker processes: the reductions set their own, whatever the environment says."""
 
+import multiprocessing
 import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import threadpoolctl
 
@@ -57,3 +59,27 @@ def test_the_environment_does_not_set_the_threads_of_a_fit():
     if environment_threads != "2":
         pytest.skip("BLAS cannot run two threads here")
     assert step_threads == "1"
+
+
+def _lane_plus_sum(lane, values):
+    return lane + int(values.sum())
+
+
+def test_an_inherited_value_reaches_forked_workers_without_a_pickle():
+    """parallel.inherited: map_lanes sends a worker a handle of a few bytes, and the function gets the value, in
+    the pool's forked processes as in this one; a pool forked before the value was handed is an error that says
+    so, not a wrong value."""
+    import pickle
+
+    values = np.arange(100_000.0)
+    with parallel.inherited(values) as handle, parallel.lane_executor(2, 2) as executor:
+        assert len(pickle.dumps(handle)) < 100 < values.nbytes
+        expected = [lane + int(values.sum()) for lane in (1, 2)]
+        assert parallel.map_lanes(executor, _lane_plus_sum, [1, 2], handle) == expected
+        assert parallel.map_lanes(None, _lane_plus_sum, [1, 2], handle) == expected
+    if "fork" not in multiprocessing.get_all_start_methods():
+        return
+    with parallel.lane_executor(2, 2) as executor:
+        parallel.map_lanes(executor, _lane_plus_sum, [1, 2], values)  # its workers forked now
+        with parallel.inherited(values) as late, pytest.raises(RuntimeError, match="forked before"):
+            parallel.map_lanes(executor, _lane_plus_sum, [1, 2], late)
