@@ -110,8 +110,10 @@ def _resolved(value):
 def inherited(value):
     """``value`` as an argument of :func:`map_lanes` that worker processes forked inside this block read from
     their parent's memory (copy-on-write: shared pages, not one more copy a worker) instead of a pickled copy
-    each; yields the handle to pass. For large read-only values (per-pixel arrays); the executor must be made
-    (:func:`lane_executor`) inside the block, as its workers are forked when it is first used."""
+    each; yields the handle to pass. For large read-only values (per-pixel arrays): the workers see the value
+    as it was when they were forked, so it must not change inside the block. The executor must be made
+    (:func:`lane_executor`) inside the block, as its workers are forked when it is first used: a pool that
+    outlives one block (the fit's, reused across passes) cannot take a value this way."""
     key = next(_KEYS)
     _INHERITED[key] = value
     try:

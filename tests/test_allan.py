@@ -845,3 +845,18 @@ def test_a_step_stopped_with_sigterm_removes_its_scratch_folder(tmp_path):
     run.send_signal(signal.SIGTERM)
     assert run.wait(timeout=30) == 128 + signal.SIGTERM
     assert not folder.exists() and not list(tmp_path.glob(".dice-scratch-*"))
+
+
+def test_pixel_factors_made_a_band_at_a_time_are_those_of_the_whole():
+    """allan._PixelFactors makes (iota, alpha sin phase, alpha cos phase) where read: any slice, at odd offsets
+    and lengths, of a strided input too, gives the same bits as that slice of the whole array's column stack
+    (the Allan products' bits rest on it)."""
+    rng = np.random.default_rng(3)
+    iota, alpha, phase = (rng.normal(size=1001) for _ in range(3))
+    phase *= 40.0  # many turns: sin and cos far from their small-angle forms
+    whole = np.column_stack([iota, alpha * np.sin(phase), alpha * np.cos(phase)])
+    for factors in (allan._PixelFactors(iota, alpha, phase),
+                    allan._PixelFactors(*(np.repeat(v, 2)[::2] for v in (iota, alpha, phase)))):
+        for band in (slice(0, 1001), slice(1, 18), slice(7, 1000), slice(999, 1001), slice(333, 334)):
+            np.testing.assert_array_equal(factors[band], whole[band])
+        np.testing.assert_array_equal(np.asarray(factors), whole)
