@@ -35,6 +35,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from user_path import PROC_STATUS  # a script beside this one (its folder is first on sys.path)
+
 REPO = Path(__file__).resolve().parents[1]
 BASELINE = "H1H4"
 
@@ -51,11 +53,7 @@ from dice_core import fringe_fit, fringes, io
 from dice_core.geometry import BaselineGeometry
 from dice_core.manifest import load_manifest
 
-def status(key):
-    for line in open("/proc/self/status"):
-        if line.startswith(key):
-            return int(line.split()[1]) / 1024
-
+""" + PROC_STATUS + r"""
 folder = Path(folder)
 base = status("VmRSS")
 def geometry_of(manifest):

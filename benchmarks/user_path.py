@@ -120,3 +120,13 @@ def plain_read(manifest: Path, baseline: str | None = None, *, dtype: str = "flo
                          check=True, capture_output=True, text=True, cwd=tree,
                          env={**os.environ, "PYTHONPATH": str(Path(tree).resolve())}).stdout
     return json.loads(out)
+
+
+#: Defines ``status(key)`` in a benchmark's child process (the scripts add it to the code they run with
+#: ``python -c``): a field of /proc/self/status in MiB (``VmRSS``, ``VmHWM``).
+PROC_STATUS = '''
+def status(key):
+    for line in open("/proc/self/status"):
+        if line.startswith(key):
+            return int(line.split()[1]) / 1024
+'''
