@@ -54,7 +54,7 @@ BASELINE = "H1H4"
 #: block or "default"): the workflow script's calls.
 JOB = r"""
 import inspect, json, logging, sys, time
-tree, manifest, metrology, dark, baseline, output, workers, per_block = sys.argv[1:9]
+tree, manifest, metrology, dark, baseline, output, workers, per_block, chunk_frames = sys.argv[1:10]
 sys.path.insert(0, tree)
 from pathlib import Path
 import numpy as np
@@ -74,7 +74,8 @@ logging.getLogger().setLevel(logging.INFO)
 base = status("VmRSS")
 start = time.perf_counter()
 manifest = load_manifest(manifest)
-stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames="auto", dtype="float32")
+stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, dtype="float32",
+                        chunk_frames=chunk_frames if chunk_frames == "auto" else int(chunk_frames))
 extra = {}
 if "scratch" in inspect.signature(allan.allan_of_baseline).parameters:
     extra["scratch"] = Path(output).parent
@@ -126,11 +127,12 @@ def _memory(pid: int) -> tuple[float, float]:
         return 0.0, 0.0
 
 
-def run_job(tree, manifest, metrology, dark, baseline, output, *, workers=1, pixels_per_block="default") -> dict:
+def run_job(tree, manifest, metrology, dark, baseline, output, *, workers=1, pixels_per_block="default",
+            chunk_frames="auto") -> dict:
     """The Allan step of the code ``tree`` in a fresh process: its report (seconds, peak and base RSS in MiB,
     batches, pixels)."""
     job = subprocess.Popen([sys.executable, "-c", JOB, str(Path(tree).resolve()), str(manifest), str(metrology),
-                            str(dark), baseline, str(output), str(workers), str(pixels_per_block)],
+                            str(dark), baseline, str(output), str(workers), str(pixels_per_block), str(chunk_frames)],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     peak_rss = peak_pss = 0.0
     workers_rss = {}
@@ -240,6 +242,7 @@ def main(argv=None):
     parser.add_argument("--unused-maps", type=int, default=0,
                         help="float64 maps added to the metrology product that the step does not use")
     parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--chunk-frames", default="auto", help='the stream\'s chunk_frames ("auto" or frames)')
     parser.add_argument("--pixels-per-block", default="default",
                         help="the Allan step's bands of pixels (a tree that has them; default: its own choice)")
     args = parser.parse_args(argv)
@@ -254,7 +257,7 @@ def main(argv=None):
             add_unused_maps(folder / "metrology.nc", metrology, args.unused_maps)
     results = {"machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                "load": os.getloadavg(), "size": args.size, "frames": args.frames, "workers": args.workers,
-               "pixels_per_block": args.pixels_per_block, "unused_maps": args.unused_maps,
+               "pixels_per_block": args.pixels_per_block, "unused_maps": args.unused_maps, "chunk_frames": args.chunk_frames,
                "metrology_mb": metrology.stat().st_size / 2**20}
     plain = subprocess.run([sys.executable, "-c", PLAIN, str(REPO), str(folder / "raw" / "dataset.yaml")],
                            check=True, capture_output=True, text=True)
@@ -262,9 +265,10 @@ def main(argv=None):
     products = {}
     for spec in args.tree:
         name, tree = spec.split("=", 1)
-        output = folder / f"allan-{name}-{args.pixels_per_block}.nc"
+        output = folder / f"allan-{name}-{args.pixels_per_block}-c{args.chunk_frames}.nc"
         run = run_job(tree, folder / "raw" / "dataset.yaml", metrology, folder / "dark.nc", BASELINE,
-                      output, workers=args.workers, pixels_per_block=args.pixels_per_block)
+                      output, workers=args.workers, pixels_per_block=args.pixels_per_block,
+                      chunk_frames=args.chunk_frames)
         own = run["peak_mb"] - run["base_mb"]
         run.update(own_mb=own, bytes_per_pixel=own * 2**20 / args.size**2,
                    bytes_per_pixel_batch=own * 2**20 / args.size**2 / run["batches"],

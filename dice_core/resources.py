@@ -209,7 +209,12 @@ COSTS: dict[str, StepCost] = {
     # rest 195 MB a million pixels. With two workers the tree's PSS 329 and 775 MB: each worker its chunks and
     # about 27 MB a million pixels more (its batches' sums); the batches' fit reaches it through the fork,
     # shared (it was sent a pickled copy: 257 MB a million pixels a worker). The job's chunk is counted with
-    # workers too (it reads none then but the first): 6.8 GB at 4096x4096 with two workers, 4.4 with one.
+    # workers too (it reads none then but the first). Measured again with 4-frame chunks (as 4096x4096 reads
+    # them; BENCHMARKS.md, "The Allan job's chunk term, measured"): the tree's PSS with two workers 233 and 587
+    # MB at 512x512 and 1024x1024 (and 333 with 16-frame chunks at 512x512: 10.6 bytes a chunk sample in each
+    # of the three processes), 450 MB a million pixels, of which 324 besides the chunks: the job's term raised
+    # from 200 to 265 to cover it. 7.9 GB modelled at 4096x4096 with two workers (7.7 by the straight line
+    # through the two measurements), 5.5 with one.
     # Time: the reading pass, 1-3.5 plain read passes (17 s per 1e9 samples, from the workflow's runs), then the
     # statistics, which grow with pixels x batches x group sizes: 44-76 plain read passes' time per sample in
     # five of six runs at 256x256 to 1024x1024 and 47 or 190 batches (pixels x groups fitted varied 178-446),
@@ -217,7 +222,7 @@ COSTS: dict[str, StepCost] = {
     # inputs, workers and time"); asked as the two fastest runs' 0.25 us, TIME_MARGIN (6) covering the slowest
     # (request over measured 2.0-7.6 in those runs); before, the request grew with samples alone and missed
     # them for short batches.
-    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=200.0, mb_per_gsample=0.5, mb_per_mchunk=10.0,
+    "allan_deviation": StepCost(base_mb=350.0, mb_per_mpixel=265.0, mb_per_gsample=0.5, mb_per_mchunk=10.0,
                                 worker_mb=25.0, worker_mb_per_mpixel=30.0, start_s=3.0, s_per_gsample=17.0,
                                 s_per_gstatistic=250.0),
     "stack_position": StepCost(base_mb=200.0, mb_per_mpixel=1000.0, start_s=3.0, s_per_gsample=20.0),

@@ -72,6 +72,20 @@ def test_the_allan_job_at_4096x4096_is_modelled_under_8_gb_with_two_workers():
         assert (asked["mem_mb"] - resources.EXECUTOR_MB) / resources.MEMORY_MARGIN < 8000, (workers, asked)
 
 
+@pytest.mark.parametrize("pixels, tree_pss_mb, tree_rss_mb", [
+    # BENCHMARKS.md, "The Allan job's chunk term, measured" (library, benchmarks/allan_memory.py --chunk-frames 4
+    # --workers 2, 2000 frames in two files): 4-frame chunks, as a 4096x4096 detector reads them
+    (512 * 512, 233, 517),
+    (1024 * 1024, 587, 1096),
+])
+def test_the_allan_model_covers_its_trees_with_the_chunks_of_a_large_detector(pixels, tree_pss_mb, tree_rss_mb):
+    """With 4-frame chunks the model (before margins) covers the tree's measured PSS, and the request its RSS."""
+    memory, _ = resources.modelled_cost("allan_deviation", pixels=pixels, frames=2000, workers=2, chunk_frames=4)
+    assert memory >= tree_pss_mb
+    asked = job_resources("allan_deviation", pixels=pixels, frames=2000, workers=2, chunk_frames=4)
+    assert asked["mem_mb"] - resources.EXECUTOR_MB >= tree_rss_mb
+
+
 def test_a_baselines_jobs_ask_for_the_workers_their_threads_run():
     """job_data gives the fit and Allan jobs the workers reading_workers gives their rules' threads: two for a
     large baseline in two files, one for a small one; no workers for the other steps."""
