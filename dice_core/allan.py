@@ -49,6 +49,7 @@ from dice_core.fringes import frame_moments, photon_floor
 from dice_core.io import first_chunk
 from dice_core.parallel import (LANES, blas_threads, inherited, lane_executor, lane_workers, map_lanes,
                                 one_blas_thread, threads_report)
+from dice_core.pixel_blocks import pixel_blocks
 from dice_core.polynomials import polynomial_design
 from dice_core.scratch import ScratchArray, scratch_directory
 
@@ -897,10 +898,11 @@ MAP_BAND_BYTES = 2**24
 
 
 def _map_bands(variable):
-    """Consecutive slices of the rows of a (row, col) variable, about :data:`MAP_BAND_BYTES` of it each."""
-    n_rows, n_cols = variable.shape
-    step = max(1, MAP_BAND_BYTES // max(1, n_cols * variable.dtype.itemsize))
-    return [slice(lo, min(lo + step, n_rows)) for lo in range(0, n_rows, step)]
+    """Consecutive slices of the rows of a (row, col) variable, about :data:`MAP_BAND_BYTES` of it each
+    (:func:`dice_core.calibration.row_bands`, a byte a "sample" of an itemsize-frame chunk)."""
+    from dice_core.calibration import row_bands
+
+    return row_bands(variable.dtype.itemsize, variable.shape, samples=MAP_BAND_BYTES)
 
 
 def _finite_pixels(variable):
@@ -923,9 +925,9 @@ def _at_pixels(variable, rows, cols):
 
 
 def _plain_bands(n, pixels_per_block):
-    """Consecutive slices of ``n`` pixels, ``pixels_per_block`` long (one of all if None)."""
-    step = n if pixels_per_block is None else max(1, int(pixels_per_block))
-    return [slice(lo, min(lo + step, n)) for lo in range(0, n, step)] or [slice(0, 0)]
+    """Consecutive slices of ``n`` pixels, ``pixels_per_block`` long (one of all if None; one empty if none)."""
+    step = n if pixels_per_block is None else int(pixels_per_block)
+    return list(pixel_blocks(n, max(1, step))) or [slice(0, 0)]
 
 
 def _rms_of(deviations, pixels_per_block):

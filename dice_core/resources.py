@@ -158,8 +158,9 @@ COSTS: dict[str, StepCost] = {
     # and one chunk as read and converted, 11 bytes a sample of it (its arithmetic a band of rows at a time):
     # the sum overstates a little, the PRNU's peak being the larger of its pass and its finish. 1389 and 2427
     # MiB at 4096x4096 in 4-frame chunks (before the bands, 3581 and 4687: 94 and 136 bytes a pixel and 31
-    # and 37 a chunk's sample). 9-85 s at 4096x4096 x 12 frames on shared cores (load 3-13), most of it the
-    # per-pixel finish and the product's write.
+    # and 37 a chunk's sample). 18.7 and 32.6 s at 4096x4096 x 12 frames (library, calibration_memory.py,
+    # load 3.7: BENCHMARKS.md, "The calibration jobs at 4096x4096"), most of it the per-pixel finish and the
+    # product's write.
     "measure_dark": StepCost(base_mb=210.0, mb_per_mpixel=40.0, mb_per_mchunk=11.0, start_s=3.0, s_per_mpixel=4.0,
                              s_per_gsample=10.0),
     "measure_prnu": StepCost(base_mb=210.0, mb_per_mpixel=115.0, mb_per_mchunk=11.0, start_s=3.0,
