@@ -342,13 +342,25 @@ def part_files(files, frames_of, *, parts: int, part: int) -> list:
 PARALLEL_READ_SAMPLES = 2e8
 
 
-def reading_workers(files, frames_of, *, pixels: int, parts: int) -> int:
+def reading_workers(files, frames_of, *, pixels: int, parts: int, cores: int | None = None,
+                    baselines: int = 1) -> int:
     """Worker processes, a job's threads, for a job that streams a baseline of ``files`` (``frames_of(path)``
     its frames, ``pixels`` a frame's) in ``parts`` parts of whole files (the fit's ``metrology.parts``, the
     Allan step's :data:`dice_core.parallel.LANES`): one per part, a part one file at least, from
-    ``PARALLEL_READ_SAMPLES`` samples; else one. The product does not depend on it."""
+    ``PARALLEL_READ_SAMPLES`` samples; else one. The product does not depend on it.
+
+    ``cores`` are the run's (Snakemake's ``--cores``; None where a job has a slot of its own, as on a
+    cluster) and ``baselines`` the baselines the run reads: a job takes at most ``cores // baselines``
+    workers, so that the baselines' jobs, side by side, fill the cores with one process each before any takes
+    two. A second worker reads its part about 1.5x faster but holds a core for the whole job, most of which is
+    serial: on 2 cores the paper preset's reduction (four baselines) took 77-80 s with one worker a job against
+    97-100 s with two (BENCHMARKS.md, "One worker or two").
+    """
     samples = pixels * sum(frames_of(f) for f in files)
-    return max(1, min(parts, len(files))) if samples >= PARALLEL_READ_SAMPLES else 1
+    workers = max(1, min(parts, len(files))) if samples >= PARALLEL_READ_SAMPLES else 1
+    if cores is not None:
+        workers = min(workers, max(1, cores // max(1, baselines)))
+    return workers
 
 
 def sample_groups(sizes, *, samples: float) -> list[tuple[int, ...]]:
@@ -407,13 +419,15 @@ def group_files(manifest, group: tuple[str, int, int]) -> list:
     return [f for p in manifest.positions[indices.index(first):indices.index(last) + 1] for f in p.acquisition.files]
 
 
-def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1, inputs=None) -> dict:
+def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1, inputs=None,
+             cores: int | None = None) -> dict:
     """What one job of ``step`` reads (or writes, for the simulation), for :func:`job_resources`:
     ``frames`` over all its files and ``positions``.
 
     ``wildcards`` are the job's; ``frames_of(path)`` gives a raw file's frames (planned or from its header);
     ``parts`` the split fit's number of parts (``metrology.parts``, the parts a single fit reads in too). For a
-    baseline's fit and Allan jobs, also their ``workers`` (:func:`reading_workers`, as their rules' threads);
+    baseline's fit and Allan jobs, also their ``workers`` (:func:`reading_workers` with the run's ``cores``,
+    None for no limit, and the manifest's baselines, as their rules' threads);
     for an Allan job whose ``inputs`` (name -> path) hold a written ``metrology`` product, its ``batches``.
     """
     def acquisition(acq):
@@ -433,7 +447,8 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1,
 
         files = manifest.baselines[wildcards["baseline"]].files
         workers = reading_workers(files, frames_of, pixels=manifest.detector.shape[0] * manifest.detector.shape[1],
-                                  parts=parts if step == "fit_fringes" else LANES)
+                                  parts=parts if step == "fit_fringes" else LANES, cores=cores,
+                                  baselines=len(manifest.baselines))
         data = {"frames": acquisition(manifest.baselines[wildcards["baseline"]]), "workers": workers}
         if step == "allan_deviation" and inputs and "metrology" in inputs:
             if (batches := allan_batches(inputs["metrology"])) is not None:

@@ -101,6 +101,10 @@ def test_a_baselines_jobs_ask_for_the_workers_their_threads_run():
         small = resources.job_data(step, {"baseline": "small"}, manifest=manifest, frames_of=frames_of, parts=2)
         large = resources.job_data(step, {"baseline": "large"}, manifest=manifest, frames_of=frames_of, parts=2)
         assert (small, large) == ({"frames": 4000, "workers": 1}, {"frames": 400000, "workers": 2}), step
+        # the run's cores shared among its two baselines: one core each, one worker each
+        shared = resources.job_data(step, {"baseline": "large"}, manifest=manifest, frames_of=frames_of, parts=2,
+                                    cores=2)
+        assert shared == {"frames": 400000, "workers": 1}, step
     assert "workers" not in resources.job_data("fit_finish", {"baseline": "large"}, manifest=manifest,
                                                frames_of=frames_of, parts=2)
 
@@ -327,3 +331,28 @@ def test_a_baseline_is_read_by_one_worker_unless_it_is_large_and_in_several_file
     assert resources.reading_workers(["big1", "big2", "big3"], frames_of, pixels=pixels, parts=1) == 1
     # the threshold is in samples: the same frames of a detector 100 times smaller stay in one worker
     assert resources.reading_workers(["big1", "big2"], frames_of, pixels=pixels // 100, parts=2) == 1
+
+
+def test_the_run_s_baselines_take_its_cores_one_worker_each_before_any_takes_two():
+    """With the run's cores known (``--cores``), a large baseline's job takes at most cores // baselines
+    workers: on 2 cores four baselines read side by side, one process each (the paper preset's reduction in 77-80
+    s instead of 97-100); one baseline alone, or enough cores, gives each job one worker a part; no total (a
+    cluster's slots) no limit."""
+    pixels = 80 * 84
+    frames_of = {"big1": 200000, "big2": 200000, "big3": 200000}.get
+    large = ["big1", "big2", "big3"]
+
+    def workers(cores, baselines, parts=3):
+        return resources.reading_workers(large, frames_of, pixels=pixels, parts=parts, cores=cores,
+                                         baselines=baselines)
+
+    assert workers(2, 4) == 1
+    assert workers(2, 2) == 1
+    assert workers(2, 1) == 2
+    assert workers(8, 4) == 2
+    assert workers(12, 4) == 3
+    assert workers(64, 4, parts=2) == 2  # never more than a worker a part
+    assert workers(None, 4) == 3
+    assert workers(1, 0) == 1  # a run with no baseline to share among does not divide by zero
+    # the threshold holds first: a small baseline keeps one worker whatever the cores
+    assert resources.reading_workers(["big1", "big2"], frames_of, pixels=pixels // 100, parts=2, cores=64) == 1

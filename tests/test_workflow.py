@@ -783,15 +783,16 @@ def test_every_job_asks_for_memory_and_time_that_cover_what_its_benchmark_measur
     assert checked >= 20  # the simulation's files, dark, flats, fits, Allan, stacks, centroids
 
 
-def test_only_a_large_baseline_s_fit_and_allan_jobs_ask_for_two_threads(workdir):
+def test_only_a_large_baseline_s_fit_and_allan_jobs_ask_for_two_threads_with_cores_to_spare(workdir):
     """The rules' threads (dice_core.resources.reading_workers): the paper preset's baselines (1.3e9 samples in
-    10 files) ask for two, one per part; the ci preset's (2e6 samples) for one, in each of the 8 jobs."""
-    for dataset, threads in (("paper", "2"), ("ci", None)):
-        plan = snakemake(workdir, "-n", "--forceall", "--config", f"dataset={dataset}").stdout
+    10 files) ask for two, one per part, where the run's cores give each of its four baselines two (--cores 8),
+    and for one on the README's 2 cores; the ci preset's (2e6 samples) for one, in each of the 8 jobs."""
+    for dataset, cores, threads in (("paper", "8", "2"), ("paper", "2", None), ("ci", "8", None)):
+        plan = snakemake(workdir, "-n", "--forceall", "--cores", cores, "--config", f"dataset={dataset}").stdout
         jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?=^\S|\Z)", plan, re.M | re.S)
         asked = [re.search(r"^\s+threads: (\d+)", block, re.M) for rule, block in jobs
                  if rule in ("fit_fringes", "allan_deviation")]
-        assert [found.group(1) if found else None for found in asked] == [threads] * 8, dataset
+        assert [found.group(1) if found else None for found in asked] == [threads] * 8, (dataset, cores)
 
 
 def test_missing_manifest_is_a_clear_error(workdir, tmp_path):

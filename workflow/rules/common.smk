@@ -7,6 +7,8 @@ import re
 import sys
 from pathlib import Path
 
+from snakemake.exceptions import WorkflowError
+
 from dice_core import DatasetError, planning, preflight, products, simulation, steps
 from dice_core import resources as dice_resources
 from dice_core.parallel import LANES
@@ -249,13 +251,28 @@ if DRY_RUN:
     say_skipped()
 
 
+def run_cores():
+    """The run's cores (--cores), or None where Snakemake has no total: a cluster's executor gives each job a
+    slot of its own."""
+    try:
+        return workflow.cores
+    except WorkflowError:
+        return None
+
+
+RUN_CORES = run_cores()
+
+
 def reading_threads(parts):
     """A rule's threads: for a job that reads baseline ``wildcards.baseline`` in ``parts`` parts, its worker
-    processes, one per part for a large baseline, one for a small (dice_core.resources.reading_workers)."""
+    processes, one per part for a large baseline, one for a small, and no more than the run's cores shared
+    among its baselines (dice_core.resources.reading_workers)."""
 
     def threads(wildcards):
         files = MANIFEST.baselines[wildcards.baseline].files
-        return dice_resources.reading_workers(files, file_frames, pixels=PIXELS, parts=parts)
+        return dice_resources.reading_workers(
+            files, file_frames, pixels=PIXELS, parts=parts, cores=RUN_CORES, baselines=len(MANIFEST.baselines)
+        )
 
     return threads
 
@@ -279,6 +296,7 @@ def step_resources(step, **fixed):
             frames_of=file_frames,
             parts=config["metrology"]["parts"],
             inputs=dict(input.items()),
+            cores=RUN_CORES,
         )
         return dice_resources.job_resources(
             step,
