@@ -58,6 +58,7 @@ __all__ = [
     "TEMPORARY_NAME",
     "provenance",
     "input_digests",
+    "adopt_recorded_digests",
     "known_digests",
     "remember_digests",
     "read_product",
@@ -800,6 +801,28 @@ def input_digests(path, *, roots=None) -> dict:
         if record["sha256"] is not None:
             digests[str(where.resolve())] = record["sha256"]
     return digests
+
+
+def adopt_recorded_digests(path, *, roots=None) -> list[str]:
+    """Take the SHA-256 that product ``path`` recorded of its inputs (:func:`input_digests`) as this process's
+    own digests of those files, so that a step reading them again hashes none of them (:class:`FrameStream`,
+    :func:`write_product`): the Allan step reads a baseline's files the fit read and recorded.
+
+    A file modified after the product was written (its mtime not earlier than the product's) keeps no digest here:
+    it is hashed as it is read, as it would be without this call. Returns the files whose digests were taken
+    (resolved paths).
+    """
+    written = Path(path).stat().st_mtime_ns
+    adopted = []
+    for where, digest in input_digests(path, roots=roots).items():
+        try:
+            stat = os.stat(where)
+        except OSError:  # gone since: whoever reads it says so
+            continue
+        if stat.st_mtime_ns < written:
+            _DIGESTS[_digest_key(Path(where), stat)] = digest
+            adopted.append(where)
+    return adopted
 
 
 def _history_of(path) -> list[str]:

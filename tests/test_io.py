@@ -497,6 +497,55 @@ def test_checksums_recorded_by_one_product_are_taken_by_another_without_reading_
     assert [r["sha256"] for r in records] == ["0" * 64, hashlib.sha256(other.read_bytes()).hexdigest()]
 
 
+def test_a_step_reading_files_a_product_recorded_adopts_their_digests_unless_changed_since(tmp_path, rng,
+                                                                                           monkeypatch):
+    """The Allan step streams the files the fit read: with the fit product's digests adopted
+    (adopt_recorded_digests) the stream hashes nothing and the new product records the same SHA-256; a file
+    modified after the product was written is not adopted, and is hashed as it is read."""
+    import hashlib
+    import json
+    import os
+
+    from dice_core import io
+
+    monkeypatch.setattr(io, "_DIGESTS", {})  # this process has hashed nothing yet
+    detector = Detector(shape=(6, 7), science_rows=(0, 6), science_cols=(0, 7), gain=2.0, saturation=6e4)
+    dataset, results = tmp_path / "bench", tmp_path / "results"
+    files = [dataset / "raw" / f"m{i}.fits" for i in range(2)]
+    for path in files:
+        write_cube(path, [cube(5, rng)], shape=(6, 7), n_frames=5)
+    sha256 = hashlib.sha256
+    truth = {str(f.resolve()): sha256(f.read_bytes()).hexdigest() for f in files}
+    fit = results / "metrology.nc"
+    with io.provenance(dataset=dataset, results=results):
+        write_product(product(), fit, title="fit", inputs=files)
+        written = fit.stat().st_mtime_ns
+        for path in files:  # both read before the product was written, as the fit's are
+            os.utime(path, ns=(written - 10**9, written - 10**9))
+        monkeypatch.setattr(io, "_DIGESTS", {})  # a new process: the Allan job
+
+        def no_hashing(*args):
+            raise AssertionError("a file was hashed again")
+
+        monkeypatch.setattr(io.hashlib, "sha256", no_hashing)
+        assert io.adopt_recorded_digests(fit) == [str(f.resolve()) for f in files]
+        collect(FrameStream(Acquisition("baseline", tuple(files)), detector, chunk_frames=2))
+        write_product(product(), results / "allan.nc", title="allan", inputs=[*files, fit], digests={
+            str(fit.resolve()): "f" * 64})
+        records = json.loads(read_product(results / "allan.nc").attrs["inputs"])
+        assert {str((dataset / r["path"]).resolve()): r["sha256"] for r in records[:2]} == truth
+
+        # the second file rewritten after the fit's product (a later mtime): its digest is not adopted
+        monkeypatch.setattr(io, "_DIGESTS", {})
+        monkeypatch.setattr(io.hashlib, "sha256", sha256)
+        write_cube(files[1], [cube(5, rng)], shape=(6, 7), n_frames=5)
+        os.utime(files[1], ns=(written + 10**9, written + 10**9))
+        assert io.adopt_recorded_digests(fit) == [str(files[0].resolve())]
+        collect(FrameStream(Acquisition("baseline", tuple(files)), detector, chunk_frames=2))
+        assert io.known_digests()[io._digest_key(files[1])] == sha256(files[1].read_bytes()).hexdigest()
+        assert io.known_digests()[io._digest_key(files[0])] == truth[str(files[0].resolve())]
+
+
 @pytest.mark.parametrize("dtype", ["uint16", "float32"])
 def test_a_frame_saturated_over_the_whole_science_area_names_the_file_and_the_saturation_level(tmp_path, rng, dtype):
     """A saturation level set below the data masks every sample; each step then failed on an empty frame

@@ -124,7 +124,12 @@ def test_products_record_their_code_relative_inputs_with_checksums_and_history(o
 
     dark, prnu = read_product(out / "calibration/dark.nc"), read_product(out / "calibration/prnu.nc")
     centroids = read_product(out / "centroids/raw.nc")
-    for ds in (dark, prnu, centroids):
+    # the Allan step records the raw files' sha256 the fit recorded (adopt_recorded_digests), not hashed again
+    allan = read_product(out / "allan/H1H4.nc")
+    files = sum(r["path"].endswith(".fits") for r in json.loads(read_product(out / "metrology/H1H4.nc").attrs["inputs"]))
+    assert f"the SHA-256 of {files} of its {files} file(s) taken from the fit's product" in (
+        out / "logs/allan_deviation_H1H4.log").read_text()
+    for ds in (dark, prnu, centroids, allan):
         assert len(ds.attrs["code_version"]) == 16 and ds.attrs["code_version"] in ds.attrs["history"]
         for record in json.loads(ds.attrs["inputs"]):
             assert record["relative_to"] in ("dataset", "results") and not record["path"].startswith("/")
