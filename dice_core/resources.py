@@ -354,7 +354,7 @@ def reading_workers(files, frames_of, *, pixels: int, parts: int, cores: int | N
     workers, so that the baselines' jobs, side by side, fill the cores with one process each before any takes
     two. A second worker reads its part about 1.5x faster but holds a core for the whole job, most of which is
     serial: on 2 cores the paper preset's reduction (four baselines) took 77-80 s with one worker a job against
-    97-100 s with two (BENCHMARKS.md, "One worker or two").
+    97 s with two (BENCHMARKS.md, "The README's commands on idle cores").
     """
     samples = pixels * sum(frames_of(f) for f in files)
     workers = max(1, min(parts, len(files))) if samples >= PARALLEL_READ_SAMPLES else 1

@@ -336,7 +336,7 @@ def test_a_baseline_is_read_by_one_worker_unless_it_is_large_and_in_several_file
 def test_the_run_s_baselines_take_its_cores_one_worker_each_before_any_takes_two():
     """With the run's cores known (``--cores``), a large baseline's job takes at most cores // baselines
     workers: on 2 cores four baselines read side by side, one process each (the paper preset's reduction in 77-80
-    s instead of 97-100); one baseline alone, or enough cores, gives each job one worker a part; no total (a
+    s instead of 97); one baseline alone, or enough cores, gives each job one worker a part; no total (a
     cluster's slots) no limit."""
     pixels = 80 * 84
     frames_of = {"big1": 200000, "big2": 200000, "big3": 200000}.get
