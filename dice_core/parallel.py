@@ -122,6 +122,12 @@ def inherited(value):
         del _INHERITED[key]
 
 
+class WorkerDied(RuntimeError):
+    """A worker process of :func:`map_lanes` ended without its result: killed (by the out-of-memory killer, a
+    signal) or crashed in native code. A user's problem, not a bug: said in one line
+    (:func:`dice_core.known_error`)."""
+
+
 def map_lanes(executor, function, lanes, *shared):
     """``function(lane, *shared)`` for each lane, in lane order: in the executor's processes, or here if None.
     A shared value may be an :func:`inherited` handle: the function gets the value.
@@ -136,10 +142,16 @@ def map_lanes(executor, function, lanes, *shared):
 
     n = len(lanes)
     results = []
-    for result, digests in executor.map(_lane_with_digests, [function] * n, lanes,
-                                        *[[value] * n for value in shared]):
-        io.remember_digests(digests)
-        results.append(result)
+    try:
+        for result, digests in executor.map(_lane_with_digests, [function] * n, lanes,
+                                            *[[value] * n for value in shared]):
+            io.remember_digests(digests)
+            results.append(result)
+    except concurrent.futures.BrokenExecutor as exc:  # the pool's BrokenProcessPool: it names no cause
+        raise WorkerDied(
+            f"a worker process ended abruptly while the job's {n} part(s) were read (killed by the system, most "
+            "often for lack of memory: give the job more memory, or read with one worker: --set-threads "
+            "<rule>=1)") from exc
     return results
 
 

@@ -39,6 +39,7 @@ quiet-machine time with other jobs on the cores) and at least
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -133,13 +134,24 @@ def allan_batches(metrology_path) -> int | None:
     (the job says why), or where it cannot be read (a file that is not a product, or one without ``phase``:
     the job, not the workflow's planning, then fails with a one-line error naming it). Snakemake evaluates a
     job's resources again when it is about to run, its inputs written: the request then follows the baseline's
-    own batches, not :data:`ALLAN_BATCH_FRAMES`."""
-    if not Path(metrology_path).is_file():
+    own batches, not :data:`ALLAN_BATCH_FRAMES`.
+
+    Read once a version of the file (its path, size and modification time): Snakemake evaluates each of a
+    job's resources, and each time it plans, in the workflow's one process."""
+    path = Path(metrology_path)
+    if not path.is_file():
         return None
+    stat = path.stat()
+    return _batches_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=1024)
+def _batches_of(path: str, size: int, mtime_ns: int) -> int | None:
+    """:func:`allan_batches` of one version of a file (``size`` and ``mtime_ns`` key the cache)."""
     from dice_core import allan, io
 
     try:
-        with io.open_product(metrology_path) as product:
+        with io.open_product(path) as product:
             phase = product["phase"].values
         return len(allan.fringe_batches(phase))
     except (OSError, KeyError, ValueError, allan.AllanError):  # netCDF's errors are OSError; a bad phase ValueError

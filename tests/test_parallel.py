@@ -83,3 +83,26 @@ def test_an_inherited_value_reaches_forked_workers_without_a_pickle():
         parallel.map_lanes(executor, _lane_plus_sum, [1, 2], values)  # its workers forked now
         with parallel.inherited(values) as late, pytest.raises(RuntimeError, match="forked before"):
             parallel.map_lanes(executor, _lane_plus_sum, [1, 2], late)
+
+
+def _killed(lane):
+    """A lane whose worker is killed outright (as by the out-of-memory killer)."""
+    import os
+    import signal
+
+    if lane == 1:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return lane
+
+
+def test_a_worker_killed_outright_is_one_line_naming_the_likely_cause():
+    """A worker killed by the system (SIGKILL: the out-of-memory killer) gave a bare BrokenProcessPool and its
+    traceback; it is now a WorkerDied, a known error (one line from run_logged) saying what to do."""
+    import dice_core
+
+    with parallel.lane_executor(2, 2) as executor:
+        with pytest.raises(parallel.WorkerDied) as info:
+            parallel.map_lanes(executor, _killed, [0, 1])
+    assert dice_core.known_error(info.value)
+    line = dice_core.error_line(info.value)
+    assert "worker process ended abruptly" in line and "lack of memory" in line and "--set-threads" in line

@@ -172,6 +172,29 @@ def test_an_allan_job_reads_its_batches_from_its_metrology_product(tmp_path):
             < job_resources("allan_deviation", pixels=512 * 512, **planned)["runtime"])
 
 
+def test_an_allan_job_s_batches_are_read_once_a_version_of_its_metrology_product(tmp_path, monkeypatch):
+    """Snakemake evaluates a job's resources many times: the product is read once, and again once rewritten."""
+    import os
+
+    import numpy as np
+    import xarray as xr
+
+    from dice_core import io
+
+    path = tmp_path / "metrology.nc"
+    io.write_product(xr.Dataset({"phase": ("frame", np.cumsum(np.full(6000, 2 * np.pi / 90)), {"units": "rad"})}),
+                     path, title="t")
+    opened = []
+    real_open = io.open_product
+    monkeypatch.setattr(io, "open_product", lambda p: opened.append(p) or real_open(p))
+    first = [resources.allan_batches(path) for _ in range(5)]
+    assert len(set(first)) == 1 and first[0] > 0 and len(opened) == 1
+    io.write_product(xr.Dataset({"phase": ("frame", np.cumsum(np.full(6000, 2 * np.pi / 45)), {"units": "rad"})}),
+                     path, title="t")
+    os.utime(path, ns=(path.stat().st_mtime_ns + 10**9,) * 2)  # a later version, whatever the clock's grain
+    assert resources.allan_batches(path) > first[0] and len(opened) == 2
+
+
 
 @pytest.mark.parametrize("content", [b"not a netCDF file", "no phase"])
 def test_an_unreadable_metrology_product_leaves_the_allan_request_to_its_frames(tmp_path, content):
