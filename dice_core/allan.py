@@ -284,6 +284,12 @@ def _phase_only(FtF, FtI, iota, alpha, *, steps: int = 2):
     return theta
 
 
+def _inherited_lane(index, lanes, *arguments):
+    """:func:`_lane_batch_offsets` of lane ``index`` of ``lanes`` (read through a worker's fork: see
+    :func:`_fit_batches`)."""
+    return _lane_batch_offsets(lanes[index], *arguments)
+
+
 def _lane_batch_offsets(chunks, batches, frame_factors, fit: _BatchFit, kept, label):
     """One lane's part of :func:`batch_offsets`: the batches its chunks hold whole, and the others' partial sums.
 
@@ -424,12 +430,15 @@ def _fit_batches(chunks, batches, frame_factors, fit, kept, out, workers, label,
     ``out`` (batch, pixel), one batch in memory at a time besides the lanes' own; ``finite`` (pixel,), if
     given, set False where a batch's offset is not."""
     lanes = chunks.split(LANES) if hasattr(chunks, "split") else [chunks]
-    # the fit's per-pixel arrays (about 100 bytes a pixel) reach the workers through their fork, shared with
-    # this process, not as a pickled copy each (which held it twice in a worker while it was unpickled)
-    with inherited(fit) as shared_fit, lane_executor(workers, len(lanes)) as executor:
+    # the fit's per-pixel arrays (about 100 bytes a pixel) and the lanes (each with the centre frame it
+    # subtracts, 8 bytes a detector pixel) reach the workers through their fork, shared with this process, not
+    # as a pickled copy each (which held it twice in a worker while it was unpickled)
+    with (inherited(fit) as shared_fit, inherited(lanes) as shared_lanes,
+          lane_executor(workers, len(lanes)) as executor):
         log.info("%s: %d batch fits over %d part(s) of the frames, in %d process(es)", label, len(batches),
                  len(lanes), lane_workers(workers, len(lanes)))
-        results = map_lanes(executor, _lane_batch_offsets, lanes, batches, frame_factors, shared_fit, kept, label)
+        results = map_lanes(executor, _inherited_lane, list(range(len(lanes))), shared_lanes, batches,
+                            frame_factors, shared_fit, kept, label)
     log.info("%s: %s", label, threads_report(executor, [threads for _, _, threads in results]))
     fitted = np.zeros(len(batches), bool)
     partial, covered = {}, {}
