@@ -24,6 +24,7 @@ import errno
 import fcntl
 import hashlib
 import json
+import logging
 import os
 import re
 import secrets
@@ -39,6 +40,7 @@ from dice_core import DatasetError, lazy, products
 from dice_core.manifest import Acquisition, Detector
 
 xr = lazy.module("xarray")
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from astropy.io import fits
@@ -58,7 +60,8 @@ __all__ = [
     "TEMPORARY_NAME",
     "provenance",
     "input_digests",
-    "adopt_recorded_digests",
+    "adopt_stored_digests",
+    "DIGEST_STORE",
     "known_digests",
     "remember_digests",
     "read_product",
@@ -741,6 +744,64 @@ class _StreamDigest:
             _DIGESTS[self.key] = self.hasher.hexdigest()
 
 
+#: The folder, in a results folder (the ``results`` root of :func:`provenance`), where the SHA-256 its steps
+#: took of their inputs are kept, a small JSON file an input: what one step hashed while streaming a file,
+#: another step that streams the same file is given (:func:`adopt_stored_digests`): the Allan step, the
+#: files the fit read.
+DIGEST_STORE = ".dice-digests"
+
+
+def _store_entry(path: str) -> Path | None:
+    """The store's file of input ``path`` (resolved, str) in the results folder of the enclosing
+    :func:`provenance` block; None outside one, or one without a ``results`` root."""
+    results = ((_PROVENANCE.get() or {}).get("roots") or {}).get("results")
+    if results is None:
+        return None
+    return Path(results) / DIGEST_STORE / (hashlib.blake2b(path.encode(), digest_size=16).hexdigest() + ".json")
+
+
+def _store_digests(paths) -> None:
+    """Keep in the store the digests this process took of ``paths`` as they are now (their current key)."""
+    for path in paths:
+        try:
+            key = _digest_key(Path(path))
+        except OSError:
+            continue
+        entry = _store_entry(key[0])
+        if entry is None or key not in _DIGESTS:
+            continue
+        record = {"path": key[0], "size": key[1], "mtime_ns": key[2], "sha256": _DIGESTS[key]}
+        try:
+            entry.parent.mkdir(parents=True, exist_ok=True)
+            write_text(entry, json.dumps(record))
+        except OSError as exc:  # a cache: without it a later step hashes the file again
+            log.warning("%s: the digest of %s not kept (%s): a step reading it again will hash it", entry,
+                        key[0], exc)
+
+
+def adopt_stored_digests(paths) -> list[str]:
+    """Take as this process's own the SHA-256 that another step of the same results folder took of ``paths``
+    (its store, :data:`DIGEST_STORE`), where the file is the very version it hashed: its resolved path, size
+    and modification time to the nanosecond unchanged, as this process's own cache keys a file. A file
+    rewritten since (even with an older time, as ``cp -p`` gives) is hashed as it is read. Returns the files
+    adopted (resolved paths). The Allan step streams the files the fit has hashed: it hashes none again."""
+    adopted = []
+    for path in paths:
+        try:
+            key = _digest_key(Path(path))
+        except OSError:  # gone: whoever reads it says so
+            continue
+        entry = _store_entry(key[0])
+        try:
+            record = json.loads(entry.read_text()) if entry is not None else None
+        except (OSError, ValueError):  # none kept, or not readable: hashed as read
+            continue
+        if record is not None and (record.get("path"), record.get("size"), record.get("mtime_ns")) == key:
+            _DIGESTS[key] = record["sha256"]
+            adopted.append(key[0])
+    return adopted
+
+
 def known_digests() -> dict:
     """The SHA-256 this process has taken, by (resolved path, size, mtime_ns): a worker process hands its
     own to its parent (:func:`dice_core.parallel.map_lanes`), which :func:`remember_digests`."""
@@ -801,28 +862,6 @@ def input_digests(path, *, roots=None) -> dict:
         if record["sha256"] is not None:
             digests[str(where.resolve())] = record["sha256"]
     return digests
-
-
-def adopt_recorded_digests(path, *, roots=None) -> list[str]:
-    """Take the SHA-256 that product ``path`` recorded of its inputs (:func:`input_digests`) as this process's
-    own digests of those files, so that a step reading them again hashes none of them (:class:`FrameStream`,
-    :func:`write_product`): the Allan step reads a baseline's files the fit read and recorded.
-
-    A file modified after the product was written (its mtime not earlier than the product's) keeps no digest here:
-    it is hashed as it is read, as it would be without this call. Returns the files whose digests were taken
-    (resolved paths).
-    """
-    written = Path(path).stat().st_mtime_ns
-    adopted = []
-    for where, digest in input_digests(path, roots=roots).items():
-        try:
-            stat = os.stat(where)
-        except OSError:  # gone since: whoever reads it says so
-            continue
-        if stat.st_mtime_ns < written:
-            _DIGESTS[_digest_key(Path(where), stat)] = digest
-            adopted.append(where)
-    return adopted
 
 
 def _history_of(path) -> list[str]:
@@ -921,6 +960,7 @@ def write_product(ds: xr.Dataset, path, *, title: str, config=None, inputs=(), c
     with atomic_write(path) as tmp:
         ds.drop_vars(streamed).to_netcdf(tmp, engine="netcdf4")
         _write_slices(tmp, ds, streamed)
+    _store_digests(str(p.resolve()) for p in inputs)
 
 
 #: Bytes of a lazily held variable :func:`write_product` reads and writes at a time (at least one slice

@@ -123,9 +123,9 @@ def inherited(value):
 
 
 class WorkerDied(RuntimeError):
-    """A worker process of :func:`map_lanes` ended without its result: killed (by the out-of-memory killer, a
-    signal) or crashed in native code. A user's problem, not a bug: said in one line
-    (:func:`dice_core.known_error`)."""
+    """A worker process of :func:`map_lanes` ended without its result: most often killed (by the out-of-memory
+    killer, a signal), which a user meets; also a crash in native code or a worker that could not start. Said
+    in one line (:func:`dice_core.known_error`) with the pool's own message."""
 
 
 def map_lanes(executor, function, lanes, *shared):
@@ -149,9 +149,9 @@ def map_lanes(executor, function, lanes, *shared):
             results.append(result)
     except concurrent.futures.BrokenExecutor as exc:  # the pool's BrokenProcessPool: it names no cause
         raise WorkerDied(
-            f"a worker process ended abruptly while the job's {n} part(s) were read (killed by the system, most "
-            "often for lack of memory: give the job more memory, or read with one worker: --set-threads "
-            "<rule>=1)") from exc
+            f"a worker process ended abruptly while the job's {n} part(s) were read (most often killed by the "
+            "system for lack of memory: give the job more memory, or read with one worker: --set-threads "
+            f"<rule>=1): {exc}") from exc
     return results
 
 

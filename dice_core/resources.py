@@ -362,7 +362,8 @@ def reading_workers(files, frames_of, *, pixels: int, parts: int, cores: int | N
     ``PARALLEL_READ_SAMPLES`` samples; else one. The product does not depend on it.
 
     ``cores`` are the run's (Snakemake's ``--cores``; None where a job has a slot of its own, as on a
-    cluster) and ``baselines`` the baselines the run reads: a job takes at most ``cores // baselines``
+    cluster) and ``baselines`` the dataset's (a run that makes one baseline's products alone shares the cores
+    as if it made all: it leaves a core idle where it could read in two): a job takes at most ``cores // baselines``
     workers, so that the baselines' jobs, side by side, fill the cores with one process each before any takes
     two. A second worker reads its part about 1.5x faster but holds a core for the whole job, most of which is
     serial: on 2 cores the paper preset's reduction (four baselines) took 77-80 s with one worker a job against
@@ -432,14 +433,14 @@ def group_files(manifest, group: tuple[str, int, int]) -> list:
 
 
 def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1, inputs=None,
-             cores: int | None = None) -> dict:
+             workers: int | None = None) -> dict:
     """What one job of ``step`` reads (or writes, for the simulation), for :func:`job_resources`:
     ``frames`` over all its files and ``positions``.
 
     ``wildcards`` are the job's; ``frames_of(path)`` gives a raw file's frames (planned or from its header);
     ``parts`` the split fit's number of parts (``metrology.parts``, the parts a single fit reads in too). For a
-    baseline's fit and Allan jobs, also their ``workers`` (:func:`reading_workers` with the run's ``cores``,
-    None for no limit, and the manifest's baselines, as their rules' threads);
+    baseline's fit and Allan jobs, also their ``workers``: ``workers`` where given (the job's threads, as
+    Snakemake gives them), else :func:`reading_workers` of the baseline with no limit of cores;
     for an Allan job whose ``inputs`` (name -> path) hold a written ``metrology`` product, its ``batches``.
     """
     def acquisition(acq):
@@ -458,9 +459,9 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1,
         from dice_core.parallel import LANES
 
         files = manifest.baselines[wildcards["baseline"]].files
-        workers = reading_workers(files, frames_of, pixels=manifest.detector.shape[0] * manifest.detector.shape[1],
-                                  parts=parts if step == "fit_fringes" else LANES, cores=cores,
-                                  baselines=len(manifest.baselines))
+        if workers is None:
+            workers = reading_workers(files, frames_of, pixels=manifest.detector.shape[0] * manifest.detector.shape[1],
+                                      parts=parts if step == "fit_fringes" else LANES)
         data = {"frames": acquisition(manifest.baselines[wildcards["baseline"]]), "workers": workers}
         if step == "allan_deviation" and inputs and "metrology" in inputs:
             if (batches := allan_batches(inputs["metrology"])) is not None:

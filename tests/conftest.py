@@ -20,12 +20,13 @@ collect_ignore = ["cluster"]
 REPO = Path(__file__).resolve().parents[1]
 
 
-def snakemake(workdir, *args, check=True, timeout=1800):
-    """The README's command (``python -m snakemake --cores 2``) with ``args``, run in ``workdir``, its own
-    dice_core first on the path; a failure is an AssertionError showing the end of what it said. The timeout
-    (s) only stops a hung run: the ci run takes 2-3 min on idle cores, and 600 s cut it short at load 11-16."""
+def snakemake(workdir, *args, check=True, timeout=1800, cores=2):
+    """The README's command (``python -m snakemake --cores 2``, or another number of ``cores``) with ``args``, run
+    in ``workdir``, its own dice_core first on the path; a failure is an AssertionError showing the end of what
+    it said. The timeout (s) only stops a hung run: the ci run takes 2-3 min on idle cores, and 600 s cut it
+    short at load 11-16."""
     env = {**os.environ, "PYTHONPATH": str(workdir)}
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", *args]
+    cmd = [sys.executable, "-m", "snakemake", "--cores", str(cores), *args]
     result = subprocess.run(cmd, cwd=workdir, env=env, capture_output=True, text=True, timeout=timeout)
     if check and result.returncode != 0:
         raise AssertionError(f"{' '.join(cmd)} failed:\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}")

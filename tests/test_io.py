@@ -497,11 +497,11 @@ def test_checksums_recorded_by_one_product_are_taken_by_another_without_reading_
     assert [r["sha256"] for r in records] == ["0" * 64, hashlib.sha256(other.read_bytes()).hexdigest()]
 
 
-def test_a_step_reading_files_a_product_recorded_adopts_their_digests_unless_changed_since(tmp_path, rng,
-                                                                                           monkeypatch):
-    """The Allan step streams the files the fit read: with the fit product's digests adopted
-    (adopt_recorded_digests) the stream hashes nothing and the new product records the same SHA-256; a file
-    modified after the product was written is not adopted, and is hashed as it is read."""
+def test_a_step_streaming_files_another_step_hashed_adopts_their_digests_only_for_the_same_version(
+        tmp_path, rng, monkeypatch):
+    """The fit keeps the SHA-256 it took of its files in the results' store (write_product); the Allan step,
+    which streams the same files, adopts them (adopt_stored_digests) and hashes nothing, recording the same
+    digests. A file rewritten since, even with an older modification time (cp -p), is not adopted: hashed."""
     import hashlib
     import json
     import os
@@ -516,34 +516,37 @@ def test_a_step_reading_files_a_product_recorded_adopts_their_digests_unless_cha
         write_cube(path, [cube(5, rng)], shape=(6, 7), n_frames=5)
     sha256 = hashlib.sha256
     truth = {str(f.resolve()): sha256(f.read_bytes()).hexdigest() for f in files}
-    fit = results / "metrology.nc"
+    baseline = Acquisition("baseline", tuple(files))
     with io.provenance(dataset=dataset, results=results):
-        write_product(product(), fit, title="fit", inputs=files)
-        written = fit.stat().st_mtime_ns
-        for path in files:  # both read before the product was written, as the fit's are
-            os.utime(path, ns=(written - 10**9, written - 10**9))
+        collect(FrameStream(baseline, detector, chunk_frames=2))  # the fit: hashed as read
+        write_product(product(), results / "metrology.nc", title="fit", inputs=files)
+        assert len(list((results / io.DIGEST_STORE).iterdir())) == 2
+
         monkeypatch.setattr(io, "_DIGESTS", {})  # a new process: the Allan job
 
         def no_hashing(*args):
             raise AssertionError("a file was hashed again")
 
         monkeypatch.setattr(io.hashlib, "sha256", no_hashing)
-        assert io.adopt_recorded_digests(fit) == [str(f.resolve()) for f in files]
-        collect(FrameStream(Acquisition("baseline", tuple(files)), detector, chunk_frames=2))
-        write_product(product(), results / "allan.nc", title="allan", inputs=[*files, fit], digests={
-            str(fit.resolve()): "f" * 64})
+        assert io.adopt_stored_digests(files) == [str(f.resolve()) for f in files]
+        collect(FrameStream(baseline, detector, chunk_frames=2))
+        write_product(product(), results / "allan.nc", title="allan", inputs=files)
         records = json.loads(read_product(results / "allan.nc").attrs["inputs"])
-        assert {str((dataset / r["path"]).resolve()): r["sha256"] for r in records[:2]} == truth
+        assert {str((dataset / r["path"]).resolve()): r["sha256"] for r in records} == truth
 
-        # the second file rewritten after the fit's product (a later mtime): its digest is not adopted
+        # the second file replaced by other bytes of the same size with an older time, as cp -p leaves it
         monkeypatch.setattr(io, "_DIGESTS", {})
         monkeypatch.setattr(io.hashlib, "sha256", sha256)
+        before = files[1].stat().st_mtime_ns
         write_cube(files[1], [cube(5, rng)], shape=(6, 7), n_frames=5)
-        os.utime(files[1], ns=(written + 10**9, written + 10**9))
-        assert io.adopt_recorded_digests(fit) == [str(files[0].resolve())]
-        collect(FrameStream(Acquisition("baseline", tuple(files)), detector, chunk_frames=2))
+        os.utime(files[1], ns=(before - 10**9, before - 10**9))
+        assert io.adopt_stored_digests(files) == [str(files[0].resolve())]
+        collect(FrameStream(baseline, detector, chunk_frames=2))
         assert io.known_digests()[io._digest_key(files[1])] == sha256(files[1].read_bytes()).hexdigest()
         assert io.known_digests()[io._digest_key(files[0])] == truth[str(files[0].resolve())]
+    # outside a results folder (no provenance block) nothing is kept, nothing adopted
+    monkeypatch.setattr(io, "_DIGESTS", {})
+    assert io.adopt_stored_digests(files) == []
 
 
 @pytest.mark.parametrize("dtype", ["uint16", "float32"])

@@ -101,10 +101,11 @@ def test_a_baselines_jobs_ask_for_the_workers_their_threads_run():
         small = resources.job_data(step, {"baseline": "small"}, manifest=manifest, frames_of=frames_of, parts=2)
         large = resources.job_data(step, {"baseline": "large"}, manifest=manifest, frames_of=frames_of, parts=2)
         assert (small, large) == ({"frames": 4000, "workers": 1}, {"frames": 400000, "workers": 2}), step
-        # the run's cores shared among its two baselines: one core each, one worker each
-        shared = resources.job_data(step, {"baseline": "large"}, manifest=manifest, frames_of=frames_of, parts=2,
-                                    cores=2)
-        assert shared == {"frames": 400000, "workers": 1}, step
+        # the job's threads as Snakemake gives them (the run's cores shared, --set-threads) where known
+        for threads in (1, 2):
+            given = resources.job_data(step, {"baseline": "large"}, manifest=manifest, frames_of=frames_of,
+                                       parts=2, workers=threads)
+            assert given == {"frames": 400000, "workers": threads}, step
     assert "workers" not in resources.job_data("fit_finish", {"baseline": "large"}, manifest=manifest,
                                                frames_of=frames_of, parts=2)
 

@@ -124,10 +124,11 @@ def test_products_record_their_code_relative_inputs_with_checksums_and_history(o
 
     dark, prnu = read_product(out / "calibration/dark.nc"), read_product(out / "calibration/prnu.nc")
     centroids = read_product(out / "centroids/raw.nc")
-    # the Allan step records the raw files' sha256 the fit recorded (adopt_recorded_digests), not hashed again
+    # the Allan step records the raw files' sha256 the fit took (adopt_stored_digests), not hashed again
     allan = read_product(out / "allan/H1H4.nc")
-    files = sum(r["path"].endswith(".fits") for r in json.loads(read_product(out / "metrology/H1H4.nc").attrs["inputs"]))
-    assert f"the SHA-256 of {files} of its {files} file(s) taken from the fit's product" in (
+    fitted = json.loads(read_product(out / "metrology/H1H4.nc").attrs["inputs"])
+    files = sum(r["path"].endswith(".fits") for r in fitted)
+    assert f"the SHA-256 of {files} of its {files} file(s) taken from the fit's, as it hashed them" in (
         out / "logs/allan_deviation_H1H4.log").read_text()
     for ds in (dark, prnu, centroids, allan):
         assert len(ds.attrs["code_version"]) == 16 and ds.attrs["code_version"] in ds.attrs["history"]
@@ -791,13 +792,28 @@ def test_every_job_asks_for_memory_and_time_that_cover_what_its_benchmark_measur
 def test_only_a_large_baseline_s_fit_and_allan_jobs_ask_for_two_threads_with_cores_to_spare(workdir):
     """The rules' threads (dice_core.resources.reading_workers): the paper preset's baselines (1.3e9 samples in
     10 files) ask for two, one per part, where the run's cores give each of its four baselines two (--cores 8),
-    and for one on the README's 2 cores; the ci preset's (2e6 samples) for one, in each of the 8 jobs."""
-    for dataset, cores, threads in (("paper", "8", "2"), ("paper", "2", None), ("ci", "8", None)):
-        plan = snakemake(workdir, "-n", "--forceall", "--cores", cores, "--config", f"dataset={dataset}").stdout
+    and for one on the README's 2 cores; the ci preset's (2e6 samples) for one, in each of the 8 jobs. A
+    cluster job's own Snakemake (--mode remote, its slot's cores) keeps the two it was submitted with."""
+    for dataset, cores, mode, threads in (("paper", 8, (), "2"), ("paper", 2, (), None), ("ci", 8, (), None),
+                                          ("paper", 2, ("--mode", "remote"), "2")):
+        plan = snakemake(workdir, "-n", "--forceall", *mode, "--config", f"dataset={dataset}", cores=cores).stdout
         jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?=^\S|\Z)", plan, re.M | re.S)
         asked = [re.search(r"^\s+threads: (\d+)", block, re.M) for rule, block in jobs
                  if rule in ("fit_fringes", "allan_deviation")]
-        assert [found.group(1) if found else None for found in asked] == [threads] * 8, (dataset, cores)
+        assert [found.group(1) if found else None for found in asked] == [threads] * 8, (dataset, cores, mode)
+
+
+
+def test_an_allan_job_asks_for_the_memory_of_the_workers_it_runs(workdir):
+    """The resources follow the job's threads as Snakemake gives them: --set-threads allan_deviation=2 on 2
+    cores asks each Allan job for its second worker's memory too (dice_core.resources.job_data's workers)."""
+    def allan_mem_mb(*args):
+        plan = snakemake(workdir, "-n", "--forceall", "--config", "dataset=paper", *args).stdout
+        jobs = re.findall(r"^(?:local)?rule (\w+):\n(.*?)(?=^\S|\Z)", plan, re.M | re.S)
+        return {int(re.search(r"mem_mb=(\d+)", block).group(1)) for rule, block in jobs if rule == "allan_deviation"}
+
+    one, two = allan_mem_mb(), allan_mem_mb("--set-threads", "allan_deviation=2")
+    assert len(one) == len(two) == 1 and min(two) > max(one), (one, two)
 
 
 def test_missing_manifest_is_a_clear_error(workdir, tmp_path):

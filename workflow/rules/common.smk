@@ -252,8 +252,12 @@ if DRY_RUN:
 
 
 def run_cores():
-    """The run's cores (--cores), or None where Snakemake has no total: a cluster's executor gives each job a
-    slot of its own."""
+    """The cores this run's jobs share (--cores), where they run on this machine; None where each job has a slot
+    of its own: under a cluster's executor, in the process that submits the jobs (whatever --cores says) and
+    in each job's own Snakemake on its node, which reads this file again with --cores all (its slot's CPUs),
+    so that a job's threads there are those it was submitted with. None too where Snakemake has no total."""
+    if not (workflow.is_main_process and workflow.local_exec):
+        return None
     try:
         return workflow.cores
     except WorkflowError:
@@ -288,7 +292,9 @@ def step_resources(step, **fixed):
     of each job from its step's measured cost and the job's data, times the attempt on a retry. ``fixed``: what
     the job's wildcards would say of a rule without them (a group's ``positions`` or ``files``)."""
 
-    def needs(wildcards, input, attempt):
+    # threads: the job's, as Snakemake gives them (--set-threads, --max-threads and --cores applied): a
+    # baseline's fit and Allan jobs ask for the memory of the workers they run
+    def needs(wildcards, input, threads, attempt):
         data = dice_resources.job_data(
             step,
             {**dict(wildcards.items()), **fixed},
@@ -296,7 +302,7 @@ def step_resources(step, **fixed):
             frames_of=file_frames,
             parts=config["metrology"]["parts"],
             inputs=dict(input.items()),
-            cores=RUN_CORES,
+            workers=threads,
         )
         return dice_resources.job_resources(
             step,
@@ -309,6 +315,6 @@ def step_resources(step, **fixed):
     # with input: Snakemake evaluates a job's resources again when it is about to run, its inputs written (the
     # Allan job's batches from its metrology product)
     return {
-        "mem_mb": lambda wildcards, input, attempt: needs(wildcards, input, attempt)["mem_mb"],
-        "runtime": lambda wildcards, input, attempt: needs(wildcards, input, attempt)["runtime"],
+        "mem_mb": lambda wildcards, input, threads, attempt: needs(wildcards, input, threads, attempt)["mem_mb"],
+        "runtime": lambda wildcards, input, threads, attempt: needs(wildcards, input, threads, attempt)["runtime"],
     }

@@ -11,12 +11,12 @@ from dice_core.manifest import load_manifest
 def allan_deviation(manifest_path, metrology_path, dark_path, baseline, output, config, workers):
     log = logging.getLogger("dice")
     manifest = load_manifest(manifest_path)
-    # the fit read these files and recorded their SHA-256: recorded again from its product, not hashed again
-    # (a quarter of this step's time on the paper preset); a file changed since the fit is hashed
-    adopted = set(io.adopt_recorded_digests(metrology_path))
+    # the fit hashed these files as it read them: their SHA-256 taken from the results' store, not hashed again
+    # (a quarter of this step's time on the paper preset); a file that is not the version the fit hashed is
     files = manifest.baselines[baseline].files
-    log.info("baseline %s: the SHA-256 of %d of its %d file(s) taken from the fit's product", baseline,
-             sum(str(Path(f).resolve()) in adopted for f in files), len(files))
+    adopted = io.adopt_stored_digests(files)
+    log.info("baseline %s: the SHA-256 of %d of its %d file(s) taken from the fit's, as it hashed them", baseline,
+             len(adopted), len(files))
     stream = io.FrameStream(manifest.baselines[baseline], manifest.detector, chunk_frames=config["chunk_frames"],
                             purpose="Allan deviations", dtype="float32")
     # the products opened lazily: the step reads the maps it needs, at its pixels (not the whole solution);
