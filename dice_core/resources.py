@@ -136,18 +136,19 @@ def allan_batches(metrology_path) -> int | None:
     job's resources again when it is about to run, its inputs written: the request then follows the baseline's
     own batches, not :data:`ALLAN_BATCH_FRAMES`.
 
-    Read once a version of the file (its path, size and modification time): Snakemake evaluates each of a
-    job's resources, and each time it plans, in the workflow's one process."""
+    Read once a version of the file (its path, size, modification and change times and inode): Snakemake
+    evaluates each of a job's resources, and each time it plans, in the workflow's one process."""
     path = Path(metrology_path)
     if not path.is_file():
         return None
     stat = path.stat()
-    return _batches_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    return _batches_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino)
 
 
 @functools.lru_cache(maxsize=1024)
-def _batches_of(path: str, size: int, mtime_ns: int) -> int | None:
-    """:func:`allan_batches` of one version of a file (``size`` and ``mtime_ns`` key the cache)."""
+def _batches_of(path: str, *version: int) -> int | None:
+    """:func:`allan_batches` of one version of a file (``version``, its stat's numbers, keys the cache: a file
+    replaced keeps no size, times and inode all alike, ctime being the system's own)."""
     from dice_core import allan, io
 
     try:
