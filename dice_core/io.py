@@ -761,8 +761,16 @@ def _store_entry(path: str) -> Path | None:
 
 
 def _store_digests(paths) -> None:
-    """Keep in the store the digests this process took of ``paths`` as they are now (their current key)."""
+    """Keep in the store the digests this process took of those of ``paths`` that are the dataset's (under the
+    ``dataset`` root of :func:`provenance`: the raw files, which the steps stream; not the products, small
+    and read whole), as they are now (their current key)."""
+    dataset = ((_PROVENANCE.get() or {}).get("roots") or {}).get("dataset")
+    if dataset is None:
+        return
+    dataset = Path(dataset).resolve()
     for path in paths:
+        if not Path(path).is_relative_to(dataset):
+            continue
         try:
             key = _digest_key(Path(path))
         except OSError:
