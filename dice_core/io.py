@@ -703,9 +703,11 @@ def provenance(*, code_version=None, **roots):
 
 
 def _digest_key(path: Path, stat=None) -> tuple:
-    """The key of a file's digest in :data:`_DIGESTS`: its resolved path, size and modification time."""
+    """The key of a file's digest in :data:`_DIGESTS` and in the results' store: its resolved path, size,
+    modification and change times (ns) and inode. A file replaced keeps not all of them, even with its old
+    modification time (``cp -p``, ``rsync -a``, a rename onto it): its change time is the system's own."""
     stat = path.stat() if stat is None else stat
-    return (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    return (str(path.resolve()), stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino)
 
 
 class _StreamDigest:
@@ -739,15 +741,15 @@ class _StreamDigest:
         """Hash the rest of ``f`` after the data unit and record the digest."""
         while block := f.read(1 << 20):
             self.hasher.update(block)
-        stat = os.fstat(f.fileno())
-        if (stat.st_size, stat.st_mtime_ns) == self.key[1:]:  # not rewritten while it was read
+        if _digest_key(Path(self.key[0]), os.fstat(f.fileno())) == self.key:  # not rewritten while it was read
             _DIGESTS[self.key] = self.hasher.hexdigest()
 
 
 #: The folder, in a results folder (the ``results`` root of :func:`provenance`), where the SHA-256 its steps
-#: took of their inputs are kept, a small JSON file an input: what one step hashed while streaming a file,
-#: another step that streams the same file is given (:func:`adopt_stored_digests`): the Allan step, the
-#: files the fit read.
+#: took of the raw files they read are kept, a small JSON file a file (its key, :func:`_digest_key`, and
+#: digest): what one step hashed while streaming a file, another step that streams the same version of it is
+#: given (:func:`adopt_stored_digests`): the Allan step, the files the fit read; a split fit's later passes,
+#: those its first read.
 DIGEST_STORE = ".dice-digests"
 
 
@@ -761,38 +763,42 @@ def _store_entry(path: str) -> Path | None:
 
 
 def _store_digests(paths) -> None:
-    """Keep in the store the digests this process took of those of ``paths`` that are the dataset's (under the
-    ``dataset`` root of :func:`provenance`: the raw files, which the steps stream; not the products, small
-    and read whole), as they are now (their current key)."""
-    dataset = ((_PROVENANCE.get() or {}).get("roots") or {}).get("dataset")
-    if dataset is None:
+    """Keep in the store the digests this process took of the raw files among ``paths`` (in the dataset's
+    folder, or anywhere but the results folder: where the manifest puts them; a simulated dataset's are in the
+    results folder), not the products (small, read whole), under their current key. A store that cannot be
+    written is said once, in the log."""
+    roots = (_PROVENANCE.get() or {}).get("roots") or {}
+    if roots.get("results") is None:
         return
-    dataset = Path(dataset).resolve()
+    results = Path(roots["results"]).resolve()
+    dataset = Path(roots["dataset"]).resolve() if roots.get("dataset") is not None else None
     for path in paths:
-        if not Path(path).is_relative_to(dataset):
-            continue
         try:
             key = _digest_key(Path(path))
         except OSError:
             continue
-        entry = _store_entry(key[0])
-        if entry is None or key not in _DIGESTS:
+        where = Path(key[0])
+        raw = (dataset is not None and where.is_relative_to(dataset)) or not where.is_relative_to(results)
+        if key not in _DIGESTS or not raw:
             continue
-        record = {"path": key[0], "size": key[1], "mtime_ns": key[2], "sha256": _DIGESTS[key]}
+        entry = _store_entry(key[0])
         try:
             entry.parent.mkdir(parents=True, exist_ok=True)
-            write_text(entry, json.dumps(record))
+            write_text(entry, json.dumps({"key": list(key), "sha256": _DIGESTS[key]}))
         except OSError as exc:  # a cache: without it a later step hashes the file again
-            log.warning("%s: the digest of %s not kept (%s): a step reading it again will hash it", entry,
-                        key[0], exc)
+            log.warning("%s: the digests of this product's inputs not kept (%s): a step reading them again "
+                        "will hash them", entry.parent, exc)
+            return
 
 
 def adopt_stored_digests(paths) -> list[str]:
     """Take as this process's own the SHA-256 that another step of the same results folder took of ``paths``
-    (its store, :data:`DIGEST_STORE`), where the file is the very version it hashed: its resolved path, size
-    and modification time to the nanosecond unchanged, as this process's own cache keys a file. A file
-    rewritten since (even with an older time, as ``cp -p`` gives) is hashed as it is read. Returns the files
-    adopted (resolved paths). The Allan step streams the files the fit has hashed: it hashes none again."""
+    (its store, :data:`DIGEST_STORE`, in the ``results`` root of the enclosing :func:`provenance` block:
+    nothing outside one), where the file is the very version it hashed: its key (:func:`_digest_key`:
+    resolved path, size, modification and change times, inode) unchanged. A file rewritten or replaced since
+    (even with its old modification time) is hashed as it is read, as is one whose entry is missing or
+    unreadable. Returns the files adopted (resolved paths). The Allan step streams the files the fit has
+    hashed: it hashes none again."""
     adopted = []
     for path in paths:
         try:
@@ -804,8 +810,9 @@ def adopt_stored_digests(paths) -> list[str]:
             record = json.loads(entry.read_text()) if entry is not None else None
         except (OSError, ValueError):  # none kept, or not readable: hashed as read
             continue
-        if record is not None and (record.get("path"), record.get("size"), record.get("mtime_ns")) == key:
-            _DIGESTS[key] = record["sha256"]
+        if (isinstance(record, dict) and record.get("key") == list(key)
+                and isinstance(digest := record.get("sha256"), str)):
+            _DIGESTS[key] = digest
             adopted.append(key[0])
     return adopted
 

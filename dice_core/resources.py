@@ -441,7 +441,8 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1,
     ``wildcards`` are the job's; ``frames_of(path)`` gives a raw file's frames (planned or from its header);
     ``parts`` the split fit's number of parts (``metrology.parts``, the parts a single fit reads in too). For a
     baseline's fit and Allan jobs, also their ``workers``: ``workers`` where given (the job's threads, as
-    Snakemake gives them), else :func:`reading_workers` of the baseline with no limit of cores;
+    Snakemake gives them), else :func:`reading_workers` of the baseline with no limit of cores; no more than
+    the parts it reads (a worker a part, :func:`dice_core.parallel.lane_workers`);
     for an Allan job whose ``inputs`` (name -> path) hold a written ``metrology`` product, its ``batches``.
     """
     def acquisition(acq):
@@ -460,10 +461,11 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1,
         from dice_core.parallel import LANES
 
         files = manifest.baselines[wildcards["baseline"]].files
+        lanes = max(1, min(parts if step == "fit_fringes" else LANES, len(files)))  # a part a worker at most
         if workers is None:
             workers = reading_workers(files, frames_of, pixels=manifest.detector.shape[0] * manifest.detector.shape[1],
-                                      parts=parts if step == "fit_fringes" else LANES)
-        data = {"frames": acquisition(manifest.baselines[wildcards["baseline"]]), "workers": workers}
+                                      parts=lanes)
+        data = {"frames": acquisition(manifest.baselines[wildcards["baseline"]]), "workers": min(workers, lanes)}
         if step == "allan_deviation" and inputs and "metrology" in inputs:
             if (batches := allan_batches(inputs["metrology"])) is not None:
                 data["batches"] = batches

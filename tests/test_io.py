@@ -501,7 +501,9 @@ def test_a_step_streaming_files_another_step_hashed_adopts_their_digests_only_fo
         tmp_path, rng, monkeypatch):
     """The fit keeps the SHA-256 it took of its files in the results' store (write_product); the Allan step,
     which streams the same files, adopts them (adopt_stored_digests) and hashes nothing, recording the same
-    digests. A file rewritten since, even with an older modification time (cp -p), is not adopted: hashed."""
+    digests. A file replaced since, even with an older or its very modification time (cp -p, a rename onto
+    it), is not adopted: hashed; a malformed entry is no entry; a raw file outside the dataset's folder is
+    kept too, the results' own products not."""
     import hashlib
     import json
     import os
@@ -535,16 +537,42 @@ def test_a_step_streaming_files_another_step_hashed_adopts_their_digests_only_fo
         assert {str((dataset / r["path"]).resolve()): r["sha256"] for r in records[:2]} == truth
         assert len(list((results / io.DIGEST_STORE).iterdir())) == 2  # the dataset's files only, not products
 
-        # the second file replaced by other bytes of the same size with an older time, as cp -p leaves it
-        monkeypatch.setattr(io, "_DIGESTS", {})
+        # the second file replaced by other bytes of the same size with an older time, as cp -p leaves it; then
+        # renamed onto by a copy with its very size and modification time
         monkeypatch.setattr(io.hashlib, "sha256", sha256)
-        before = files[1].stat().st_mtime_ns
-        write_cube(files[1], [cube(5, rng)], shape=(6, 7), n_frames=5)
-        os.utime(files[1], ns=(before - 10**9, before - 10**9))
-        assert io.adopt_stored_digests(files) == [str(files[0].resolve())]
-        collect(FrameStream(baseline, detector, chunk_frames=2))
-        assert io.known_digests()[io._digest_key(files[1])] == sha256(files[1].read_bytes()).hexdigest()
-        assert io.known_digests()[io._digest_key(files[0])] == truth[str(files[0].resolve())]
+        for older in (True, False):
+            monkeypatch.setattr(io, "_DIGESTS", {})
+            before = files[1].stat().st_mtime_ns
+            copy = tmp_path / "copy.fits"
+            write_cube(copy, [cube(5, rng)], shape=(6, 7), n_frames=5)
+            os.utime(copy, ns=(before - 10**9 * older,) * 2)
+            assert copy.stat().st_size == files[1].stat().st_size
+            os.replace(copy, files[1])
+            assert io.adopt_stored_digests(files) == [str(files[0].resolve())], older
+            collect(FrameStream(baseline, detector, chunk_frames=2))
+            assert io.known_digests()[io._digest_key(files[1])] == sha256(files[1].read_bytes()).hexdigest()
+            assert io.known_digests()[io._digest_key(files[0])] == truth[str(files[0].resolve())]
+            write_product(product(), results / "allan.nc", title="allan", inputs=files)  # the new version kept
+        # an entry that is not one (a list, no digest) is no digest: the file is hashed as read, nothing fails
+        monkeypatch.setattr(io, "_DIGESTS", {})
+        for entry, text in zip(sorted((results / io.DIGEST_STORE).iterdir()), ("[1, 2]", '{"key": []}')):
+            entry.write_text(text)
+        assert io.adopt_stored_digests(files) == []
+        # a raw file outside the dataset's folder (a manifest may name it by its absolute path) is kept too
+        elsewhere = tmp_path / "archive" / "m9.fits"
+        write_cube(elsewhere, [cube(5, rng)], shape=(6, 7), n_frames=5)
+        collect(FrameStream(Acquisition("baseline", (elsewhere,)), detector, chunk_frames=2))
+        write_product(product(), results / "fit2.nc", title="fit", inputs=[elsewhere])
+        monkeypatch.setattr(io, "_DIGESTS", {})
+        assert io.adopt_stored_digests([elsewhere]) == [str(elsewhere.resolve())]
+    # a simulated dataset's raw files, in the results folder (its raw/ the dataset's folder), are kept too
+    simulated = results / "raw" / "m0.fits"
+    write_cube(simulated, [cube(5, rng)], shape=(6, 7), n_frames=5)
+    with io.provenance(dataset=results / "raw", results=results):
+        collect(FrameStream(Acquisition("baseline", (simulated,)), detector, chunk_frames=2))
+        write_product(product(), results / "fit3.nc", title="fit", inputs=[simulated])
+        monkeypatch.setattr(io, "_DIGESTS", {})
+        assert io.adopt_stored_digests([simulated]) == [str(simulated.resolve())]
     # outside a results folder (no provenance block) nothing is kept, nothing adopted
     monkeypatch.setattr(io, "_DIGESTS", {})
     assert io.adopt_stored_digests(files) == []

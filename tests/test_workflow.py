@@ -803,7 +803,6 @@ def test_only_a_large_baseline_s_fit_and_allan_jobs_ask_for_two_threads_with_cor
         assert [found.group(1) if found else None for found in asked] == [threads] * 8, (dataset, cores, mode)
 
 
-
 def test_an_allan_job_asks_for_the_memory_of_the_workers_it_runs(workdir):
     """The resources follow the job's threads as Snakemake gives them: --set-threads allan_deviation=2 on 2
     cores asks each Allan job for its second worker's memory too (dice_core.resources.job_data's workers)."""
@@ -1376,6 +1375,9 @@ def test_a_fit_split_across_jobs_writes_the_single_jobs_product_bit_for_bit(work
     assert "nothing to read" in (logs / f"fit_part_H1H4_{n_pass + 1}_0.log").read_text()
     part = (logs / "fit_part_H1H4_1_1.log").read_text()
     assert "pass 1, part 2 of 2: 150 frames of 1 file(s)" in part and "BLAS threads: 1" in part
+    # pass 1 hashed the part's file as it read it; the later passes take its digest from the results' store
+    assert "the SHA-256 of 0 of the part's 1 file(s) taken" in part
+    assert "the SHA-256 of 1 of the part's 1 file(s) taken" in (logs / "fit_part_H1H4_2_1.log").read_text()
     jobs = re.findall(r"^(?:local)?rule (fit_\w+):\n(.*?)(?=^\S|\Z)", said, re.M | re.S)
     assert len(jobs) == 14
     for rule, block in jobs:

@@ -254,8 +254,9 @@ if DRY_RUN:
 def run_cores():
     """The cores this run's jobs share (--cores), where they run on this machine; None where each job has a slot
     of its own: under a cluster's executor, in the process that submits the jobs (whatever --cores says) and
-    in each job's own Snakemake on its node, which reads this file again with --cores all (its slot's CPUs),
-    so that a job's threads there are those it was submitted with. None too where Snakemake has no total."""
+    in each job's own Snakemake on its node, which reads this file again with other cores (the submitter's
+    --cores, or its slot's CPUs), so that a job's threads there are those it was submitted with. None too
+    where Snakemake has no total."""
     if not (workflow.is_main_process and workflow.local_exec):
         return None
     try:

@@ -13,6 +13,7 @@ def allan_deviation(manifest_path, metrology_path, dark_path, baseline, output, 
     manifest = load_manifest(manifest_path)
     # the fit hashed these files as it read them: their SHA-256 taken from the results' store, not hashed again
     # (a quarter of this step's time on the paper preset); a file that is not the version the fit hashed is
+    # hashed as it is read
     files = manifest.baselines[baseline].files
     adopted = io.adopt_stored_digests(files)
     log.info("baseline %s: the SHA-256 of %d of its %d file(s) taken from the fit's, as it hashed them", baseline,

@@ -1,5 +1,7 @@
 """Snakemake step of a split fringe fit: one part's (group of files') share of one pass."""
 
+import logging
+
 import xarray as xr
 
 import dice_core
@@ -12,6 +14,10 @@ def fit_part(manifest_path, state_path, first_paths, baseline, part, output, con
     stream = fringe_fit.metrology_stream(manifest.baselines[baseline], manifest.detector,
                                          chunk_frames=config["chunk_frames"])
     parts = config["metrology"]["parts"]
+    # the part's files as an earlier pass hashed them (the results' store), not hashed again as this pass reads
+    mine = [cube.path for piece in stream.split(parts)[part:part + 1] for cube in piece.cubes]
+    logging.getLogger("dice").info("the SHA-256 of %d of the part's %d file(s) taken from an earlier read",
+                                   len(io.adopt_stored_digests(mine)), len(mine))
     with xr.open_dataset(state_path, engine="netcdf4") as state:  # read lazily: the projector only
         fringe_fit.check_state_options(state, tolerance=config["metrology"]["tolerance"],
                                        max_passes=config["metrology"]["max_passes"],
