@@ -818,7 +818,7 @@ def adopt_stored_digests(paths) -> list[str]:
 
 
 def known_digests() -> dict:
-    """The SHA-256 this process has taken, by (resolved path, size, mtime_ns): a worker process hands its
+    """The SHA-256 this process has taken, by their files' keys (:func:`_digest_key`): a worker process hands its
     own to its parent (:func:`dice_core.parallel.map_lanes`), which :func:`remember_digests`."""
     return dict(_DIGESTS)
 

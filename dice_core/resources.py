@@ -362,13 +362,13 @@ def reading_workers(files, frames_of, *, pixels: int, parts: int, cores: int | N
     Allan step's :data:`dice_core.parallel.LANES`): one per part, a part one file at least, from
     ``PARALLEL_READ_SAMPLES`` samples; else one. The product does not depend on it.
 
-    ``cores`` are the run's (Snakemake's ``--cores``; None where a job has a slot of its own, as on a
-    cluster) and ``baselines`` the dataset's (a run that makes one baseline's products alone shares the cores
-    as if it made all: it leaves a core idle where it could read in two): a job takes at most ``cores // baselines``
-    workers, so that the baselines' jobs, side by side, fill the cores with one process each before any takes
-    two. A second worker reads its part about 1.5x faster but holds a core for the whole job, most of which is
-    serial: on 2 cores the paper preset's reduction (four baselines) took 77-80 s with one worker a job against
-    97 s with two (BENCHMARKS.md, "The README's commands on idle cores").
+    ``cores`` are the run's (Snakemake's ``--cores``; None where a job has a slot of its own, as on a cluster) and
+    ``baselines`` the dataset's (a run that makes one baseline's products alone shares the cores as if it made all:
+    it leaves a core idle where it could read in two): a job takes at most ``cores // baselines`` workers, so that
+    the baselines' jobs, side by side, fill the cores with one process each before any takes two. A second worker
+    reads its part about 1.5x faster but holds a core for the whole job, most of which is serial: on 2 cores the
+    paper preset's reduction (four baselines) took 77-80 s with one worker a job against 97 s with two
+    (BENCHMARKS.md, "The README's commands on idle cores").
     """
     samples = pixels * sum(frames_of(f) for f in files)
     workers = max(1, min(parts, len(files))) if samples >= PARALLEL_READ_SAMPLES else 1
