@@ -137,7 +137,7 @@ def metrology_figure(ds, detector, *, title):
         values = ds[name].values
         ax.plot(frame, (values - values.mean()) / 10.0**exponent + sign * shift, lw=0.4, color=colour,
                 label=f"{name[:2]}: mean {values.mean():.6f} rad/pixel, rms {values.std():.1e} rad/pixel\n"
-                      f"(drawn shifted by {'+' if sign > 0 else '-'}{shift:g}e{exponent} rad/pixel, dashed)")
+                      f"(drawn shifted by {'+' if sign > 0 else '-'}{shift:g}e{exponent} rad/pixel, its zero dashed)")
         ax.axhline(sign * shift, color=colour, lw=0.6, ls="--")
     ax.set_xlabel("frame")
     ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(nbins=5, integer=True))  # 200000 frames: labels apart
@@ -519,8 +519,9 @@ def centroids_figure(ds, *, title, positions=None):
         col, row = np.rint(x0[s]), np.rint(y0[s])
         image = ax.imshow(windows[s], origin="lower", cmap="magma", vmin=low, vmax=high, interpolation="nearest",
                           extent=(col - half - 0.5, col + half + 0.5, row - half - 0.5, row + half + 0.5))
+        # the centroid short enough to stay over its own window (the position said once, on the colour bar)
         ax.set_title(f"star {s}" + (" (central)" if s == central else "") +
-                     f"\nat position 1: x {x0[s]:.3f} pixel, y {y0[s]:.3f} pixel", fontsize=8)
+                     f"\nx {x0[s]:.3f} pixel, y {y0[s]:.3f} pixel", fontsize=8)
         for axis, centre in ((ax.xaxis, col), (ax.yaxis, row)):
             axis.set_major_locator(matplotlib.ticker.FixedLocator([centre - half, centre, centre + half]))
             axis.set_tick_params(labelsize=7)
@@ -528,8 +529,8 @@ def centroids_figure(ds, *, title, positions=None):
         if s == 0:  # one y label for the row of windows: each would take the width the windows need
             ax.set_ylabel("row y [pixel]", fontsize=7, labelpad=1)
         window_axes.append(ax)
-    fig.colorbar(image, ax=window_axes, shrink=0.8, label="mean window [adu]")
     position = ds["position"].values
+    fig.colorbar(image, ax=window_axes, shrink=0.8, label=f"mean window at position {position[0]} [adu]")
     used = _used_positions(position, positions)
     used_text = _range_text(position, used)
     half = columns // 2

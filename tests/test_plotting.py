@@ -326,6 +326,23 @@ def test_centroids_figure_has_one_colour_scale_and_readable_bounds(rng):
     plotting.save(fig, None)
 
 
+def test_centroids_window_titles_stay_apart(rng):
+    """Each star window's title (its centroid at the first position) stays clear of its neighbours' and of
+    the colour bar: a newcomer found the titles of "at position 1: x ... pixel, y ... pixel" running into
+    each other, unreadable; the position is said once, on the colour bar."""
+    ds = central_centroids(rng)
+    fig = plotting.centroids_figure(ds, title="test", positions=USED)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    windows = sorted((ax for ax in fig.axes if ax.get_images()), key=lambda ax: ax.get_position().x0)
+    boxes = [ax.title.get_window_extent(renderer) for ax in windows]
+    (bar,) = [ax for ax in fig.axes if ax.get_label() == "<colorbar>"]
+    assert len(boxes) == 5 and all(left.x1 < right.x0 for left, right in zip(boxes, boxes[1:]))
+    assert boxes[-1].x1 < bar.get_window_extent(renderer).x0
+    assert f"position {int(ds['position'].values[0])}" in bar.get_ylabel()
+    plotting.save(fig, None)
+
+
 def test_allan_figure_numbers_carry_units_and_the_legend_leaves_the_curves(rng):
     args, keywords = allan_inputs(rng)
     ds = allan.allan_dataset(*args, **keywords, first_frame=rng.uniform(500, 3000, args[3].size))
