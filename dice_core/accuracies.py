@@ -475,6 +475,8 @@ def residuals_dataset(datasets: dict, rows, *, residuals: dict, identifiability=
                 "all_position": datasets[modes[0]]["position"].values, "axis": ["x", "y"]})
     model = {r.get("superimposition", "procrustes") for r in rows}
     ds.attrs["superimposition"] = model.pop() if len(model) == 1 else ""
+    method = {r["method"] for r in rows if "method" in r}  # the centroids' (the table has every method's rows)
+    ds.attrs["centroid_method"] = method.pop() if len(method) == 1 else ""
     if identifiability:
         n_pos = ds.sizes["position"]
         for name, k, what in (("tip", 3, "detector tip (about x)"), ("tilt", 4, "detector tilt (about y)")):

@@ -713,7 +713,9 @@ def procrustes_figure(ds, *, title="Procrustes residuals"):
                ncol=4)  # off the data
     axes[-1, 0].set_xlabel("position index")
     _integer_ticks(axes[-1, 0].xaxis)
-    fig.suptitle(f"{title}, positions {position.min()}-{position.max()}; every panel on one scale", fontsize=11)
+    method = ds.attrs.get("centroid_method")  # products before it was recorded have none
+    fig.suptitle(f"{title}{f' ({method} centroids)' if method else ''}, positions {position.min()}-{position.max()}; "
+                 "every panel on one scale", fontsize=11)
     return fig
 
 

@@ -261,7 +261,8 @@ _PRODUCTS = [
     Product("accuracy_latex", "tables/accuracy.tex", "accuracy_table", "tex", stage="astrometry",
             meaning="the accuracy table as the paper prints it"),
     Product("procrustes_residuals", "tables/procrustes_residuals.nc", "accuracy_table", "netcdf", stage="astrometry",
-            meaning="the Procrustes residuals of every calibration mode",
+            meaning="the Procrustes residuals of every calibration mode, of the centroid method its attribute "
+                    "centroid_method names",
             variables=(_V("residual", "mode position star axis", "pixel", "residual after the superimposition"),
                        _V("accuracy", "mode", "pixel", "accuracy over positions"))),
     Product("model_residuals", "tables/{model}_residuals.nc", "accuracy_table", "netcdf", stage="astrometry",

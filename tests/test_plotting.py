@@ -82,8 +82,12 @@ def test_barycentre_figure_of_a_product_without_star_positions(residuals_product
 
 
 def test_procrustes_sigma_lines_are_the_rms_of_the_residuals_shown(residuals_product):
-    product, _ = residuals_product
+    product, datasets = residuals_product
     fig = plotting.procrustes_figure(product)
+    # the centroid method the residuals are of, recorded and said: the accuracy table has every method's rows
+    method = {ds.attrs["method"] for ds in (datasets.values() if isinstance(datasets, dict) else datasets)}
+    assert {product.attrs["centroid_method"]} == method
+    assert f"({product.attrs['centroid_method']} centroids)" in fig._suptitle.get_text()
     for ax, mode in zip(fig.axes, product["mode"].values):
         sigma = np.sqrt(np.mean(product["residual"].sel(mode=mode).values ** 2))
         levels = sorted(line.get_ydata()[0] for line in lines(ax, "sigma"))
