@@ -62,8 +62,9 @@ class TemporalStatistics:
     Uses the pairwise update of Chan, Golub & LeVeque (1979) in float64, so
     the result does not depend on chunking beyond rounding, and memory is a few
     maps whatever the number of frames. Masked samples (``valid`` False) are
-    left out and counted. A chunk is taken in bands of rows
-    (:data:`BAND_SAMPLES`): its temporaries stay a few MiB.
+    left out and counted. A chunk is added a band of rows at a time
+    (:meth:`update_rows`, bands of :func:`row_bands`, as :func:`dark_maps`
+    and :func:`prnu_map` take it): its temporaries stay a few MiB.
     """
 
     def __init__(self, shape):
@@ -71,12 +72,6 @@ class TemporalStatistics:
         self.mean = np.zeros(shape)
         self._m2 = np.zeros(shape)
         self.masked = np.zeros(shape, dtype=np.int64)
-
-    def update(self, frames: np.ndarray, valid: np.ndarray | None = None, *, band_samples: int | None = None):
-        """Add frames (frame, row, col); ``valid`` marks the samples to use; in bands of rows of
-        ``band_samples`` samples (:data:`BAND_SAMPLES` if None), which do not change the result."""
-        for rows in row_bands(frames.shape[0], frames.shape[1:], samples=band_samples):
-            self.update_rows(rows, frames[:, rows], None if valid is None else valid[:, rows])
 
     def update_rows(self, rows: slice, frames: np.ndarray, valid: np.ndarray | None = None):
         """Add frames (frame, row, col) of the rows ``rows`` only; ``valid`` marks the samples to use."""
@@ -494,7 +489,8 @@ def _local_median(image, size=5, *, band_samples: int | None = None):
 
     Vectorised over bands of rows (:func:`row_bands`, a window's ``size``**2 samples a pixel), the same numbers
     as ``scipy.ndimage.generic_filter(image, np.nanmedian, size, mode="constant", cval=nan)`` (tested), which
-    calls Python once a pixel: 25 minutes for the two maps of a 4096x4096 detector.
+    calls Python once a pixel: 25 minutes for the two maps of a 4096x4096 detector (library,
+    ``benchmarks/calibration_memory.py --bad-pixels``, not the workflow's run).
     """
     import warnings
 

@@ -141,8 +141,9 @@ def allan_batches(metrology_path) -> int | None:
     path = Path(metrology_path)
     if not path.is_file():
         return None
-    stat = path.stat()
-    return _batches_of(str(path.resolve()), stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino)
+    from dice_core.io import _digest_key  # the key of a file's version the digests' cache uses too
+
+    return _batches_of(*_digest_key(path))
 
 
 @functools.lru_cache(maxsize=1024)
@@ -458,14 +459,15 @@ def job_data(step: str, wildcards: dict, *, manifest, frames_of, parts: int = 1,
     if step == "measure_prnu":
         return {"frames": acquisition(manifest.flats[wildcards["flat"]])}
     if step in ("fit_fringes", "allan_deviation"):  # their worker processes too, the rules' threads
-        from dice_core.parallel import LANES
+        from dice_core.parallel import LANES, lane_workers
 
         files = manifest.baselines[wildcards["baseline"]].files
         lanes = max(1, min(parts if step == "fit_fringes" else LANES, len(files)))  # a part a worker at most
         if workers is None:
             workers = reading_workers(files, frames_of, pixels=manifest.detector.shape[0] * manifest.detector.shape[1],
                                       parts=lanes)
-        data = {"frames": acquisition(manifest.baselines[wildcards["baseline"]]), "workers": min(workers, lanes)}
+        data = {"frames": acquisition(manifest.baselines[wildcards["baseline"]]),
+                "workers": lane_workers(workers, lanes)}
         if step == "allan_deviation" and inputs and "metrology" in inputs:
             if (batches := allan_batches(inputs["metrology"])) is not None:
                 data["batches"] = batches

@@ -668,7 +668,8 @@ def test_maps_read_at_the_pixels_a_band_of_rows_at_a_time_are_the_whole_maps_ind
         assert len(allan._map_bands(variable)) == -(-23 // rows_a_band)
         rows, cols = allan._finite_pixels(variable)
         expected = np.nonzero(np.isfinite(values))
-        np.testing.assert_array_equal(rows, expected[0]) and np.testing.assert_array_equal(cols, expected[1])
+        np.testing.assert_array_equal(rows, expected[0])
+        np.testing.assert_array_equal(cols, expected[1])
         picked = allan._at_pixels(variable, rows, cols)
         assert picked.dtype == np.float32
         np.testing.assert_array_equal(picked, values[rows, cols])

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from dice_core import calibration, simulation
-from dice_core.calibration import TemporalStatistics, area_rms, dark_maps, prnu_difference, prnu_map, remove_gradient
+from dice_core.calibration import (TemporalStatistics, area_rms, dark_maps, prnu_difference, prnu_map, remove_gradient,
+                                   row_bands)
 from dice_core.io import Chunk, FrameStream, read_product
 from dice_core.manifest import Detector, load_manifest
 
@@ -14,8 +15,10 @@ def test_temporal_statistics_match_numpy_whatever_the_chunking(rng):
     valid = rng.random(frames.shape) > 0.1
     for chunk, band_samples in [(1, None), (7, None), (101, None), (7, 1), (7, 7 * 5 * 2 + 3), (101, 101 * 5)]:
         stats = TemporalStatistics((4, 5))  # bands of 1 row, of 2 rows and a remainder, of 1 row of 101 frames
-        for start in range(0, 101, chunk):
-            stats.update(frames[start:start + chunk], valid[start:start + chunk], band_samples=band_samples)
+        for start in range(0, 101, chunk):  # each chunk in bands of rows, as dark_maps and prnu_map take it
+            block, ok = frames[start:start + chunk], valid[start:start + chunk]
+            for rows in row_bands(block.shape[0], block.shape[1:], samples=band_samples):
+                stats.update_rows(rows, block[:, rows], ok[:, rows])
         masked = np.ma.masked_array(frames, ~valid)
         np.testing.assert_allclose(stats.mean, masked.mean(axis=0).data, rtol=1e-13)
         np.testing.assert_allclose(stats.variance, masked.var(axis=0, ddof=1).data, rtol=1e-10)

@@ -200,7 +200,6 @@ def test_an_allan_job_s_batches_are_read_once_a_version_of_its_metrology_product
     assert resources.allan_batches(path) > first[0] and len(opened) == 2
 
 
-
 @pytest.mark.parametrize("content", [b"not a netCDF file", "no phase"])
 def test_an_unreadable_metrology_product_leaves_the_allan_request_to_its_frames(tmp_path, content):
     """A metrology product that is not one (garbage bytes, or a product without ``phase``) gives no batches:

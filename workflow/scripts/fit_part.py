@@ -23,7 +23,7 @@ def fit_part(manifest_path, state_path, first_paths, baseline, part, output, con
                                        max_passes=config["metrology"]["max_passes"],
                                        smooth_degree=config["metrology"]["smooth_degree"])
         product = fringe_fit.part_dataset(stream, state, part=part, parts=parts)
-    files = [] if product.attrs["fit_empty"] else [cube.path for cube in stream.split(parts)[part].cubes]
+    files = [] if product.attrs["fit_empty"] else mine
     # the files' checksums as pass 1's part recorded them: only pass 1 reads the files to hash them
     digests = {key: value for path in first_paths for key, value in io.input_digests(path).items()}
     io.write_product(product, output, title=f"split fringe fit of baseline {baseline} of {manifest.name}: pass "
