@@ -556,22 +556,25 @@ def _sampled_jacobian(x, y, tips, pixels, index=None):
 def _stage_bound(x, y, tips, covariance, pixels, index=None):
     """3-sigma phase (rad), beyond the affine part over the pixels ``index`` (None: every pixel), that tips known
     to ``covariance`` (6, 6), mm^2, put on the worst of them; from up to ``STAGE_BOUND_SAMPLES`` of them,
-    evenly picked (the surface is smooth). ``pixels`` gives the bench (wavelength, pitch)."""
-    jac, _ = _sampled_jacobian(x, y, tips, pixels, index)
-    return 3 * float(np.sqrt(np.max(np.einsum("pi,ij,pj->p", jac, covariance, jac))))
+    evenly picked (the surface is smooth). ``pixels`` gives the bench (wavelength, pitch).
+
+    Returns the bound and the affine coefficients of d Phi / d tips over those pixels (3, 6), which
+    :func:`_plane_error` takes for the disc chosen."""
+    jac, coef = _sampled_jacobian(x, y, tips, pixels, index)
+    return 3 * float(np.sqrt(np.max(np.einsum("pi,ij,pj->p", jac, covariance, jac)))), coef
 
 
-def _plane_error(x, y, tips, covariance, pixels, index, previous=None):
+def _plane_error(x, y, tips, covariance, pixels, coefficients, previous=None):
     """3-sigma error (rad/pixel, (2,)), from tips known to ``covariance`` (6, 6), mm^2, of the plane a stage over
-    the pixels ``index`` starts from, against the best plane of its residual: the plane fitted over the
+    a disc of pixels starts from, against the best plane of its residual: the plane fitted over the
     pixels ``previous`` (the last stage's), or, for the first stage (None), the plane-wave solution's less the
     nominal surface's mean gradient over every pixel (:func:`_unwrapped_start`).
 
-    Linear in the tips' error: the slopes of d Phi / d tips over ``index`` against those over ``previous``,
+    Linear in the tips' error: the slopes of d Phi / d tips over the disc (``coefficients``, the affine
+    coefficients :func:`_stage_bound` returned for it) against those over ``previous``,
     or their mean gradient over every pixel (central differences half a pixel each way), from the bound's
     evenly picked samples. For the first stage, plus how far the tips' surface's mean gradient over every
     pixel is from its best plane: a plane-wave solution may be either, or between."""
-    _, slopes = _sampled_jacobian(x, y, tips, pixels, index)
     bench = {"wavelength": pixels.wavelength, "pixel_pitch": pixels.pixel_pitch}
     if previous is not None:
         _, reference = _sampled_jacobian(x, y, tips, pixels, previous)
@@ -586,7 +589,7 @@ def _plane_error(x, y, tips, covariance, pixels, index, previous=None):
         phase, gx, gy = two_source_phase(xs, ys, *tips, **bench)
         best = np.linalg.lstsq(affine_basis(xs, ys).T, phase, rcond=None)[0][1:]
         ambiguity = np.abs(best - [gx.mean(), gy.mean()])
-    gain = reference[1:] - slopes[1:]  # (2, 6): rad/pixel per mm of tip
+    gain = reference[1:] - coefficients[1:]  # (2, 6): rad/pixel per mm of tip
     return 3 * np.sqrt(np.einsum("ai,ij,aj->a", gain, covariance, gain)) + ambiguity
 
 
@@ -608,23 +611,23 @@ def _refine_in_stages(pixels, k_plane, *, nominal, prior, max_iterations, fibers
     tips, outer, stages, iterations = nominal.copy(), len(radii), 0, 0
     refine = {"nominal": nominal, "prior": prior, "max_iterations": max_iterations, "fibers": fibers, "label": label}
     while outer > 0:
-        bounds = []
+        bounds = []  # (bound, affine coefficients) of each disc tried
         for j in range(1 if stages == 0 else 0, outer):
             bounds.append(_stage_bound(x, y, tips, covariance, pixels, np.flatnonzero(distance <= radii[j])))
-            if bounds[-1] <= STAGE_PHASE_LIMIT:
+            if bounds[-1][0] <= STAGE_PHASE_LIMIT:
                 disc = j
                 break
         else:  # no disc the bound allows: the next one out anyway, said (it may not converge)
-            disc = outer - 1
+            disc = outer - 1  # (the last disc tried, or every pixel when there was none to try)
             if not bounds:  # (too few pixels for a smaller disc than every pixel)
                 bounds.append(_stage_bound(x, y, tips, covariance, pixels))
             log.warning("%s: no disc of %d pixels or more keeps the tips' uncertainty within %g rad at 3 sigma "
                         "(%.2f rad on the disc of %.0f pixels refined next); the refinement may not converge",
-                        label, STAGE_MIN_PIXELS, STAGE_PHASE_LIMIT, bounds[-1], radii[disc])
+                        label, STAGE_MIN_PIXELS, STAGE_PHASE_LIMIT, bounds[-1][0], radii[disc])
         inside = np.flatnonzero(distance <= radii[disc])
         # the plane the stage starts from, searched for within its 3-sigma error (_searched_plane): on sparse
         # pixels, whose first disc spans hundreds of pixels, it can be radians off at the disc's edge
-        error = _plane_error(x, y, tips, covariance, pixels, inside,
+        error = _plane_error(x, y, tips, covariance, pixels, bounds[-1][1],
                              None if stages == 0 else np.flatnonzero(distance <= radii[outer]))
         stage = pixels if disc == 0 else _PhasePixels(pixels.theta[inside], x[inside], y[inside], pixels.wavelength,
                                                       pixels.pixel_pitch, pixels.block, sign=pixels.sign)
@@ -711,7 +714,7 @@ def fit_two_source(theta, x, y, nominal_a, nominal_b, *, wavelength, pixel_pitch
     refine = {"nominal": nominal, "prior": prior, "max_iterations": max_iterations, "fibers": fibers, "label": label}
     # every pixel at once where the prior leaves the surface within +-STAGE_PHASE_LIMIT of the truth, as on
     # every 80x84 detector; else stages over discs from the centre out
-    if _stage_bound(x, y, nominal, np.eye(6) / prior, pixels) <= STAGE_PHASE_LIMIT:
+    if _stage_bound(x, y, nominal, np.eye(6) / prior, pixels)[0] <= STAGE_PHASE_LIMIT:
         pixels.sign, constant, plane = _unwrapped_start(theta, x, y, lambda s: pixels.surface(nominal, s), k_plane,
                                                         block)
         tips, constant, plane, iterations, _ = _refine_tips(pixels, nominal.copy(), constant, plane, **refine)
