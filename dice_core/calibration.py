@@ -483,7 +483,7 @@ def unusable_pixels(flags) -> np.ndarray:
     return (np.asarray(flags).astype(np.int64) & UNUSABLE) != 0
 
 
-def _local_median(image, size=5, *, band_samples: int | None = None):
+def _local_median(image, size=5):
     """Median of the valid (finite) pixels of each pixel's size x size neighbourhood (NaN: left out; NaN where
     none is valid, as for windows wholly outside the science area).
 
@@ -501,7 +501,7 @@ def _local_median(image, size=5, *, band_samples: int | None = None):
     out = np.empty(np.shape(image))
     with warnings.catch_warnings():  # an all-NaN window: NaN, as wanted
         warnings.simplefilter("ignore", RuntimeWarning)
-        for band in row_bands(size * size, out.shape, samples=band_samples):
+        for band in row_bands(size * size, out.shape):
             block = windows[band]
             out[band] = np.nanmedian(block.reshape(block.shape[:2] + (size * size,)), axis=-1)
     return out
