@@ -56,10 +56,10 @@ def test_the_allan_request_covers_its_worker_processes(pixels, workers, tree_pss
         assert asked == alone
     else:
         assert (alone["mem_mb"] - resources.EXECUTOR_MB < tree_rss_mb) == share_needed
-        cost = resources.step_cost("allan_deviation")
-        chunk = resources.chunk_frames_of("auto", pixels=pixels, frames=2000)
-        share = workers * (cost.worker_mb + cost.worker_mb_per_mpixel * pixels / 1e6
-                           + cost.mb_per_mchunk * pixels * chunk / 1e6)
+        # the workers' share is the model's (memory, MB), with the request's margin
+        share = (resources.modelled_cost("allan_deviation", pixels=pixels, frames=2000, workers=workers)[0]
+                 - resources.modelled_cost("allan_deviation", pixels=pixels, frames=2000)[0])
+        assert share > 0
         assert asked["mem_mb"] - alone["mem_mb"] == pytest.approx(resources.MEMORY_MARGIN * share, abs=1)
 
 
@@ -137,11 +137,12 @@ def test_the_allan_statistics_grow_with_pixels_batches_and_group_sizes():
     same frames (a faster sweep), 4x the batches times their group sizes' ratio."""
     from dice_core.allan import group_sizes
 
-    cost = resources.step_cost("allan_deviation")
+    def term(pixels, batches):  # the modelled time (s) less the same job's with one batch (no statistics)
+        seconds = [resources.modelled_cost("allan_deviation", pixels=pixels, frames=8000, batches=b)[1]
+                   for b in (batches, 1)]
+        return seconds[0] - seconds[1]
 
-    def term(pixels, batches):
-        return cost.s_per_gstatistic * pixels * resources.allan_statistics_size(8000, batches) / 1e9
-
+    assert term(512 * 512, 47) > 0
     assert term(4 * 512 * 512, 47) == pytest.approx(4 * term(512 * 512, 47))
     assert term(512 * 512, 188) == pytest.approx(4 * term(512 * 512, 47) * len(group_sizes(188)) / len(group_sizes(47)))
     assert resources.allan_statistics_size(8000, 1) == 0 and resources.allan_statistics_size(79) == 0
