@@ -39,8 +39,6 @@ if config["metrology"]["split"]:
             # its own group of files only: it reads no other samples (the others' headers, which every job of
             # the fit reads, exist once fit_start has run)
             cubes=part_files,
-            # pass 1's part, which recorded its files' checksums: later passes do not read them again for it
-            first=lambda w: [fit_part_of(w, 1, w.part)] if int(w.npass) > 1 else [],
         output:
             # small (25 bytes a pixel), but one per part and pass: removed once the passes that need it have run
             part=temp(output_of("fit_part")),

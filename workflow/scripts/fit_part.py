@@ -9,7 +9,7 @@ from dice_core import fringe_fit, io
 from dice_core.manifest import load_manifest
 
 
-def fit_part(manifest_path, state_path, first_paths, baseline, part, output, config):
+def fit_part(manifest_path, state_path, baseline, part, output, config):
     manifest = load_manifest(manifest_path)
     stream = fringe_fit.metrology_stream(manifest.baselines[baseline], manifest.detector,
                                          chunk_frames=config["chunk_frames"])
@@ -23,15 +23,14 @@ def fit_part(manifest_path, state_path, first_paths, baseline, part, output, con
                                        max_passes=config["metrology"]["max_passes"],
                                        smooth_degree=config["metrology"]["smooth_degree"])
         product = fringe_fit.part_dataset(stream, state, part=part, parts=parts)
+    # the files' checksums: adopted above, or taken as the pass read them (a part that read nothing records none)
     files = [] if product.attrs["fit_empty"] else mine
-    # the files' checksums as pass 1's part recorded them: only pass 1 reads the files to hash them
-    digests = {key: value for path in first_paths for key, value in io.input_digests(path).items()}
     io.write_product(product, output, title=f"split fringe fit of baseline {baseline} of {manifest.name}: pass "
                                             f"{product.attrs['fit_pass']}, part {part}",
-                     config=config, inputs=[state_path, *files], digests=digests)
+                     config=config, inputs=[state_path, *files])
 
 
 dice_core.run_logged(snakemake.log[0], fit_part, snakemake.input.manifest, snakemake.input.state,
-                     list(snakemake.input.first), snakemake.wildcards.baseline, int(snakemake.wildcards.part),
+                     snakemake.wildcards.baseline, int(snakemake.wildcards.part),
                      snakemake.output.part, snakemake.params.settings,
                      provenance={"code_version": snakemake.params.code, **snakemake.params.roots})
