@@ -782,9 +782,13 @@ def _store_digests(paths) -> None:
         if key not in _DIGESTS or not raw:
             continue
         entry = _store_entry(key[0])
+        text = json.dumps({"key": list(key), "sha256": _DIGESTS[key]})
+        with contextlib.suppress(OSError, UnicodeDecodeError):
+            if entry.read_text() == text:  # kept already (the digest was adopted from it): not written again
+                continue
         try:
             entry.parent.mkdir(parents=True, exist_ok=True)
-            write_text(entry, json.dumps({"key": list(key), "sha256": _DIGESTS[key]}))
+            write_text(entry, text)
         except OSError as exc:  # a cache: without it a later step hashes the file again
             log.warning("%s: the digests of this product's inputs not kept (%s): a step reading them again "
                         "will hash them", entry.parent, exc)

@@ -531,11 +531,13 @@ def test_a_step_streaming_files_another_step_hashed_adopts_their_digests_only_fo
 
         monkeypatch.setattr(io.hashlib, "sha256", no_hashing)
         assert io.adopt_stored_digests(files) == [str(f.resolve()) for f in files]
+        kept = {entry: entry.stat().st_ino for entry in (results / io.DIGEST_STORE).iterdir()}  # a rewrite: a new inode
         collect(FrameStream(baseline, detector, chunk_frames=2))
         write_product(product(), results / "allan.nc", title="allan", inputs=[*files, results / "metrology.nc"])
         records = json.loads(read_product(results / "allan.nc").attrs["inputs"])
         assert {str((dataset / r["path"]).resolve()): r["sha256"] for r in records[:2]} == truth
-        assert len(list((results / io.DIGEST_STORE).iterdir())) == 2  # the dataset's files only, not products
+        # the dataset's files only, not products; the adopted entries not written again
+        assert {entry: entry.stat().st_ino for entry in (results / io.DIGEST_STORE).iterdir()} == kept
 
         # the second file replaced by other bytes of the same size with an older time, as cp -p leaves it; then
         # renamed onto by a copy with its very size and modification time
