@@ -611,23 +611,23 @@ def _refine_in_stages(pixels, k_plane, *, nominal, prior, max_iterations, fibers
     tips, outer, stages, iterations = nominal.copy(), len(radii), 0, 0
     refine = {"nominal": nominal, "prior": prior, "max_iterations": max_iterations, "fibers": fibers, "label": label}
     while outer > 0:
-        bounds = []  # (bound, affine coefficients) of each disc tried
+        bound = None  # the last disc tried's: its bound (rad) and affine coefficients (_stage_bound)
         for j in range(1 if stages == 0 else 0, outer):
-            bounds.append(_stage_bound(x, y, tips, covariance, pixels, np.flatnonzero(distance <= radii[j])))
-            if bounds[-1][0] <= STAGE_PHASE_LIMIT:
+            bound, coefficients = _stage_bound(x, y, tips, covariance, pixels, np.flatnonzero(distance <= radii[j]))
+            if bound <= STAGE_PHASE_LIMIT:
                 disc = j
                 break
         else:  # no disc the bound allows: the next one out anyway, said (it may not converge)
             disc = outer - 1  # (the last disc tried, or every pixel when there was none to try)
-            if not bounds:  # (too few pixels for a smaller disc than every pixel)
-                bounds.append(_stage_bound(x, y, tips, covariance, pixels))
+            if bound is None:  # (too few pixels for a smaller disc than every pixel)
+                bound, coefficients = _stage_bound(x, y, tips, covariance, pixels)
             log.warning("%s: no disc of %d pixels or more keeps the tips' uncertainty within %g rad at 3 sigma "
-                        "(%.2f rad on the disc of %.0f pixels refined next); the refinement may not converge",
-                        label, STAGE_MIN_PIXELS, STAGE_PHASE_LIMIT, bounds[-1][0], radii[disc])
+                        "(%.2f rad on the disc within %.0f pixels of the centre, refined next); the refinement may "
+                        "not converge", label, STAGE_MIN_PIXELS, STAGE_PHASE_LIMIT, bound, radii[disc])
         inside = np.flatnonzero(distance <= radii[disc])
         # the plane the stage starts from, searched for within its 3-sigma error (_searched_plane): on sparse
         # pixels, whose first disc spans hundreds of pixels, it can be radians off at the disc's edge
-        error = _plane_error(x, y, tips, covariance, pixels, bounds[-1][1],
+        error = _plane_error(x, y, tips, covariance, pixels, coefficients,
                              None if stages == 0 else np.flatnonzero(distance <= radii[outer]))
         stage = pixels if disc == 0 else _PhasePixels(pixels.theta[inside], x[inside], y[inside], pixels.wavelength,
                                                       pixels.pixel_pitch, pixels.block, sign=pixels.sign)

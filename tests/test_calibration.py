@@ -305,8 +305,8 @@ def test_impossible_defects_are_refused(defects, expected):
         small_config(detector=defects)
 
 
-@pytest.mark.parametrize("size, band_samples", [(5, None), (5, 7 * 25 * 53), (3, 1)])
-def test_the_local_median_is_scipys_nan_median_filter(size, band_samples, monkeypatch):
+@pytest.mark.parametrize("size, band_samples, bands", [(5, None, 1), (5, 7 * 25 * 53, 6), (3, 1, 37)])
+def test_the_local_median_is_scipys_nan_median_filter(size, band_samples, bands, monkeypatch):
     """The bad-pixel mask's local median, vectorised in bands of rows, equals scipy.ndimage.generic_filter with
     np.nanmedian (a Python call a pixel) bit for bit: NaN pixels left out, NaN where a window holds none, even
     counts of valid pixels (the mean of the middle two) and ties."""
@@ -325,6 +325,7 @@ def test_the_local_median_is_scipys_nan_median_filter(size, band_samples, monkey
         expected = generic_filter(image, np.nanmedian, size=size, mode="constant", cval=np.nan)
     if band_samples is not None:  # bands of a few rows, or of one
         monkeypatch.setattr(calibration, "BAND_SAMPLES", band_samples)
+    assert len(calibration.row_bands(size * size, image.shape)) == bands  # (37 rows)
     got = calibration._local_median(image, size)
     assert np.isnan(got[0, 0]) and np.isfinite(got[20, 20])
     np.testing.assert_array_equal(got, expected)

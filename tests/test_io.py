@@ -555,6 +555,8 @@ def test_a_step_streaming_files_another_step_hashed_adopts_their_digests_only_fo
             assert io.known_digests()[io._digest_key(files[1])] == sha256(files[1].read_bytes()).hexdigest()
             assert io.known_digests()[io._digest_key(files[0])] == truth[str(files[0].resolve())]
             write_product(product(), results / "allan.nc", title="allan", inputs=files)  # the new version kept
+            monkeypatch.setattr(io, "_DIGESTS", {})
+            assert io.adopt_stored_digests(files) == [str(f.resolve()) for f in files], older  # its entry rewritten
         # an entry that is not one (a list, no digest) is no digest: the file is hashed as read, nothing fails
         monkeypatch.setattr(io, "_DIGESTS", {})
         for entry, text in zip(sorted((results / io.DIGEST_STORE).iterdir()), ("[1, 2]", '{"key": []}')):

@@ -56,11 +56,16 @@ def test_the_allan_request_covers_its_worker_processes(pixels, workers, tree_pss
         assert asked == alone
     else:
         assert (alone["mem_mb"] - resources.EXECUTOR_MB < tree_rss_mb) == share_needed
-        # the workers' share is the model's (memory, MB), with the request's margin
-        share = (resources.modelled_cost("allan_deviation", pixels=pixels, frames=2000, workers=workers)[0]
-                 - resources.modelled_cost("allan_deviation", pixels=pixels, frames=2000)[0])
-        assert share > 0
+        def memory(workers, chunk_frames="auto"):  # the model's, MB
+            return resources.modelled_cost("allan_deviation", pixels=pixels, frames=2000, workers=workers,
+                                           chunk_frames=chunk_frames)[0]
+
+        # the workers' share, with the request's margin; each worker holds a chunk as the job does
+        share = memory(workers) - memory(1)
         assert asked["mem_mb"] - alone["mem_mb"] == pytest.approx(resources.MEMORY_MARGIN * share, abs=1)
+        chunk_grown = memory(1, 32) - memory(1, 4)
+        assert chunk_grown > 0
+        assert (memory(workers, 32) - memory(workers, 4)) == pytest.approx((workers + 1) * chunk_grown)
 
 
 def test_the_allan_job_at_4096x4096_is_modelled_under_8_gb_with_two_workers():
