@@ -561,8 +561,10 @@ def chromatic_dataset(wavelengths, *, offsets: dict, widths: dict, sensitivity: 
         variables,
         coords={"wavelength": ("wavelength", wavelengths, {"units": "m", "long_name": "calibration wavelength"}),
                 "row": np.arange(rows), "col": np.arange(cols),
-                "pair": ("wavelength", [pairs[w] for w in wavelengths]),
-                "flat": ("wavelength", [flats.get(w, "") for w in wavelengths])},
+                "pair": ("wavelength", [pairs[w] for w in wavelengths], {
+                    "long_name": "metrology pair whose offsets are the wavelength's, named as in the manifest"}),
+                "flat": ("wavelength", [flats.get(w, "") for w in wavelengths], {
+                    "long_name": "laser flat of the wavelength, named as in the manifest (empty: none)"})},
         attrs={"model": MODEL, "max_degree": MAX_DEGREE, "reference_wavelength": float(reference),
                "depth_coordinate": "ln(absorption length / 1 um) of silicon at 295 K (Schinke et al. 2015)"},
     )

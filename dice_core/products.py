@@ -379,7 +379,8 @@ COORDINATE_ATTRS = {
                           "methods\")"},
     "model": {"long_name": "superimposition of the star pattern: procrustes, projective or pose"},
     "wavelength": {"units": "m", "long_name": "wavelength in vacuum"},
-    "wavelengths": {"long_name": "set of calibration wavelengths"},
+    "wavelengths": {"units": "1", "long_name": "number of calibration wavelengths of the chromatic mode (their set: "
+                                              "dice_core.studies.CALIBRATION_WAVELENGTHS)"},
 }
 #: The dimensions that get an index coordinate (0, 1, ...) where the dataset has none.
 INDEX_DIMS = ("row", "col", "frame", "position", "star", "batch", "iteration")

@@ -4,7 +4,7 @@ the reduction's model across wavelength (dice_core.chromatic)."""
 import numpy as np
 import pytest
 
-from dice_core import chromatic
+from dice_core import chromatic, io
 from dice_core.detector import PixelResponse
 
 
@@ -201,10 +201,11 @@ def product_from_truth(truth, calibration, *, flats=True):
                                        reference=633e-9)
 
 
-def test_the_star_calibration_from_the_product_is_the_model_s(chromatic_truth):
+def test_the_star_calibration_from_the_product_is_the_model_s(chromatic_truth, tmp_path):
     truth, mask = chromatic_truth
     calibration = (633e-9, 450e-9, 800e-9)  # the manifest's order: the reference pair's first
     product = product_from_truth(truth, calibration)
+    io.write_product(product, tmp_path / "chromatic.nc", title="t")  # a product (every coordinate said what it is)
     assert product["dx"].dims == ("wavelength", "row", "col") and list(product["pair"].values)[0] == "P14_633"
     for name, units in (("dx", "pixel"), ("dy", "pixel"), ("sensitivity", "1"), ("width_x", "pixel")):
         assert product[name].attrs["units"] == units

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dice_core import error_budget, reproduction, studies
+from dice_core import error_budget, io, reproduction, studies
 
 
 def bench(prnu):
@@ -197,11 +197,12 @@ def test_tip_tilt_study_pose_and_projective_remove_the_excess_procrustes_cannot(
 NOISELESS = {"stars.frames": 2, "detector.photon_noise": False, "detector.read_noise": 0.0}
 
 
-def test_calibrated_at_633_nm_only_flat_and_metrology_leave_a_chromatic_detector_s_stars_off():
+def test_calibrated_at_633_nm_only_flat_and_metrology_leave_a_chromatic_detector_s_stars_off(tmp_path):
     """The effect at the centroids (the CI's quick check; the accuracy's gain is the slow test below): broadband
     stars on a chromatic detector (the default bench's PRNU, offsets and width spread; amplitude 5) and on its
     achromatic twin, both calibrated perfectly at 633 nm with a white flat, noiseless, 12 positions. Against
-    truth, flat+metrology leaves 1.5e-4 pixel on the chromatic detector and 5.7e-5 on the twin (measured)."""
+    truth, flat+metrology leaves 1.5e-4 pixel on the chromatic detector and 5.7e-5 on the twin (measured). The
+    point is a product as the sweep's step writes it (every coordinate with its long name and units)."""
     ds = studies.run_point("chromatic", {}, bench={**NOISELESS, "stars.positions": 12},
                            options={"batches": 2, "trials": 100, "wavelengths": [],
                                     "modes": ("flat+metrology", "achromatic flat+metrology")})
@@ -209,6 +210,7 @@ def test_calibrated_at_633_nm_only_flat_and_metrology_leave_a_chromatic_detector
     assert error["flat+metrology"] > 2 * error["achromatic flat+metrology"]
     assert error["achromatic flat+metrology"] < 7e-5  # the PRF width spread's, which neither calibration sees
     assert np.isnan(float(ds["gain"])) and ds.sizes["wavelengths"] == 0  # raw and the chromatic mode left out
+    io.write_product(ds, tmp_path / "point.nc", title="a chromatic point")
 
 
 @pytest.mark.slow  # 25 s on 2 shared cores (load 4; 2026-12-05)
