@@ -6,7 +6,9 @@ its type, description and default. Where a key's values are names the library
 defines (calibration modes, centroid methods, superimpositions, studies, named spectra), the schema
 says ``x-dice-choices: <table>`` instead of listing them, and
 :func:`config_schema` fills the enum (and ``x-dice-default: <table>``, a
-default of every name) from the table: the names are listed once, in
+default of every name) from the table; a list whose order means nothing says ``x-dice-unordered: true``
+and :func:`checked` puts it in its table's order, so that its order neither changes a product nor re-runs a
+step. The names are listed once, in
 :data:`dice_core.centroids.MODES`, :data:`~dice_core.centroids.METHODS`,
 :data:`dice_core.superimposition.SUPERIMPOSITIONS`, :data:`dice_core.studies.STUDIES`
 (with ``reduction``, the whole workflow per point) and :data:`dice_core.chromatic.SPECTRA`.
@@ -30,8 +32,8 @@ from dice_core.overrides import NUMBER
 
 jsonschema = lazy.module("jsonschema")  # used when a configuration is checked
 
-__all__ = ["choices", "config_schema", "problems", "typed", "with_defaults", "checked", "SettingsError", "select",
-           "leaf_keys", "get"]
+__all__ = ["choices", "config_schema", "problems", "typed", "with_defaults", "checked", "unordered_in_order",
+           "SettingsError", "select", "leaf_keys", "get"]
 
 
 class SettingsError(ValueError):
@@ -186,7 +188,21 @@ def checked(values: dict, schema: dict, *, files=()) -> dict:
     found += problems(values, schema)
     if found:
         raise SettingsError("\n".join(found))
-    return with_defaults(values, schema)
+    return unordered_in_order(with_defaults(values, schema), schema)
+
+
+def unordered_in_order(values, schema: dict):
+    """``values`` with each list the schema marks ``x-dice-unordered`` in the order of its items' choices (their
+    enum, :func:`config_schema`), at every level: the same configuration whatever order it was written in."""
+    if isinstance(values, dict):
+        properties = schema.get("properties", {})
+        extra = schema.get("additionalProperties")
+        return {key: unordered_in_order(value, properties.get(key, extra if isinstance(extra, dict) else {}))
+                for key, value in values.items()}
+    if isinstance(values, list) and schema.get("x-dice-unordered"):
+        order = schema.get("items", {}).get("enum", [])
+        return sorted(values, key=lambda value: order.index(value) if value in order else len(order))
+    return values
 
 
 def leaf_keys(schema: dict, prefix: str = "") -> list[str]:
