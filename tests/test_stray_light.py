@@ -11,7 +11,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from dice_core import deprojection, simulation, stray_light
+from dice_core import deprojection, io, simulation, stray_light
 from dice_core.geometry import remove_modes, two_source_phase
 
 #: Two vane edges a baseline, one copying each fiber's wave (offsets in mrad from the fiber's direction).
@@ -387,6 +387,7 @@ def test_a_study_point_gives_the_pair_s_error_left_in_and_removed(tmp_path):
         floor = float(ds[f"floor_{axis}"])
         assert float(ds[f"error_{axis}_detect"]) > 4 * floor and float(ds[f"error_{axis}_remove"]) < 1.3 * floor
     assert list(tmp_path.iterdir()) == []  # its simulated files removed
+    io.write_product(ds, tmp_path / "point.nc", title="a stray-light point")  # as the sweep's step writes it
 
 
 def test_the_study_s_rows_and_figure(tmp_path):

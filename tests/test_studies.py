@@ -161,11 +161,13 @@ def test_the_comparison_table_refuses_a_quantity_twice():
     assert len(set(quantities)) == len(quantities) == 6  # prnu: 2 coefficients and 2 requirements; offsets: 2
 
 
-def test_star_accuracy_shows_the_prf_width_spread_that_neither_calibration_sees():
+def test_star_accuracy_shows_the_prf_width_spread_that_neither_calibration_sees(tmp_path):
     """Noiseless, perfect flat and offsets: flat+metrology is exact without a width spread, and a 1% spread
-    leaves several 1e-5 pixel (docs/centroids.md); each calibration removes what it targets."""
+    leaves several 1e-5 pixel (docs/centroids.md); each calibration removes what it targets. A point is a
+    product as the sweep's step writes it."""
     exact, spread = (studies.run_point("star_accuracy", {"detector.prf_width_spread": w}, options={"trials": 200})
                      for w in (0.0, 0.01))
+    io.write_product(spread, tmp_path / "point.nc", title="a star-accuracy point")
     error = {mode: float(exact.truth_error.sel(mode=mode)) for mode in exact.mode.values}
     assert error["flat+metrology"] < 1e-5 < 1e-4 < error["flat"] < error["raw"]
     assert float(spread.truth_error.sel(mode="flat+metrology")) > 3e-5
