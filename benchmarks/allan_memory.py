@@ -2,10 +2,12 @@
 
 For a detector size and frame count given, in one run:
 
-1. one baseline (H1H4, 2.4-pixel fringes at 2 degrees, the default preset's noise) simulated with a fast
-   sweep (``--sweep-frames`` frames a one-way sweep: short batches, so many of them), by the library
-   (``dice_core.simulation``), into ``<workdir>``; fitted once (``fringe_fit.fit_baseline``) and its
-   ``metrology`` product and dark written there (reused by later runs of the same size);
+1. one baseline (H1H4, 2.4-pixel fringes at 2 degrees, the paper's noise): the ``large`` preset scaled to the
+   detector as ``fit_memory.py`` scales it (``large_detector.size_overrides``: the beam's radius 1500 pixels
+   a 1024 of side, the science area [2, n - 2] x [8, n - 2]), in plane waves, simulated with a fast sweep
+   (``--sweep-frames`` frames a one-way sweep: short batches, so many of them), by the library
+   (``dice_core.simulation``), into ``<workdir>/s<size>_..._large``; fitted once (``fringe_fit.fit_baseline``)
+   and its ``metrology`` product and dark written there (reused by later runs of the same size);
 2. one plain read pass of the baseline's files in a fresh process (float32 chunks summed over frames): what
    reading the cube costs, the yardstick of the times;
 3. for each code tree given (``--tree name=path``: e.g. the base commit's ``git archive`` beside this tree),
@@ -23,10 +25,17 @@ For a detector size and frame count given, in one run:
 not use (a spherical-wave solution's product holds 10 more than a plane wave's: its modes, local
 wavevectors, plane-wave departure, PRNU-free offsets): a step that reads the product whole holds them.
 
+Until 2026-12-05 the bench was the simulation's defaults (the default preset's beam, a 300-pixel radius, its
+levels, every pixel a science pixel; the same fringes, sweep and noise), in folders without ``_large``: its
+envelope, of mean 1 over the detector, saturated a 2048x2048 detector's centre (324,110 pixels; the fit
+failed). BENCHMARKS.md's rows at 512x512 and 1024x1024 before that date are of that bench. The same code on
+both benches at those sizes: the same batches, the tree's peaks within 2% (BENCHMARKS.md, "The Allan job at
+2048x2048, measured").
+
 Printed: per tree, batches, time (and over the plain pass), peak RSS, the step's own memory and that per pixel
-and per pixel and batch, the process tree's peaks and the phases' times; for each tree after the first, the largest difference of its product from the
-first tree's (every variable, coordinate and attribute compared). Every run's numbers are appended to
-``<workdir>/allan_memory.json``, one line a run.
+and per pixel and batch, the process tree's peaks and the phases' times; for each tree after the first, the
+largest difference of its product from the first tree's (every variable, coordinate and attribute compared).
+Every run's numbers are appended to ``<workdir>/allan_memory.json``, one line a run.
 
     git archive <base> dice_core | tar -x -C /tmp/dice-base
     python benchmarks/allan_memory.py --workdir /tmp/dice-allanmem --tree base=/tmp/dice-base --tree new=$PWD \\
@@ -169,21 +178,22 @@ print(time.perf_counter() - start)
 
 
 def prepare(size: int, frames: int, sweep_frames: int, folder: Path, frames_per_file: int = 2000) -> None:
-    """Simulate, fit and write the metrology product and dark of the bench (once per folder)."""
+    """Simulate, fit and write the metrology product and dark of the bench (once per folder): the ``large``
+    preset scaled to the size by ``large_detector.size_overrides`` (as ``fit_memory.py``), in plane waves."""
     import xarray as xr
 
     from dice_core import fringe_fit, fringes, io, simulation
     from dice_core.manifest import load_manifest
 
+    from large_detector import PRESET, size_overrides  # the large preset scaled to the size, as there
+
     if (folder / "metrology.nc").exists():
         return
-    cfg = simulation.SimulationConfig.from_dict({
-        "name": "allan-memory", "frames_per_file": frames_per_file,
-        "detector": {"shape": [size, size], "science_rows": [0, size], "science_cols": [0, size]},
-        "dark": {"frames": 2}, "flats": {"frames": 2},
-        "stars": {"positions": 1, "frames": 1, "pattern_centre": [size / 2, size / 2], "pattern_side": 16.0},
-        "metrology": {"frames": frames, "sweep_frames": sweep_frames,
-                      "baselines": {BASELINE: {"period": 2.4, "angle_deg": 2.0}}, "pairs": {}}})
+    overrides = {**size_overrides(size, size, frames), "name": "allan-memory", "frames_per_file": frames_per_file,
+                 "dark.frames": 2, "flats.frames": 2, "stars.positions": 1, "stars.frames": 1,
+                 "metrology.sweep_frames": sweep_frames, "metrology.spherical": False,
+                 f"metrology.baselines.{BASELINE}.midpoint": [0.0, 0.0]}  # plane waves: no fiber tips
+    cfg = simulation.load_preset(PRESET, overrides=overrides)
     manifest = load_manifest(simulation.simulate_dataset(cfg, folder / "raw"))
     truth = io.read_product(folder / "raw" / "truth.nc")
     stream = io.FrameStream(manifest.baselines[BASELINE], manifest.detector, dtype="float32")
@@ -247,7 +257,7 @@ def main(argv=None):
                         help="the Allan step's bands of pixels (a tree that has them; default: its own choice)")
     args = parser.parse_args(argv)
     per_file = "" if args.frames_per_file == 2000 else f"_p{args.frames_per_file}"
-    folder = (args.workdir / f"s{args.size}_f{args.frames}_w{args.sweep_frames}{per_file}").resolve()
+    folder = (args.workdir / f"s{args.size}_f{args.frames}_w{args.sweep_frames}{per_file}_large").resolve()
     folder.mkdir(parents=True, exist_ok=True)
     prepare(args.size, args.frames, args.sweep_frames, folder, args.frames_per_file)
     metrology = folder / "metrology.nc"
@@ -257,7 +267,8 @@ def main(argv=None):
             add_unused_maps(folder / "metrology.nc", metrology, args.unused_maps)
     results = {"machine": machine(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                "load": os.getloadavg(), "size": args.size, "frames": args.frames, "workers": args.workers,
-               "pixels_per_block": args.pixels_per_block, "unused_maps": args.unused_maps, "chunk_frames": args.chunk_frames,
+               "pixels_per_block": args.pixels_per_block, "unused_maps": args.unused_maps,
+               "chunk_frames": args.chunk_frames,
                "metrology_mb": metrology.stat().st_size / 2**20}
     plain = subprocess.run([sys.executable, "-c", PLAIN, str(REPO), str(folder / "raw" / "dataset.yaml")],
                            check=True, capture_output=True, text=True)
