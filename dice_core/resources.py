@@ -229,7 +229,9 @@ COSTS: dict[str, StepCost] = {
     # MB at 512x512 and 1024x1024 (and 333 with 16-frame chunks at 512x512: 10.6 bytes a chunk sample in each
     # of the three processes), 450 MB a million pixels, of which 324 besides the chunks: the job's term raised
     # from 200 to 265 to cover it. 7.9 GB modelled at 4096x4096 with two workers (7.7 by the straight line
-    # through the two measurements), 5.5 with one.
+    # through the two measurements), 5.5 with one. Measured at 2048x2048 since ("The Allan job at 2048x2048,
+    # measured"): the tree's PSS 1699-1704 MB with two workers and 4-frame chunks (RSS 2813), the model 2271;
+    # 6.7-6.8 GB at 4096x4096 by the line through today's 1024x1024 (520) and 2048x2048.
     # Time: the reading pass, 1-3.5 plain read passes (17 s per 1e9 samples, from the workflow's runs), then the
     # statistics, which grow with pixels x batches x group sizes: 44-76 plain read passes' time per sample in
     # five of six runs at 256x256 to 1024x1024 and 47 or 190 batches (pixels x groups fitted varied 178-446),

@@ -82,6 +82,8 @@ def test_the_allan_job_at_4096x4096_is_modelled_under_8_gb_with_two_workers():
     # --workers 2, 2000 frames in two files): 4-frame chunks, as a 4096x4096 detector reads them
     (512 * 512, 233, 517),
     (1024 * 1024, 587, 1096),
+    # "The Allan job at 2048x2048, measured" (the same command, --size 2048: the large preset scaled)
+    (2048 * 2048, 1704, 2813),
 ])
 def test_the_allan_model_covers_its_trees_with_the_chunks_of_a_large_detector(pixels, tree_pss_mb, tree_rss_mb):
     """With 4-frame chunks the model (before margins) covers the tree's measured PSS, and the request its RSS."""
