@@ -56,6 +56,9 @@ def config_schema(path) -> dict:
 
     def fill(node):
         if isinstance(node, dict):
+            if node.get("x-dice-unordered") and "x-dice-choices" not in node.get("items", {}):
+                raise ValueError(f"{path}: x-dice-unordered on a list whose items have no x-dice-choices (the order "
+                                 f"it is put in): {node.get('description', node)}")
             if "x-dice-choices" in node:
                 node["enum"] = list(tables[node["x-dice-choices"]])
             if "x-dice-default" in node:

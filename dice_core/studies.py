@@ -389,7 +389,7 @@ def star_accuracy(settings: dict, *, modes=STAR_ACCURACY_MODES, method: str = "g
     dims = ("mode",)
     ds = xr.Dataset({"truth_error": (dims, truth_errors, {"units": "pixel", "long_name": "rms centroid error against "
                                                           "truth, each position's mean displacement removed"})},
-                    coords={"mode": list(modes)})
+                    coords={"mode": np.array(list(modes), dtype=str)})  # (str: an empty list's would be float)
     for grouping in ("position", "group"):
         for field_, what in (("accuracy", "corrected Procrustes accuracy"), ("error", "its 1-sigma error")):
             ds[f"{field_}_{grouping}"] = (dims, [table[m, grouping][field_] for m in modes], {
@@ -865,7 +865,7 @@ def chromatic_accuracy(settings: dict, *, wavelengths=tuple(CALIBRATION_WAVELENG
         errors.update({name + mode: value for mode, value in found_errors.items()})
     table = _accuracy_table(datasets, groups=groups, trials=trials)
     modes = [m for m in CHROMATIC_MODES if m in modes]
-    ds = xr.Dataset(coords={"mode": modes, "wavelengths": list(sets)})
+    ds = xr.Dataset(coords={"mode": np.array(modes, dtype=str), "wavelengths": list(sets)})  # (as above)
     for prefix, dim, names in (("", "mode", modes), ("chromatic_", "wavelengths", [f"chromatic {n}" for n in sets])):
         what = "the chromatic mode's " if prefix else ""
         ds[f"{prefix}truth_error"] = ((dim,), [errors[m] for m in names], {

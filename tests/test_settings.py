@@ -34,6 +34,15 @@ def test_a_list_whose_order_means_nothing_is_the_same_configuration_in_any_order
     assert one["centroids"]["methods"] == names[-1:]
 
 
+def test_a_list_marked_unordered_without_choices_is_a_schema_error(tmp_path):
+    """x-dice-unordered puts a list in its choices' order: a list without choices could not be, and would be left
+    as written without a word; the schema is refused instead."""
+    schema = tmp_path / "schema.yaml"
+    schema.write_text("properties:\n  names:\n    type: array\n    items: {type: string}\n    x-dice-unordered: true\n")
+    with pytest.raises(ValueError, match="x-dice-unordered on a list whose items have no x-dice-choices"):
+        settings.config_schema(schema)
+
+
 @pytest.mark.parametrize("values, expected", [
     ({"centroids": {"half_sise": 4}}, "config centroids.half_sise: unknown key; did you mean centroids.half_size?"),
     ({"centroids": {"modes": ["raw", "flat+metrologi"]}}, "config centroids.modes.1: 'flat+metrologi' is not one of"),

@@ -19,8 +19,9 @@ def bias_points(tmp_path_factory):
             for prnu in (5e-5, 2e-3)}
 
 
-def test_ours_stays_at_the_photon_floor_at_both_prnu_levels(bias_points):
+def test_ours_stays_at_the_photon_floor_at_both_prnu_levels(bias_points, tmp_path):
     for ds in bias_points.values():
+        io.write_product(ds, tmp_path / "point.nc", title="an offset-bias point")  # as the sweep's step writes it
         assert float(ds.rms_error_ours) < 1.2 * float(ds.rms_photon_floor)
         assert float(ds.rms_bias_ours) < 1e-8  # noiseless: no bias at all
         # without a flat (the PRNU-free gauge): no help from the truth, no PRNU-dependent bias either
@@ -175,11 +176,12 @@ def test_star_accuracy_shows_the_prf_width_spread_that_neither_calibration_sees(
 
 
 @pytest.mark.slow  # two simulated benches and three models: about 40 s on an idle core
-def test_tip_tilt_study_pose_and_projective_remove_the_excess_procrustes_cannot():
+def test_tip_tilt_study_pose_and_projective_remove_the_excess_procrustes_cannot(tmp_path):
     """Twin benches with and without the stage's tip-tilt (2e-2 rad peak to valley, 8 positions): Procrustes's
     flat+metrology accuracy grows by far more than the PRF spread's error, the pose and projective models
     remove at least 80% of that excess variance, and the pose's tip and tilt land within their bounds."""
     ds = studies.run_point("tip_tilt", {"stars.tip_tilt_pv": 2e-2, "stars.positions": 8}, options={"trials": 200})
+    io.write_product(ds, tmp_path / "point.nc", title="a tip-tilt point")  # as the sweep's step writes it
     excess = dict(zip(ds["model"].values, ds["excess_variance"].values))
     assert excess["procrustes"] > 10 * float(ds["accuracy"].sel(model="pose")) ** 2
     for model in ("projective", "pose"):
