@@ -6,19 +6,22 @@ from dice_core import resources
 from dice_core.resources import job_resources
 
 PAPER_PIXELS = 80 * 84
+#: MB (1e6 bytes, the model's and the requests' unit) in a MiB (2^20 bytes): benchmarks/allan_memory.py and
+#: Snakemake's benchmark files (max_rss, max_pss) report MiB.
+MB_PER_MIB = 2**20 / 1e6
 
 
-@pytest.mark.parametrize("step, frames, max_rss_mb, seconds, pixels", [
-    # BENCHMARKS.md, the paper preset (80x84 pixels, 200,000-frame baselines): the benchmark files' max_rss
-    # and wall time with other jobs on the cores
+@pytest.mark.parametrize("step, frames, max_rss_mib, seconds, pixels", [
+    # MiB, as measured (converted to MB below). BENCHMARKS.md, the paper preset (80x84 pixels, 200,000-frame
+    # baselines): the benchmark files' max_rss and wall time with other jobs on the cores
     ("fit_fringes", 200_000, 411, 19, PAPER_PIXELS),
     ("allan_deviation", 200_000, 491, 14, PAPER_PIXELS),
     # BENCHMARKS.md, one 20,000-frame metrology file simulated (3.4 s alone), memory_streaming.py's 221 MiB
-    ("simulate_file", 20_000, 232, 3.4, PAPER_PIXELS),
-    # BENCHMARKS.md, "The Allan job on disk" (library: the script's calls in a fresh process, one worker, not
-    # through Snakemake): the Allan step's peak (VmHWM) at 190 batches of 42 frames on
-    # 256x256 and 512x512 pixels, its batches' arrays on disk (before, 2353 MB at 512x512: 47 bytes a pixel
-    # and batch, "Reads and memory of one baseline")
+    ("simulate_file", 20_000, 221, 3.4, PAPER_PIXELS),
+    # BENCHMARKS.md, "The Allan job on disk" (library, benchmarks/allan_memory.py: the script's calls in a
+    # fresh process, one worker, not through Snakemake): the Allan step's peak (VmHWM) at 190 batches of 42
+    # frames on 256x256 and 512x512 pixels, its batches' arrays on disk (before, 2353 MiB at 512x512: 47 bytes
+    # a pixel and batch, "Reads and memory of one baseline")
     ("allan_deviation", 8_000, 226, 45.0, 256 * 256),
     ("allan_deviation", 8_000, 273, 195.3, 512 * 512),
     # BENCHMARKS.md, "The single fit's memory through the workflow": fit_fringes jobs (benchmark files, the
@@ -26,28 +29,30 @@ PAPER_PIXELS = 80 * 84
     ("fit_fringes", 4_000, 481, 13.1, 256 * 256),
     ("fit_fringes", 4_000, 727, 42.0, 512 * 512),
 ])
-def test_requests_cover_the_paper_scale_measurements(step, frames, max_rss_mb, seconds, pixels):
+def test_requests_cover_the_paper_scale_measurements(step, frames, max_rss_mib, seconds, pixels):
     asked = job_resources(step, pixels=pixels, frames=frames)
+    max_rss_mb = max_rss_mib * MB_PER_MIB
     assert asked["mem_mb"] - resources.EXECUTOR_MB >= max_rss_mb
     assert asked["mem_mb"] <= 4 * max_rss_mb + resources.EXECUTOR_MB  # a request, not the whole node
     assert asked["runtime"] * 60 >= seconds
 
 
-@pytest.mark.parametrize("pixels, workers, tree_pss_mb, tree_rss_mb, share_needed", [
+@pytest.mark.parametrize("pixels, workers, tree_pss_mib, tree_rss_mib, share_needed", [
     # BENCHMARKS.md, "The Allan job's memory cut" (library, benchmarks/allan_memory.py, 2000 frames in two
     # files, 47 batches; the batches' fit reaching the workers through their fork): the peak of the job's
     # process tree's summed PSS (its forked workers share its pages) and of their summed RSS (each shared page
-    # counted in each process). (The rows before the cut, when each worker was sent a pickled copy of the fit:
-    # 220/259, 405/738, 587/627 and 1176/1806 MB.)
+    # counted in each process), MiB as the script reports them (its tables say MB). (The rows before the cut,
+    # when each worker was sent a pickled copy of the fit: 220/259, 405/738, 587/627 and 1176/1806 MiB.)
     (512 * 512, 1, 232, 247, False),
     (512 * 512, 2, 329, 612, False),
     (1024 * 1024, 1, 496, 527, False),
     (1024 * 1024, 2, 775, 1289, True),
 ])
-def test_the_allan_request_covers_its_worker_processes(pixels, workers, tree_pss_mb, tree_rss_mb, share_needed):
+def test_the_allan_request_covers_its_worker_processes(pixels, workers, tree_pss_mib, tree_rss_mib, share_needed):
     """The Allan job's request covers its process tree's memory, its workers' with it (each its chunks and its
     batches' sums); without the workers' share it would not cover the two workers' job at 1024x1024 (by the
     RSS; at 512x512 the job's own request covers them now that the workers share the job's fit)."""
+    tree_pss_mb, tree_rss_mb = tree_pss_mib * MB_PER_MIB, tree_rss_mib * MB_PER_MIB
     asked = job_resources("allan_deviation", pixels=pixels, frames=2000, workers=workers)
     assert asked["mem_mb"] - resources.EXECUTOR_MB >= tree_rss_mb
     assert asked["mem_mb"] <= 4 * tree_pss_mb + resources.EXECUTOR_MB
@@ -71,26 +76,32 @@ def test_the_allan_request_covers_its_worker_processes(pixels, workers, tree_pss
 def test_the_allan_job_at_4096x4096_is_modelled_under_8_gb_with_two_workers():
     """The issue's goal, by the law fitted at 512x512 and 1024x1024 (modelled, not measured at 4096x4096): the
     Allan job's process tree at 4096x4096 (8000 frames, its chunks of 4 frames) under 8 GB with two workers and
-    with one, before the request's margins (with them, two workers ask 10.7 GB: BENCHMARKS.md)."""
+    with one, before the request's margins (7.9 and 5.5 GB; with them, two workers ask 12.3 GB and one 8.7:
+    BENCHMARKS.md, "The Allan job's chunk term, measured"). Measured since at 2048x2048 with two workers
+    ("The Allan job at 2048x2048, measured"): 6.7-6.9 GB at 4096x4096 by the line through 1024x1024 and
+    2048x2048 (extrapolated)."""
     for workers in (1, 2):
         asked = job_resources("allan_deviation", pixels=4096 * 4096, frames=8000, workers=workers)
         assert (asked["mem_mb"] - resources.EXECUTOR_MB) / resources.MEMORY_MARGIN < 8000, (workers, asked)
 
 
-@pytest.mark.parametrize("pixels, tree_pss_mb, tree_rss_mb", [
+@pytest.mark.parametrize("pixels, tree_pss_mib, tree_rss_mib", [
     # BENCHMARKS.md, "The Allan job's chunk term, measured" (library, benchmarks/allan_memory.py --chunk-frames 4
-    # --workers 2, 2000 frames in two files): 4-frame chunks, as a 4096x4096 detector reads them
+    # --workers 2, 2000 frames in two files; MiB, as the script reports them): 4-frame chunks, as a 4096x4096
+    # detector reads them
     (512 * 512, 233, 517),
     (1024 * 1024, 587, 1096),
-    # "The Allan job at 2048x2048, measured" (the same command, --size 2048: the large preset scaled)
+    # "The Allan job at 2048x2048, measured" (the same command, --size 2048: the large preset scaled): 1704 MiB
+    # (1787 MB), 2813 MiB (2950 MB)
     (2048 * 2048, 1704, 2813),
 ])
-def test_the_allan_model_covers_its_trees_with_the_chunks_of_a_large_detector(pixels, tree_pss_mb, tree_rss_mb):
-    """With 4-frame chunks the model (before margins) covers the tree's measured PSS, and the request its RSS."""
+def test_the_allan_model_covers_its_trees_with_the_chunks_of_a_large_detector(pixels, tree_pss_mib, tree_rss_mib):
+    """With 4-frame chunks the model (before margins, MB) covers the tree's measured PSS, and the request its
+    RSS (both measured in MiB)."""
     memory, _ = resources.modelled_cost("allan_deviation", pixels=pixels, frames=2000, workers=2, chunk_frames=4)
-    assert memory >= tree_pss_mb
+    assert memory >= tree_pss_mib * MB_PER_MIB
     asked = job_resources("allan_deviation", pixels=pixels, frames=2000, workers=2, chunk_frames=4)
-    assert asked["mem_mb"] - resources.EXECUTOR_MB >= tree_rss_mb
+    assert asked["mem_mb"] - resources.EXECUTOR_MB >= tree_rss_mib * MB_PER_MIB
 
 
 def test_a_baselines_jobs_ask_for_the_workers_their_threads_run():
