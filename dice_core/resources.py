@@ -216,22 +216,27 @@ COSTS: dict[str, StepCost] = {
     # pixels"); each band of pixels about 8 bytes a batch-pixel number, at least one row of 10x10-pixel blocks:
     # 10 x 4096 pixels x 160 batches at 4096x4096 (50 MB), which the per-sample term covers for batches of 40
     # frames or more (0.5 MB per 1e9 samples). Measured (library, benchmarks/allan_memory.py, 47 batches of 42
-    # frames; BENCHMARKS.md, "The Allan job's memory cut"), the job's process tree (the peak of its processes'
-    # summed PSS: what they take together, forked workers sharing the job's pages; and of their summed RSS):
-    # one worker, the job alone, peak RSS 247 and 527 MB at 512x512 and 1024x1024 (355 MB a million pixels,
-    # 469 before the cut), of which the chunks it reads: 16 frames at these sizes (io.auto_chunk_frames), two
+    # frames; in MiB, 2^20 bytes, as the script reports them, where this model is in MB, 1e6 bytes; BENCHMARKS.md,
+    # "The Allan job's memory cut"), the job's process tree (the peak of its processes' summed PSS: what they take
+    # together, forked workers sharing the job's pages; and of their summed RSS): one worker, the job alone, peak
+    # RSS 247 and 527 MiB at 512x512 and 1024x1024 (372 bytes a pixel, 355 MiB a million pixels; 491 bytes
+    # before the cut), of which the chunks it reads: 16 frames at these sizes (io.auto_chunk_frames), two
     # float32 chunks and a raw one held at once, 10 bytes a sample (tracemalloc), 4 frames at 4096x4096; the
-    # rest 195 MB a million pixels. With two workers the tree's PSS 329 and 775 MB: each worker its chunks and
-    # about 27 MB a million pixels more (its batches' sums); the batches' fit reaches it through the fork,
-    # shared (it was sent a pickled copy: 257 MB a million pixels a worker). The job's chunk is counted with
-    # workers too (it reads none then but the first). Measured again with 4-frame chunks (as 4096x4096 reads
-    # them; BENCHMARKS.md, "The Allan job's chunk term, measured"): the tree's PSS with two workers 233 and 587
-    # MB at 512x512 and 1024x1024 (and 333 with 16-frame chunks at 512x512: 10.6 bytes a chunk sample in each
-    # of the three processes), 450 MB a million pixels, of which 324 besides the chunks: the job's term raised
-    # from 200 to 265 to cover it. 7.9 GB modelled at 4096x4096 with two workers (7.7 by the straight line
-    # through the two measurements), 5.5 with one. Measured at 2048x2048 since ("The Allan job at 2048x2048,
-    # measured"): the tree's PSS 1699-1704 MB with two workers and 4-frame chunks (RSS 2813), the model 2271;
-    # 6.7-6.8 GB at 4096x4096 by the line through today's 1024x1024 (520) and 2048x2048.
+    # rest 212 bytes a pixel (written 195 until 2026-12-05: 355 MiB a million pixels less 160 bytes). With two
+    # workers the tree's PSS 329 and 775 MiB: each worker its chunks and about 28 bytes a pixel more (27 MiB a
+    # million pixels; its batches' sums); the batches' fit reaches it through the fork, shared (it was sent a
+    # pickled copy: 257 MiB a million pixels a worker). The job's chunk is counted with workers too (it reads
+    # none then but the first). Measured again with 4-frame chunks (as 4096x4096 reads them; BENCHMARKS.md, "The
+    # Allan job's chunk term, measured"): the tree's PSS with two workers 233 and 587 MiB at 512x512 and
+    # 1024x1024 (and 333 with 16-frame chunks at 512x512: 11.1 bytes a chunk sample in each of the three
+    # processes, written 10.6 there), 471 bytes a pixel (450 MiB a million pixels), of which about 338 besides
+    # the chunks (written 324: MiB a million pixels less bytes): the job's term was raised from 200 to 265 to
+    # cover it, which like with like it does not quite (265 + 2 x 30 = 325): the model's 7.9 GB at 4096x4096
+    # with two workers (5.5 with one) is under that straight line's 7667 MiB, 8.0 GB (once written 7.7 GB).
+    # Measured at 2048x2048 since ("The Allan job at 2048x2048, measured"): the tree's PSS 1699-1704 MiB
+    # (1782-1787 MB) with two workers and 4-frame chunks (RSS 2813 MiB, 2950 MB), under the model's 2271 MB; at
+    # 4096x4096, by the lines through today's 1024x1024 and 2048x2048, 6.7-6.9 GB (the larger, the job's own
+    # peak RSS, VmHWM; the tree's PSS, sampled every 20 ms, a lower bound): under the model's 7.9 GB.
     # Time: the reading pass, 1-3.5 plain read passes (17 s per 1e9 samples, from the workflow's runs), then the
     # statistics, which grow with pixels x batches x group sizes: 44-76 plain read passes' time per sample in
     # five of six runs at 256x256 to 1024x1024 and 47 or 190 batches (pixels x groups fitted varied 178-446),
