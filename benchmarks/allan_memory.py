@@ -29,8 +29,10 @@ Until 2026-12-05 the bench was the simulation's defaults (the default preset's b
 levels, every pixel a science pixel; the same fringes, sweep and noise), in folders without ``_large``: its
 envelope, of mean 1 over the detector, saturated a 2048x2048 detector's centre (324,110 pixels; the fit
 failed). BENCHMARKS.md's rows at 512x512 and 1024x1024 before that date are of that bench. The same code on
-both benches at those sizes: the same batches, the tree's peaks within 2% (BENCHMARKS.md, "The Allan job at
-2048x2048, measured").
+both benches at those sizes: the same batches, the process tree's peaks (summed PSS and RSS) within 2%, the job's
+own peak RSS within 5% (4.6% less at 1024x1024) (BENCHMARKS.md, "The Allan job at 2048x2048, measured").
+
+Memory is reported in MiB (2^20 bytes; the fields named ``_mb``), as /proc gives it in KiB.
 
 Printed: per tree, batches, time (and over the plain pass), peak RSS, the step's own memory and that per pixel
 and per pixel and batch, the process tree's peaks and the phases' times; for each tree after the first, the
