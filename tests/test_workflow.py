@@ -1194,7 +1194,8 @@ def test_a_sweep_point_added_runs_only_its_job_and_one_removed_touches_no_other(
 
 @pytest.mark.slow  # 12 s dry run (2 idle cores, 2026-12-02): pytest -m slow
 def test_the_paper_target_plans_the_studies_and_the_comparison(workdir):
-    plan = snakemake(workdir, "paper", "-n", "--config", "dataset=ci").stdout
+    # every point forced: an earlier test's paper run (paper_run, other sweeps) may have made some of them
+    plan = snakemake(workdir, "paper", "-n", "--forcerun", "sweep_point", "--config", "dataset=ci").stdout
     for rule in ("sweep_point", "sweep_summary", "plot_offset_bias", "error_propagation_table", "paper_comparison",
                  "plot_chromatic_study"):
         assert f"rule {rule}:" in plan
