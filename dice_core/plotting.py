@@ -84,7 +84,12 @@ def _show_map(ax, fig, image, detector, *, title, units, scale, symmetric, clip_
     ax.set_xlabel("column x [pixel]\n" + _science_note(detector.shape, rows, cols), fontsize=9)
     ax.set_ylabel("row y [pixel]")
     ax.set_title(title, fontsize=9)
-    fig.colorbar(im, ax=ax, shrink=0.85).set_label(units)
+    # colours clipped to the percentiles (a few dust or hot pixels would flatten the rest): the bar's arrows
+    # and its label say so
+    below, above = bool(finite.size and finite.min() < lo), bool(finite.size and finite.max() > hi)
+    extend = {(True, True): "both", (True, False): "min", (False, True): "max"}.get((below, above), "neither")
+    label = units if extend == "neither" else f"{units}; colours clipped (arrows)"
+    fig.colorbar(im, ax=ax, shrink=0.85, extend=extend).set_label(label)
 
 
 def _science_note(shape, rows, cols):

@@ -485,6 +485,24 @@ def every_figure(rng):
                                        scale=1e3, suptitle="offsets")
 
 
+def test_a_map_whose_colours_are_clipped_says_so_with_the_values_span(rng):
+    """A PRNU map with a dust spot far below the rest: the colours span the 0.5-99.5 percentiles (the spot would
+    flatten the rest), and the colour bar says it with arrows and in its label; a map within its colour limits
+    (clip_percentile 0) says nothing of the kind."""
+    detector = Detector(shape=(40, 40), science_rows=(0, 40), science_cols=(0, 40), gain=2.0, saturation=6e4)
+    image = 1 + 3e-3 * rng.standard_normal((40, 40))
+    image[20:22, 20:22] = 0.95  # dust: -50e-3, 4 pixels of 1600 (under the 0.5 percentile's 8)
+    fig = plotting.map_figure(image - 1, detector, title="PRNU", units="PRNU - 1 [1e-3]", scale=1e3)
+    assert fig.axes[-1].get_ylabel() == "PRNU - 1 [1e-3]; colours clipped (arrows)"
+    assert fig.axes[0].images[0].colorbar.extend == "both"
+    lo, hi = fig.axes[0].images[0].get_clim()
+    assert -15 < lo < -5 and 5 < hi < 15  # the rest's spread, not the spot's
+    whole = plotting.map_figure(image - 1, detector, title="PRNU", units="PRNU - 1 [1e-3]", scale=1e3,
+                                clip_percentile=0.0)
+    assert whole.axes[-1].get_ylabel() == "PRNU - 1 [1e-3]"
+    assert whole.axes[0].images[0].colorbar.extend == "neither"
+
+
 def test_no_text_leaves_the_figure(rng):
     """Titles, labels, tick labels and legends all inside the figure: the PNG cuts what is outside."""
     for name, fig in every_figure(rng):
