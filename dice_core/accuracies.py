@@ -365,6 +365,11 @@ def removal_notes(removals: dict) -> list:
     return notes
 
 
+#: The macros :func:`latex_table` uses beyond LaTeX's own, each provided (not redefined) at the table's top.
+LATEX_MACROS = (r"\providecommand{\e}[1]{\times10^{#1}}",
+                r"\providecommand{\specialcell}[1]{\begin{tabular}[c]{@{}c@{}}#1\end{tabular}}")
+
+
 def _latex_value(value, error):
     exponent = int(np.floor(np.log10(abs(value)))) if value else 0
     return rf"${value / 10**exponent:.2f}\pm{error / 10**exponent:.2f}\e{{{exponent}}}$"
@@ -383,8 +388,9 @@ def latex_table(rows, *, notes=()) -> str:
         if r["mode"] not in _PAPER_MODES:
             extra.setdefault(r["mode"], {})[r["grouping"]] = r
     lines = [r"% Accuracies (pixel) with different calibrations; (p) over positions, (g) over groups.",
-             r"% \e{n} stands for x10^n and \specialcell makes a two-line cell, as in the paper.",
-             r"\begin{tabular}{lcc}", r"\hline", r" & No flat & Flat \\", r"\hline"]
+             r"% \e{n} stands for x10^n and \specialcell makes a two-line cell, as in the paper; both defined here",
+             r"% unless the document defines them (\providecommand), so that the file can be \input as it is.",
+             *LATEX_MACROS, r"\begin{tabular}{lcc}", r"\hline", r" & No flat & Flat \\", r"\hline"]
     for metrology in (False, True):
         entries = []
         for flat in (False, True):

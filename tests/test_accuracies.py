@@ -111,7 +111,15 @@ def test_accuracy_tables_gather_every_method_mode_and_superimposition(rng):
     # no tip-tilt to detect, so no pose accuracy is claimed
     assert np.all(np.isnan(tables.residuals["pose"]["tip_crlb"].values))
     assert "NOT identifiable" in tables.reports["gaussian raw"]
-    assert tables.latex.count(r"\begin{tabular}") == 4
+    assert tables.latex.count(r"\begin{tabular}{lcc}") == 4
+    # the file can be \input as it is: every macro beyond LaTeX's own is provided in it
+    import re
+
+    used = set(re.findall(r"\\([A-Za-z]+)", "\n".join(line for line in tables.latex.splitlines()
+                                                         if not line.startswith("%"))))
+    provided = set(re.findall(r"\\providecommand\{\\([A-Za-z]+)\}", tables.latex))
+    latex_own = {"begin", "end", "hline", "multicolumn", "footnotesize", "pm", "times", "providecommand"}
+    assert provided and used - latex_own <= provided, used - latex_own - provided
     csv = accuracies.accuracy_csv(tables.rows).splitlines()
     assert csv[0].endswith(",superimposition,unit") and csv[1].endswith(",procrustes,pixel")
     # header-compatible: the columns before the unit are those of the tables made before it, in their order
