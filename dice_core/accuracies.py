@@ -481,7 +481,7 @@ def residuals_dataset(datasets: dict, rows, *, residuals: dict, identifiability=
                 "all_position": datasets[modes[0]]["position"].values, "axis": ["x", "y"]})
     model = {r.get("superimposition", "procrustes") for r in rows}
     ds.attrs["superimposition"] = model.pop() if len(model) == 1 else ""
-    method = {r["method"] for r in rows if "method" in r}  # the centroids' (the table has every method's rows)
+    method = {r["method"] for r in rows if "method" in r}  # the centroids' (one method's rows; none: unsaid)
     ds.attrs["centroid_method"] = method.pop() if len(method) == 1 else ""
     if identifiability:
         n_pos = ds.sizes["position"]

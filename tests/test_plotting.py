@@ -85,7 +85,7 @@ def test_procrustes_sigma_lines_are_the_rms_of_the_residuals_shown(residuals_pro
     product, datasets = residuals_product
     fig = plotting.procrustes_figure(product)
     # the centroid method the residuals are of, recorded and said: the accuracy table has every method's rows
-    method = {ds.attrs["method"] for ds in (datasets.values() if isinstance(datasets, dict) else datasets)}
+    method = {ds.attrs["method"] for ds in datasets.values()}
     assert {product.attrs["centroid_method"]} == method
     assert f"({product.attrs['centroid_method']} centroids)" in fig._suptitle.get_text()
     for ax, mode in zip(fig.axes, product["mode"].values):
